@@ -1,0 +1,59 @@
+"""One exception hierarchy, each class carrying its exit code.
+
+The CLI maps these to one-line messages in one place (``cli.main``); the library
+never prints. Messages name the file, the prim and what is wrong.
+"""
+
+from __future__ import annotations
+
+
+class PsdError(Exception):
+    """Base class: a clean psdbake refusal (no traceback is shown to users)."""
+
+    exit_code = 1
+
+
+class InputError(PsdError):
+    """An input file, prim or attribute is missing, malformed or inconsistent."""
+
+    exit_code = 3
+
+
+class FitError(PsdError):
+    """The inputs are readable but the fit is ill-posed (e.g. duplicate poses)."""
+
+    exit_code = 4
+
+
+class DeformerError(PsdError):
+    """A user ``--deformer`` could not be loaded or returned bad data."""
+
+    exit_code = 5
+
+
+class OutputError(PsdError):
+    """The output cannot be written (folder missing, read-only, equals an input)."""
+
+    exit_code = 6
+
+
+class StrictError(PsdError):
+    """``--strict``: some vertices missed tolerance; nothing was written."""
+
+    exit_code = 7
+
+
+class PsdWarning(UserWarning):
+    """Something users should know about that does not stop the run."""
+
+
+def where(file: str | None = None, prim: str | None = None, attr: str | None = None) -> str:
+    """Format a location as ``file <prim>.attr`` for error messages."""
+    parts = []
+    if file:
+        parts.append(str(file))
+    if prim:
+        parts.append(f"<{prim}{'.' + attr if attr else ''}>")
+    elif attr:
+        parts.append(attr)
+    return " ".join(parts)

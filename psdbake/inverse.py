@@ -1,0 +1,155 @@
+"""The black-box inverse of one example: which vertices, solve, how well.
+
+For example i with black box ``SKINNING_i`` (rest points -> posed points), find for
+every sculpted vertex v the rest-space offset d'_v minimising::
+
+    || sculpt_v - SKINNING_i(rest + d')_v ||^2
+
+The solver only *calls* ``SKINNING_i``; it never reads joint weights or matrices.
+All sculpted vertices are solved together by ``powell.minimize_lockstep`` (one
+black-box call evaluates every vertex's trial point), started from the one-shot
+linearisation: three extra calls give a forward-difference Jacobian J per vertex,
+whose inverse columns are conjugate directions for ``|J d - r|^2`` and whose
+solution ``J^-1 r`` is the starting point. Powell's own line minimisations and
+direction updates then handle whatever is not linear. This assumes each output
+vertex depends on its own input vertex only, as skinning does (the paper's
+per-vertex formulation); a user deformer that couples vertices is solved
+approximately.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from . import powell
+from . import tolerances as tol
+
+Points = NDArray[np.float64]  # (n, 3)
+BlackBox = Callable[[Points], Points]
+
+
+@dataclass(frozen=True)
+class InverseResult:
+    """Rest-space offsets for the sculpted vertices of one example."""
+
+    indices: NDArray[np.int64]  # (k,) sculpted vertex indices, ascending
+    offsets: NDArray[np.float64]  # (k, 3) rest-space offsets d'
+    residual: NDArray[np.float64]  # (k,) |sculpt - SKINNING(rest + d')| per vertex
+    status: NDArray[np.int8]  # (k,) powell status codes
+    evaluations: int  # black-box calls, all of them (detection, Jacobian, Powell)
+    diagonal: float  # bounding-box diagonal of the sculpt, the unit of tolerances
+    atol: float  # absolute residual tolerance used
+    seconds: float
+
+    @property
+    def missed(self) -> NDArray[np.int64]:
+        """Indices of vertices that did not reach the tolerance."""
+        return self.indices[self.status != powell.CONVERGED]
+
+    @property
+    def max_residual(self) -> float:
+        return float(self.residual.max()) if len(self.residual) else 0.0
+
+    @property
+    def rms_residual(self) -> float:
+        return float(np.sqrt(np.mean(self.residual**2))) if len(self.residual) else 0.0
+
+
+def _jacobians(
+    blackbox: BlackBox, rest: Points, idx: NDArray[np.int64], base: Points, step: float
+) -> NDArray[np.float64]:
+    """Forward-difference d posed / d rest at every sculpted vertex: 3 black-box calls."""
+    jac = np.empty((len(idx), 3, 3))
+    for axis in range(3):
+        moved = rest.copy()
+        moved[idx, axis] += step
+        jac[:, :, axis] = (blackbox(moved)[idx] - base) / step
+    return jac
+
+
+def _conjugate_start(
+    jac: NDArray[np.float64], r0: Points
+) -> tuple[NDArray[np.float64], Points, NDArray[np.bool_]]:
+    """Directions J^-1 e_j and start J^-1 r per vertex; identity/zero where J is singular."""
+    s = np.linalg.svd(jac, compute_uv=False)
+    ok = s[:, -1] > tol.JACOBIAN_RCOND * np.maximum(s[:, 0], 1e-300)
+    directions = np.tile(np.eye(3), (len(jac), 1, 1))
+    start = np.zeros_like(r0)
+    if ok.any():
+        inv = np.linalg.inv(jac[ok])
+        directions[ok] = np.transpose(inv, (0, 2, 1))  # row j = column j of J^-1
+        start[ok] = np.einsum("kab,kb->ka", inv, r0[ok])
+    return directions, start, ok
+
+
+def invert_example(
+    blackbox: BlackBox,
+    rest: Points,
+    sculpt: Points,
+    *,
+    rtol: float = tol.INVERSE_RTOL,
+    max_cycles: int = tol.POWELL_MAX_CYCLES,
+) -> InverseResult:
+    """Solve the rest-space offsets that make ``blackbox`` reproduce ``sculpt``.
+
+    rest, sculpt: (n, 3) float64. rtol: residual tolerance as a fraction of the
+    sculpt's bounding-box diagonal (never below the float32 floor of the data).
+    """
+    started = time.perf_counter()
+    rest = np.asarray(rest, dtype=np.float64)
+    sculpt = np.asarray(sculpt, dtype=np.float64)
+    calls = 0
+
+    def call(points: Points) -> Points:
+        nonlocal calls
+        calls += 1
+        return blackbox(points)
+
+    diagonal = tol.bbox_diagonal(sculpt)
+    floor = tol.float32_floor(np.concatenate([sculpt, rest]))
+    atol = max(rtol * diagonal, floor)
+    unmoved = max(tol.UNMOVED_RTOL * diagonal, floor)
+
+    posed_rest = call(rest)
+    idx = np.nonzero(np.linalg.norm(sculpt - posed_rest, axis=1) > unmoved)[0].astype(np.int64)
+    if len(idx) == 0:
+        return InverseResult(
+            indices=idx, offsets=np.zeros((0, 3)), residual=np.zeros(0), status=np.zeros(0, np.int8),
+            evaluations=calls, diagonal=diagonal, atol=atol, seconds=time.perf_counter() - started,
+        )
+    target = sculpt[idx]
+    r0 = target - posed_rest[idx]
+    step = tol.JACOBIAN_STEP_RTOL * max(diagonal, floor)
+    jac = _jacobians(call, rest, idx, posed_rest[idx], step)
+    directions, start, _ = _conjugate_start(jac, r0)
+
+    def residual(offsets: NDArray[np.float64]) -> NDArray[np.float64]:
+        moved = rest.copy()
+        moved[idx] += offsets
+        return target - call(moved)[idx]
+
+    # Keep the linearised start only where it improves on zero offset.
+    r_start = residual(start)
+    worse = np.einsum("ij,ij->i", r_start, r_start) > np.einsum("ij,ij->i", r0, r0)
+    worse |= ~np.all(np.isfinite(r_start), axis=1)
+    start[worse], r_start[worse] = 0.0, r0[worse]
+
+    result = powell.minimize_lockstep(
+        residual, start, directions=directions, jacobian=jac, r0=r_start,
+        atol=atol, min_step=floor, max_cycles=max_cycles,
+    )
+    return InverseResult(
+        indices=idx,
+        offsets=result.x,
+        residual=result.residual_norm,
+        status=result.status,
+        evaluations=calls,
+        diagonal=diagonal,
+        atol=atol,
+        seconds=time.perf_counter() - started,
+    )

@@ -1,0 +1,167 @@
+"""Cardinal RBF weights over pose space.
+
+Model. Example poses c_0..c_{k-1} (pose coordinates, see ``posespace``) and, for
+each corrective shape s, the cardinal interpolant b_s with b_s(c_i) = [i == s]::
+
+    b_s(x) = sum_i C[i, s] phi(eps |x - c_i|) + sum_m C[k + m, s] prod_d xhat_d ^ P[m, d]
+    xhat   = (x - shift) / scale
+
+phi is the kernel (table ``KERNELS``), eps = 1/sigma, P the monomial powers of the
+polynomial term of degree ``degree`` (-1: none). The corrective at pose x is then
+sum_s b_s(x) d'_s: each example's rest-space offsets d'_s are one UsdSkel BlendShape
+and b_s(x) its weight. An implicit bind-pose example (zero corrective) is a centre
+with no output column.
+
+Fitting is ``scipy.interpolate.RBFInterpolator`` with the identity as data; its
+solved coefficients, shift, scale and powers are copied out so that any program can
+evaluate the formula above (``CardinalRbf.weights`` is that evaluation, checked
+against scipy at fit time).
+
+Automatic sigma: the mean, over centres, of the distance to the nearest other
+centre (the typical spacing of the examples), so each Gaussian reaches its
+neighbours at exp(-1) ~ 0.37.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.interpolate import RBFInterpolator
+from scipy.spatial.distance import cdist
+
+from . import tolerances as tol
+from .errors import FitError
+
+#: phi(r) for r = eps |x - c|, exactly as scipy.interpolate.RBFInterpolator defines them.
+KERNELS = {
+    "gaussian": lambda r: np.exp(-(r**2)),
+    "linear": lambda r: -r,
+    "thin_plate_spline": lambda r: np.where(r > 0, r**2 * np.log(np.where(r > 0, r, 1.0)), 0.0),
+    "cubic": lambda r: r**3,
+    "quintic": lambda r: -(r**5),
+    "multiquadric": lambda r: -np.sqrt(r**2 + 1.0),
+    "inverse_multiquadric": lambda r: 1.0 / np.sqrt(r**2 + 1.0),
+    "inverse_quadratic": lambda r: 1.0 / (r**2 + 1.0),
+}
+#: Kernels that need at least this polynomial degree to be well posed (scipy's rule).
+MIN_DEGREE = {"multiquadric": 0, "linear": 0, "thin_plate_spline": 1, "cubic": 1, "quintic": 2}
+#: Kernels whose shape does not depend on eps: sigma is meaningless and stored as 1.
+SCALE_FREE = frozenset({"linear", "thin_plate_spline", "cubic", "quintic"})
+
+
+@dataclass(frozen=True)
+class CardinalRbf:
+    """Everything needed to evaluate the cardinal weights b_s(x)."""
+
+    centers: NDArray[np.float64]  # (k, d) example pose coordinates (bind pose included)
+    kernel: str
+    sigma: float  # eps = 1 / sigma
+    degree: int  # polynomial degree, -1 for none
+    smoothing: float
+    coefficients: NDArray[np.float64]  # (k + p, s)
+    powers: NDArray[np.int64]  # (p, d)
+    shift: NDArray[np.float64]  # (d,)
+    scale: NDArray[np.float64]  # (d,)
+
+    @property
+    def epsilon(self) -> float:
+        return 1.0 / self.sigma
+
+    def weights(self, x: NDArray[np.float64]) -> NDArray[np.float64]:
+        """b(x): (f, d) pose coordinates -> (f, s) weights, by the documented formula."""
+        x = np.atleast_2d(np.asarray(x, dtype=np.float64))
+        k = len(self.centers)
+        r = self.epsilon * cdist(x, self.centers)
+        basis = KERNELS[self.kernel](r)
+        if len(self.powers):
+            xhat = (x - self.shift) / self.scale
+            poly = np.prod(xhat[:, None, :] ** self.powers[None, :, :], axis=2)
+            basis = np.concatenate([basis, poly], axis=1)
+        return basis @ self.coefficients[: k + len(self.powers)]
+
+
+def default_degree(kernel: str) -> int:
+    """No polynomial term unless the kernel needs one (Gaussian: none)."""
+    return MIN_DEGREE.get(kernel, -1)
+
+
+def auto_sigma(centers: NDArray[np.float64]) -> float:
+    """Mean nearest-neighbour distance between centres (DEFAULT_SIGMA for one centre)."""
+    if len(centers) < 2:
+        return tol.DEFAULT_SIGMA
+    d = cdist(centers, centers)
+    np.fill_diagonal(d, np.inf)
+    sigma = float(np.mean(d.min(axis=1)))
+    return sigma if sigma > 0 else tol.DEFAULT_SIGMA
+
+
+def check_distinct(centers: NDArray[np.float64], labels: Sequence[str]) -> list[tuple[str, str, float]]:
+    """Raise on duplicate poses; return near-duplicate pairs (label, label, distance)."""
+    d = cdist(centers, centers)
+    near = []
+    for i in range(len(centers)):
+        for j in range(i + 1, len(centers)):
+            if d[i, j] < tol.DUPLICATE_POSE_ATOL:
+                raise FitError(
+                    f"examples {labels[i]} and {labels[j]} have the same pose "
+                    f"(distance {d[i, j]:.2e} rad in pose space): remove one or merge their sculpts"
+                )
+            if d[i, j] < tol.NEAR_DUPLICATE_POSE_ATOL:
+                near.append((labels[i], labels[j], float(d[i, j])))
+    return near
+
+
+def fit_cardinal(
+    centers: NDArray[np.float64],
+    outputs: Sequence[int],
+    labels: Sequence[str],
+    *,
+    kernel: str = "gaussian",
+    sigma: float | None = None,
+    degree: int | None = None,
+    smoothing: float = 0.0,
+) -> CardinalRbf:
+    """Fit cardinal weights: one output column per centre index in ``outputs``.
+
+    centers: (k, d) example poses; labels name them in errors.
+    """
+    centers = np.asarray(centers, dtype=np.float64)
+    if kernel not in KERNELS:
+        raise FitError(f"unknown kernel {kernel!r}: choose one of {', '.join(sorted(KERNELS))}")
+    check_distinct(centers, labels)
+    deg = default_degree(kernel) if degree is None else int(degree)
+    if deg < MIN_DEGREE.get(kernel, -1):
+        raise FitError(f"kernel {kernel!r} needs a polynomial degree of at least {MIN_DEGREE[kernel]} (got {deg})")
+    if kernel in SCALE_FREE:
+        sig = 1.0
+    else:
+        sig = auto_sigma(centers) if sigma is None else float(sigma)
+    if not (np.isfinite(sig) and sig > 0):
+        raise FitError(f"sigma must be a positive number of radians (got {sig})")
+    data = np.eye(len(centers))[:, list(outputs)]
+    try:
+        interp = RBFInterpolator(centers, data, kernel=kernel, epsilon=1.0 / sig, degree=deg, smoothing=smoothing)
+    except (ValueError, np.linalg.LinAlgError) as exc:
+        raise FitError(
+            f"the RBF system over examples {', '.join(labels)} is singular ({exc}); "
+            f"with {len(centers)} poses in {centers.shape[1]} pose dimensions, try a lower --degree, "
+            "fewer --driver joints or more examples"
+        ) from None
+    model = CardinalRbf(
+        centers=centers,
+        kernel=kernel,
+        sigma=sig,
+        degree=deg,
+        smoothing=float(smoothing),
+        coefficients=np.array(interp._coeffs, dtype=np.float64),
+        powers=np.array(interp.powers, dtype=np.int64).reshape(-1, centers.shape[1]),
+        shift=np.array(interp._shift, dtype=np.float64),
+        scale=np.array(interp._scale, dtype=np.float64),
+    )
+    # Guard the copy of scipy's internals: the documented formula must equal scipy.
+    if not np.allclose(model.weights(centers), interp(centers), rtol=0, atol=1e-9):
+        raise RuntimeError("scipy RBFInterpolator internals changed: stored coefficients no longer reproduce it")
+    return model

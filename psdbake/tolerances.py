@@ -1,0 +1,77 @@
+"""Named numeric defaults, each with the reason for its value.
+
+Lengths are relative to the mesh's bounding-box diagonal unless stated, so the
+same defaults work for a 2 cm eyebrow and a 20 m dragon.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+#: float32 machine epsilon: USD stores points, offsets and skinning results as float32.
+EPS32 = float(np.finfo(np.float32).eps)
+
+#: Default inverse tolerance (fraction of the diagonal). float32 round-off of a
+#: skinned point is ~1e-7 of its magnitude, so 1e-6 is reachable yet ten times
+#: tighter than the 1e-5 round-trip guarantee.
+INVERSE_RTOL = 1e-6
+
+#: The inverse can never beat float32 round-off of the black box's output: the
+#: absolute floor is this many float32 ulps of the largest coordinate.
+FLOAT32_FLOOR_ULPS = 16.0
+
+#: A vertex whose sculpt is within this fraction of the diagonal of the skinned
+#: rest (and above the float32 floor) was not moved by the artist: no corrective.
+UNMOVED_RTOL = 1e-6
+
+#: Finite-difference step for the initial Jacobian (fraction of the diagonal).
+#: Large enough that float32 noise in the black box (~1e-7 of the diagonal)
+#: perturbs the Jacobian by ~1e-5 only; Powell corrects what the secant misses.
+JACOBIAN_STEP_RTOL = 1e-2
+
+#: Powell's relative decrease test (as scipy's ``ftol``): a cycle that improves
+#: a vertex's objective by less than this fraction means it has stalled.
+POWELL_FTOL = 1e-10
+
+#: Upper bound on Powell cycles per vertex (each cycle: 3 line minimisations).
+POWELL_MAX_CYCLES = 30
+
+#: Parabolic steps may extrapolate at most this many trial steps (scipy's Brent
+#: bracket uses a grow limit of 110; 8 keeps a bad model from flinging a vertex).
+LINE_SEARCH_GROW_LIMIT = 8.0
+
+#: A Jacobian whose smallest singular value is below this fraction of its largest
+#: is treated as singular (e.g. a zero-scale joint): Powell then starts from the
+#: identity directions instead of the linearised guess.
+JACOBIAN_RCOND = 1e-6
+
+#: Two example poses closer than this (radians, Euclidean in pose coordinates)
+#: are the same pose: the RBF system would be singular.
+DUPLICATE_POSE_ATOL = 1e-4
+
+#: Poses closer than this (radians) are near-duplicates: legal but worth a warning.
+NEAR_DUPLICATE_POSE_ATOL = 1e-2
+
+#: A joint is "rotated" in an example (and becomes a default driver) when its
+#: rotation away from the bind pose exceeds this angle (radians). Exported
+#: float32 quaternions carry ~1e-7 rad of noise.
+DRIVER_ANGLE_ATOL = 1e-5
+
+#: Automatic sigma falls back to this (radians) with only one example pose.
+DEFAULT_SIGMA = 1.0
+
+#: The RBF must give each example a weight of at least this at its own pose.
+SELF_WEIGHT_MIN = 0.99
+
+
+def float32_floor(points: np.ndarray) -> float:
+    """Smallest residual the float32 black box can resolve for these points."""
+    scale = float(np.max(np.abs(points))) if points.size else 0.0
+    return FLOAT32_FLOOR_ULPS * EPS32 * max(scale, 1e-30)
+
+
+def bbox_diagonal(points: np.ndarray) -> float:
+    """Length of the axis-aligned bounding-box diagonal (0 for empty input)."""
+    if len(points) == 0:
+        return 0.0
+    return float(np.linalg.norm(points.max(axis=0) - points.min(axis=0)))

@@ -1,0 +1,144 @@
+"""SKINNING_t: rest points -> posed points in mesh local space, through UsdSkel itself.
+
+For one mesh at one time code the black box is, in order:
+
+1. the mesh's existing blend shapes at the animation's weights for that time
+   (``UsdSkel.BlendShapeQuery.ComputeDeformedPoints``);
+2. ``UsdSkel.SkinningQuery.ComputeSkinnedPoints`` with the skeleton's skinning
+   transforms at that time (LBS or DQS, whatever the asset says);
+3. skeleton space -> mesh local space (skel local-to-world . mesh world-to-local),
+   the space in which ``UsdSkel.BakeSkinning`` writes points;
+4. the user's ``--deformer`` chain, in order.
+
+UsdSkel computes in float32, so the black box is float32-accurate: the solver
+tolerances (``tolerances``) account for that. Callers never see inside: this module
+is the only one that knows what the function does.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+
+import numpy as np
+from numpy.typing import NDArray
+from pxr import Usd, UsdGeom, UsdSkel, Vt
+
+from ..errors import InputError, where
+from .read import Scene
+
+Points = NDArray[np.float64]  # (n, 3)
+PointFn = Callable[[Points], Points]
+DeformerFactory = Callable[[Usd.Stage, str, float], PointFn]
+
+
+class _BlendShapes:
+    """The mesh's existing blend shapes at the weights of one time code."""
+
+    def __init__(self, scene: Scene, mesh: str, time: Usd.TimeCode) -> None:
+        query, skel_query = scene.query(mesh)
+        self.active = False
+        if not query.HasBlendShapes():
+            return
+        anim = skel_query.GetAnimQuery()
+        binding = UsdSkel.BindingAPI(scene.prim(mesh))
+        bs_query = UsdSkel.BlendShapeQuery(binding)
+        if not anim or bs_query.GetNumBlendShapes() == 0:
+            return
+        weights = anim.ComputeBlendShapeWeights(time)
+        mapper = query.GetBlendShapeMapper()
+        if mapper is None or weights is None:
+            return
+        weights = mapper.Remap(weights)
+        sub_weights, bs_indices, sub_indices = bs_query.ComputeSubShapeWeights(weights)
+        if not any(float(w) != 0.0 for w in sub_weights):
+            return
+        self.args = (
+            sub_weights,
+            bs_indices,
+            sub_indices,
+            bs_query.ComputeBlendShapePointIndices(),
+            bs_query.ComputeSubShapePointOffsets(),
+        )
+        self.query = bs_query
+        self.active = True
+
+    def apply(self, points: Vt.Vec3fArray) -> None:
+        if self.active:
+            self.query.ComputeDeformedPoints(*self.args, points)
+
+
+def _matrix(m) -> NDArray[np.float64]:
+    return np.array(m, dtype=np.float64).reshape(4, 4)
+
+
+class SkinningBlackBox:
+    """Callable SKINNING_t for one mesh: (n, 3) float64 rest -> (n, 3) float64 posed.
+
+    ``evaluations`` counts calls.
+    """
+
+    def __init__(
+        self,
+        scene: Scene,
+        mesh: str,
+        time: float,
+        deformers: Sequence[tuple[str, DeformerFactory]] = (),
+    ) -> None:
+        self.mesh = mesh
+        self.time = float(time)
+        self.label = scene.label
+        tc = Usd.TimeCode(time)
+        self._query, skel_query = scene.query(mesh)
+        self._tc = tc
+        self._xforms = skel_query.ComputeSkinningTransforms(tc)
+        if self._xforms is None:
+            raise InputError(f"{where(scene.label, mesh)}: UsdSkel cannot compute skinning transforms at time {time:g}")
+        self._blend = _BlendShapes(scene, mesh, tc)
+        skel_to_world = _matrix(UsdGeom.Xformable(skel_query.GetPrim()).ComputeLocalToWorldTransform(tc))
+        mesh_to_world = _matrix(UsdGeom.Xformable(scene.prim(mesh)).ComputeLocalToWorldTransform(tc))
+        to_local = skel_to_world @ np.linalg.inv(mesh_to_world)
+        self._linear, self._translate = to_local[:3, :3], to_local[3, :3]
+        self._deformers: list[tuple[str, PointFn]] = [
+            (spec, factory(scene.stage, mesh, self.time)) for spec, factory in deformers
+        ]
+        self.evaluations = 0
+
+    def skin(self, points: Points) -> Points:
+        """Blend shapes + UsdSkel skinning + skel->local, without the user deformers."""
+        vt = Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(points, dtype=np.float32))
+        self._blend.apply(vt)
+        if not self._query.ComputeSkinnedPoints(self._xforms, vt, self._tc):
+            raise InputError(f"{where(self.label, self.mesh)}: UsdSkel failed to skin the points at time {self.time:g}")
+        posed = np.asarray(vt, dtype=np.float64).reshape(-1, 3)
+        return posed @ self._linear + self._translate
+
+    def __call__(self, points: Points) -> Points:
+        self.evaluations += 1
+        posed = self.skin(points)
+        for spec, fn in self._deformers:
+            posed = _checked(spec, fn, posed, self)
+        return posed
+
+
+def _checked(spec: str, fn: PointFn, points: Points, box: SkinningBlackBox) -> Points:
+    from ..errors import DeformerError
+
+    try:
+        out = fn(points.copy())
+    except Exception as exc:  # noqa: BLE001 - user code: any failure becomes a clean error
+        raise DeformerError(
+            f"deformer {spec} failed on {where(box.label, box.mesh)} at time {box.time:g}: "
+            f"{type(exc).__name__}: {exc}"
+        ) from None
+    out = np.asarray(out, dtype=np.float64) if out is not None else None
+    if out is None or out.shape != points.shape:
+        shape = None if out is None else out.shape
+        raise DeformerError(
+            f"deformer {spec} returned shape {shape} for {where(box.label, box.mesh)} "
+            f"at time {box.time:g}, expected {points.shape}"
+        )
+    if not np.all(np.isfinite(out)):
+        raise DeformerError(
+            f"deformer {spec} returned NaN or inf for {where(box.label, box.mesh)} at time {box.time:g}"
+        )
+    return out

@@ -1,0 +1,205 @@
+"""Stage -> skinned meshes, rest points, poses and sculpted examples (validated, sorted).
+
+Composition: every command opens an in-memory root layer whose sublayers are the
+given files, strongest first (e.g. ``[EXAMPLES, ASSET]``), so ``POSES``/``EXAMPLES``/
+``ANIM`` layers need not reference ASSET. Inputs are opened read-only and never
+saved.
+
+Gf convention: matrices are row-vector (p' = p . M); they are converted to numpy
+(4, 4) arrays unchanged and interpreted in ``posespace``.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+from pxr import Sdf, Tf, Usd, UsdGeom, UsdSkel
+
+from ..errors import InputError, where
+
+
+@dataclass(frozen=True)
+class SkinnedMesh:
+    """A skinned point-based prim and the skeleton that deforms it."""
+
+    path: str
+    skeleton: str
+    skel_root: str
+    joints: tuple[str, ...]  # skeleton joint order (full joint paths)
+    point_count: int
+
+
+def _first_line(exc: BaseException) -> str:
+    text = str(exc).strip().splitlines()
+    return (text[0] if text else type(exc).__name__).strip()
+
+
+def open_layer(path: str) -> Sdf.Layer:
+    """Open one input file read-only, or raise InputError naming it."""
+    if not os.path.exists(path):
+        raise InputError(f"{path}: file not found")
+    if os.path.isdir(path):
+        raise InputError(f"{path}: is a folder, not a USD file")
+    if not os.access(path, os.R_OK):
+        raise InputError(f"{path}: file is not readable (permission denied)")
+    try:
+        layer = Sdf.Layer.FindOrOpen(path)
+    except Tf.ErrorException as exc:
+        raise InputError(f"{path}: not a readable USD file ({_first_line(exc)})") from None
+    if layer is None:
+        raise InputError(f"{path}: not a readable USD file")
+    return layer
+
+
+def compose(files: Sequence[str]) -> Usd.Stage:
+    """A stage over the given files, strongest first; inputs stay untouched."""
+    root = Sdf.Layer.CreateAnonymous("psdbake.usda")
+    for path in files:
+        layer = open_layer(path)
+        root.subLayerPaths.append(layer.identifier)
+    try:
+        stage = Usd.Stage.Open(root, Usd.Stage.LoadAll)
+    except Tf.ErrorException as exc:
+        raise InputError(f"{files[0]}: cannot compose ({_first_line(exc)})") from None
+    errors = stage.GetCompositionErrors() if hasattr(stage, "GetCompositionErrors") else []
+    if errors:
+        raise InputError(f"{files[0]}: composition error: {_first_line(Exception(errors[0].GetErrorMessage()))}")
+    return stage
+
+
+def _matrices(values) -> NDArray[np.float64]:
+    return np.array([np.array(m, dtype=np.float64) for m in values], dtype=np.float64).reshape(-1, 4, 4)
+
+
+class Scene:
+    """A composed stage with its UsdSkel cache: the skinned meshes and their skeletons."""
+
+    def __init__(self, files: Sequence[str], label: str | None = None) -> None:
+        self.files = list(files)
+        self.label = label or self.files[0]
+        self.stage = compose(self.files)
+        self.cache = UsdSkel.Cache()
+        self._targets: dict[str, tuple[UsdSkel.SkinningQuery, UsdSkel.SkeletonQuery, str]] = {}
+        predicate = Usd.TraverseInstanceProxies()
+        roots = [p for p in self.stage.Traverse(predicate) if p.IsA(UsdSkel.Root)]
+        for prim in sorted(roots, key=lambda p: str(p.GetPath())):
+            root = UsdSkel.Root(prim)
+            self.cache.Populate(root, predicate)
+            for binding in self.cache.ComputeSkelBindings(root, predicate):
+                skel_query = self.cache.GetSkelQuery(binding.GetSkeleton())
+                for query in binding.GetSkinningTargets():
+                    target = query.GetPrim()
+                    if not target.IsA(UsdGeom.PointBased):
+                        continue
+                    self._targets.setdefault(str(target.GetPath()), (query, skel_query, str(prim.GetPath())))
+
+    # -- what is here ---------------------------------------------------------------
+    def skinned_meshes(self) -> list[SkinnedMesh]:
+        """Every skinned point-based prim, sorted by path."""
+        out = []
+        for path in sorted(self._targets):
+            query, skel_query, root = self._targets[path]
+            if not skel_query:
+                raise InputError(f"{where(self.label, path)}: bound skeleton is invalid")
+            out.append(
+                SkinnedMesh(
+                    path=path,
+                    skeleton=str(skel_query.GetSkeleton().GetPrim().GetPath()),
+                    skel_root=root,
+                    joints=tuple(str(j) for j in skel_query.GetJointOrder()),
+                    point_count=len(self.rest_points(path)),
+                )
+            )
+        return out
+
+    def require_skinned(self) -> None:
+        """Raise InputError when the stage has no SkelRoot or no skinned mesh."""
+        roots = [p for p in self.stage.Traverse(Usd.TraverseInstanceProxies()) if p.IsA(UsdSkel.Root)]
+        if not roots:
+            raise InputError(f"{self.label}: no SkelRoot prim found (UsdSkel needs one above the skinned meshes)")
+        if not self._targets:
+            names = ", ".join(f"<{p.GetPath()}>" for p in roots)
+            raise InputError(
+                f"{self.label}: no skinned mesh under {names} "
+                "(a Mesh needs UsdSkelBindingAPI with skel:skeleton, jointIndices and jointWeights)"
+            )
+
+    def query(self, mesh: str) -> tuple[UsdSkel.SkinningQuery, UsdSkel.SkeletonQuery]:
+        if mesh not in self._targets:
+            raise InputError(f"{where(self.label, mesh)}: not a skinned mesh in this stage")
+        query, skel_query, _ = self._targets[mesh]
+        return query, skel_query
+
+    def prim(self, path: str) -> Usd.Prim:
+        return self.stage.GetPrimAtPath(path)
+
+    # -- values ---------------------------------------------------------------------
+    def rest_points(self, mesh: str) -> NDArray[np.float64]:
+        """The mesh's authored (default-time) points, float64 (n, 3)."""
+        attr = UsdGeom.PointBased(self.prim(mesh)).GetPointsAttr()
+        value = attr.Get(Usd.TimeCode.Default())
+        if value is None:
+            raise InputError(f"{where(self.label, mesh, 'points')}: no rest points authored")
+        pts = np.array(value, dtype=np.float64).reshape(-1, 3)
+        if not np.all(np.isfinite(pts)):
+            raise InputError(f"{where(self.label, mesh, 'points')}: rest points contain NaN or inf")
+        return pts
+
+    def animation_times(self, mesh: str) -> list[float]:
+        """Authored time samples of the skeleton's animation (joints and blend shapes)."""
+        _, skel_query = self.query(mesh)
+        anim = skel_query.GetAnimQuery()
+        if not anim:
+            return []
+        times = set(anim.GetJointTransformTimeSamples()) | set(anim.GetBlendShapeWeightTimeSamples())
+        return sorted(float(t) for t in times)
+
+    def animation_prim(self, mesh: str) -> str | None:
+        _, skel_query = self.query(mesh)
+        anim = skel_query.GetAnimQuery()
+        return str(anim.GetPrim().GetPath()) if anim else None
+
+    def joint_local_transforms(self, mesh: str, time: float) -> NDArray[np.float64]:
+        """Skeleton-order local joint transforms at time (UsdSkel's own computation)."""
+        _, skel_query = self.query(mesh)
+        return _matrices(skel_query.ComputeJointLocalTransforms(Usd.TimeCode(time)))
+
+    def bind_local_transforms(self, mesh: str) -> NDArray[np.float64]:
+        """Local transforms of the bind pose (where skinning is the identity).
+
+        UsdSkel's bindTransforms are skeleton-space; local_j = bind_j . bind_parent^-1.
+        """
+        _, skel_query = self.query(mesh)
+        skel = skel_query.GetSkeleton()
+        world = _matrices(skel.GetBindTransformsAttr().Get() or [])
+        parents = np.array(skel_query.GetTopology().GetParentIndices(), dtype=np.int64)
+        if len(world) != len(parents):
+            raise InputError(
+                f"{where(self.label, str(skel.GetPrim().GetPath()), 'bindTransforms')}: "
+                f"{len(world)} matrices for {len(parents)} joints"
+            )
+        local = world.copy()
+        has_parent = parents >= 0
+        local[has_parent] = world[has_parent] @ np.linalg.inv(world[parents[has_parent]])
+        return local
+
+    def authored_point_samples(self, layer: Sdf.Layer, mesh: str) -> list[float]:
+        """Time codes at which ``layer`` itself authors points samples for mesh."""
+        spec_path = Sdf.Path(mesh).AppendProperty("points")
+        return sorted(float(t) for t in layer.ListTimeSamplesForPath(spec_path))
+
+    def point_sample(self, layer: Sdf.Layer, mesh: str, time: float) -> NDArray[np.float64]:
+        spec_path = Sdf.Path(mesh).AppendProperty("points")
+        value = layer.QueryTimeSample(spec_path, time)
+        if value is None:
+            raise InputError(f"{where(layer.identifier, mesh, 'points')}: time sample {time:g} is not a point array")
+        try:
+            return np.array(value, dtype=np.float64).reshape(-1, 3)
+        except (TypeError, ValueError):
+            raise InputError(
+                f"{where(layer.identifier, mesh, 'points')}: time sample {time:g} is not a point array"
+            ) from None
