@@ -55,11 +55,13 @@ def open_layer(path: str) -> Sdf.Layer:
     return layer
 
 
-def compose(files: Sequence[str]) -> Usd.Stage:
-    """A stage over the given files, strongest first; inputs stay untouched."""
+def compose(files: Sequence[str | Sdf.Layer]) -> Usd.Stage:
+    """A stage over the given files (or in-memory layers), strongest first; inputs stay untouched."""
     root = Sdf.Layer.CreateAnonymous("psdbake.usda")
-    for path in files:
-        layer = open_layer(path)
+    keep = []
+    for item in files:
+        layer = item if isinstance(item, Sdf.Layer) else open_layer(item)
+        keep.append(layer)
         root.subLayerPaths.append(layer.identifier)
     try:
         stage = Usd.Stage.Open(root, Usd.Stage.LoadAll)
@@ -68,6 +70,7 @@ def compose(files: Sequence[str]) -> Usd.Stage:
     errors = stage.GetCompositionErrors() if hasattr(stage, "GetCompositionErrors") else []
     if errors:
         raise InputError(f"{files[0]}: composition error: {_first_line(Exception(errors[0].GetErrorMessage()))}")
+    stage.psdbake_layers = keep  # keep in-memory sublayers alive as long as the stage
     return stage
 
 
@@ -78,9 +81,9 @@ def _matrices(values) -> NDArray[np.float64]:
 class Scene:
     """A composed stage with its UsdSkel cache: the skinned meshes and their skeletons."""
 
-    def __init__(self, files: Sequence[str], label: str | None = None) -> None:
+    def __init__(self, files: Sequence[str | Sdf.Layer], label: str | None = None) -> None:
         self.files = list(files)
-        self.label = label or self.files[0]
+        self.label = label or str(self.files[0])
         self.stage = compose(self.files)
         self.cache = UsdSkel.Cache()
         self._targets: dict[str, tuple[UsdSkel.SkinningQuery, UsdSkel.SkeletonQuery, str]] = {}
@@ -203,3 +206,111 @@ class Scene:
             raise InputError(
                 f"{where(layer.identifier, mesh, 'points')}: time sample {time:g} is not a point array"
             ) from None
+
+
+#: psd: schema versions this psdbake reads.
+READABLE_PSD_VERSIONS = (1,)
+
+
+def read_driver_data(scene: Scene, mesh: str):
+    """The psd: driver data authored on mesh, validated; None if it has none."""
+    from .write import DriverData
+
+    prim = scene.prim(mesh)
+    version_attr = prim.GetAttribute("psd:version")
+    if not version_attr or not version_attr.HasAuthoredValue():
+        return None
+    label = scene.label
+
+    def get(name: str, required: bool = True):
+        attr = prim.GetAttribute(f"psd:{name}")
+        value = attr.Get() if attr else None
+        if value is None and required:
+            raise InputError(f"{where(label, mesh, 'psd:' + name)}: missing (the CORRECTIVES layer is incomplete)")
+        return value
+
+    version = get("version")
+    if version not in READABLE_PSD_VERSIONS:
+        raise InputError(
+            f"{where(label, mesh, 'psd:version')}: version {version} is not supported by this psdbake "
+            f"(reads {', '.join(map(str, READABLE_PSD_VERSIONS))}); upgrade psdbake or re-fit"
+        )
+    drivers = [str(d) for d in get("drivers")]
+    dim = 3 * len(drivers)
+    shapes = [str(s) for s in get("shapes")]
+    centers = np.array(get("centers"), dtype=np.float64)
+    powers = np.array(get("polyPowers"), dtype=np.int64)
+    coefficients = np.array(get("coefficients"), dtype=np.float64)
+    quats = get("driverBindRotations")
+    bind = np.array([[*q.GetImaginary(), q.GetReal()] for q in quats], dtype=np.float64).reshape(-1, 4)
+    if dim == 0 or centers.size % dim or powers.size % dim or len(bind) != len(drivers):
+        raise InputError(f"{where(label, mesh)}: psd: driver data sizes do not match {len(drivers)} drivers")
+    centers = centers.reshape(-1, dim)
+    powers = powers.reshape(-1, dim)
+    rows = len(centers) + len(powers)
+    if not shapes or coefficients.size != rows * len(shapes):
+        raise InputError(
+            f"{where(label, mesh, 'psd:coefficients')}: expected {rows} x {len(shapes)} values, got {coefficients.size}"
+        )
+    return DriverData(
+        drivers=drivers,
+        bind_rotations=bind,
+        pose_space=str(get("poseSpace")),
+        kernel=str(get("kernel")),
+        sigma=float(get("sigma")),
+        degree=int(get("degree")),
+        smoothing=float(get("smoothing")),
+        centers=centers,
+        center_labels=[str(s) for s in get("centerLabels")],
+        shapes=shapes,
+        coefficients=coefficients.reshape(rows, len(shapes)),
+        powers=powers,
+        shift=np.array(get("polyShift"), dtype=np.float64),
+        scale=np.array(get("polyScale"), dtype=np.float64),
+        example_times=[float(t) for t in get("exampleTimes")],
+        example_sources=[str(s) for s in get("exampleSources")],
+    )
+
+
+def stray_point_prims(layer: Sdf.Layer, skinned: set[str]) -> list[str]:
+    """Prims that have points time samples in layer but are not skinned meshes (sorted)."""
+    stray: list[str] = []
+
+    def visit(path: Sdf.Path) -> None:
+        if path.IsPropertyPath() and path.name == "points" and layer.ListTimeSamplesForPath(path):
+            prim = str(path.GetPrimPath())
+            if prim not in skinned:
+                stray.append(prim)
+
+    layer.Traverse(Sdf.Path.absoluteRootPath, visit)
+    return sorted(stray)
+
+
+def existing_blend_shapes(scene: Scene, mesh: str) -> tuple[list[str], list[str]]:
+    """The mesh's authored skel:blendShapes channels and their BlendShape target paths."""
+    binding = UsdSkel.BindingAPI(scene.prim(mesh))
+    channels = [str(c) for c in (binding.GetBlendShapesAttr().Get() or [])]
+    rel = binding.GetBlendShapeTargetsRel()
+    targets = [str(t) for t in rel.GetTargets()] if rel else []
+    if channels and len(targets) != len(channels):
+        raise InputError(
+            f"{where(scene.label, mesh, 'skel:blendShapeTargets')}: {len(targets)} targets for "
+            f"{len(channels)} skel:blendShapes"
+        )
+    return channels, targets
+
+
+def animation_components(scene: Scene, mesh: str, times: Sequence[float]):
+    """(anim path, joint order, blend-shape order, [(t, translations, rotations, scales, weights)])."""
+    _, skel_query = scene.query(mesh)
+    anim = skel_query.GetAnimQuery()
+    path = str(anim.GetPrim().GetPath())
+    order = [str(c) for c in anim.GetBlendShapeOrder()]
+    samples = []
+    for t in times:
+        components = anim.ComputeJointLocalTransformComponents(t)
+        if components is None:
+            raise InputError(f"{where(scene.label, path)}: UsdSkel cannot read the joint transforms at time {t:g}")
+        weights = anim.ComputeBlendShapeWeights(t) if order else None
+        samples.append((t, *components, weights))
+    return path, [str(j) for j in anim.GetJointOrder()], order, samples

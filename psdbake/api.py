@@ -1,0 +1,556 @@
+"""The pipeline in plain sight.
+
+fit:   read USD -> pose space -> black-box skinning -> inverse (Powell) -> RBF -> CORRECTIVES
+eval:  CORRECTIVES + ANIM -> pose space -> RBF weights -> WEIGHTS (+ points cache)
+pose:  ASSET + POSES -> plain UsdSkel skinning per time code -> EXAMPLES to sculpt on
+
+Every function returns data (frozen dataclasses or in-memory layers); nothing here
+prints. ``write_*`` export layers atomically.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import time as _time
+import warnings
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+from . import posespace, rbf
+from . import tolerances as tol
+from .deformers import Factory, load_deformers
+from .errors import FitError, InputError, PsdWarning, where
+from .inverse import InverseResult, invert_example
+from .usd import write as usdwrite
+from .usd.blackbox import SkinningBlackBox
+from .usd.read import (
+    Scene,
+    animation_components,
+    existing_blend_shapes,
+    open_layer,
+    read_driver_data,
+    stray_point_prims,
+)
+
+Progress = Callable[[int, int, str], None]  # (done, total, what)
+
+__all__ = [
+    "Example",
+    "FitResult",
+    "FitSettings",
+    "MeshFit",
+    "WeightsResult",
+    "evaluate",
+    "fit",
+    "pose",
+    "write_correctives",
+    "write_weights",
+]
+
+
+@dataclass(frozen=True)
+class FitSettings:
+    """Options of ``psdbake fit``; defaults are the documented ones."""
+
+    drivers: tuple[str, ...] = ()  # empty: every joint rotated in any example
+    kernel: str = "gaussian"
+    sigma: float | None = None  # None: automatic (rbf.auto_sigma)
+    degree: int | None = None  # None: rbf.default_degree(kernel)
+    smoothing: float = 0.0
+    rest_example: bool = True
+    rtol: float = tol.INVERSE_RTOL
+    meshes: tuple[str, ...] = ()  # empty: every mesh with examples
+    deformers: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True)
+class Example:
+    """One sculpted example of one mesh."""
+
+    label: str  # "file.usda@t" for messages and reports
+    source: str  # EXAMPLES file path
+    time: float
+    pose: NDArray[np.float64]  # (3 j,) pose coordinates over all skeleton joints
+
+
+@dataclass(frozen=True)
+class MeshFit:
+    """Everything fitted for one mesh."""
+
+    mesh: str
+    skeleton: str
+    point_count: int
+    examples: tuple[Example, ...]
+    inverses: tuple[InverseResult, ...]
+    channels: tuple[str, ...]  # blend-shape channel per example ("" when it has no corrective)
+    drivers: tuple[str, ...]
+    driver_data: usdwrite.DriverData
+    existing_channels: tuple[str, ...]
+    existing_targets: tuple[str, ...]
+
+
+@dataclass(frozen=True)
+class FitResult:
+    asset: str
+    example_files: tuple[str, ...]
+    settings: FitSettings
+    meshes: tuple[MeshFit, ...]
+    warnings: tuple[str, ...] = field(default_factory=tuple)
+    seconds: float = 0.0
+
+    @property
+    def missed(self) -> int:
+        return int(sum(len(inv.missed) for m in self.meshes for inv in m.inverses))
+
+
+# --- fit ---------------------------------------------------------------------------------
+
+def _safe_token(text: str) -> str:
+    return re.sub(r"[^A-Za-z0-9_]", "_", text).strip("_") or "mesh"
+
+
+def _resolve_drivers(requested: Sequence[str], joints: Sequence[str], label: str) -> list[int]:
+    """Joint indices for --driver names: a full joint path or an unambiguous leaf name."""
+    out = []
+    for name in requested:
+        hits = [i for i, j in enumerate(joints) if j == name]
+        if not hits:
+            hits = [i for i, j in enumerate(joints) if j.split("/")[-1] == name]
+        if len(hits) != 1:
+            what = "is not a joint of" if not hits else "is ambiguous in"
+            raise InputError(f"{label}: --driver {name!r} {what} the skeleton")
+        out.append(hits[0])
+    return sorted(set(out))
+
+
+def _gather_examples(
+    asset_scene: Scene, example_files: Sequence[str], meshes: Sequence[str]
+) -> dict[str, list[tuple[Scene, str, float, NDArray[np.float64]]]]:
+    """mesh path -> [(scene, file, time, sculpt)], in file order then time order."""
+    found: dict[str, list] = {m: [] for m in meshes}
+    for path in example_files:
+        layer = open_layer(path)
+        scene = Scene([path, asset_scene.files[0]], label=path)
+        stray = stray_point_prims(layer, {m.path for m in scene.skinned_meshes()})
+        if stray:
+            raise InputError(
+                f"{where(path, stray[0], 'points')}: sculpted points on a prim that is not a skinned mesh "
+                f"of {asset_scene.label}"
+            )
+        for mesh in meshes:
+            for t in scene.authored_point_samples(layer, mesh):
+                found[mesh].append((scene, path, t, scene.point_sample(layer, mesh, t)))
+    return found
+
+
+def _bind_quaternions(bind_local: NDArray[np.float64]) -> NDArray[np.float64]:
+    return posespace.rotations(bind_local).as_quat()
+
+
+def fit(
+    asset: str,
+    example_files: Sequence[str],
+    settings: FitSettings = FitSettings(),
+    *,
+    progress: Progress | None = None,
+) -> FitResult:
+    """Fit rest-space correctives and their RBF drivers from sculpted examples."""
+    started = _time.perf_counter()
+    if not example_files:
+        raise InputError("fit needs at least one EXAMPLES file")
+    notes: list[str] = []
+    deformers = load_deformers(settings.deformers)
+    asset_scene = Scene([asset])
+    asset_scene.require_skinned()
+    all_meshes = [m.path for m in asset_scene.skinned_meshes()]
+    for wanted in settings.meshes:
+        if wanted not in all_meshes:
+            raise InputError(f"{where(asset, wanted)}: --mesh is not a skinned mesh of the asset")
+    meshes = [m for m in all_meshes if not settings.meshes or m in settings.meshes]
+    found = _gather_examples(asset_scene, example_files, meshes)
+    work = [(m, ex) for m in meshes for ex in found[m]]
+    if not work:
+        raise InputError(
+            f"{', '.join(example_files)}: no examples: no points time samples on the skinned meshes "
+            f"{', '.join(f'<{m}>' for m in meshes)}"
+        )
+    total, done = len(work), 0
+    fits = []
+    for mesh_info in asset_scene.skinned_meshes():
+        mesh = mesh_info.path
+        if mesh not in meshes or not found[mesh]:
+            continue
+        rest = asset_scene.rest_points(mesh)
+        bind_local = asset_scene.bind_local_transforms(mesh)
+        examples, inverses = [], []
+        for scene, source, t, sculpt in found[mesh]:
+            label = f"{os.path.basename(source)}@{t:g}"
+            if sculpt.shape != rest.shape:
+                raise InputError(
+                    f"{where(source, mesh, 'points')}: example at time {t:g} has {len(sculpt)} points, "
+                    f"the asset's mesh has {len(rest)}"
+                )
+            if not np.all(np.isfinite(sculpt)):
+                raise InputError(f"{where(source, mesh, 'points')}: example at time {t:g} contains NaN or inf")
+            if scene.animation_prim(mesh) is None:
+                raise InputError(
+                    f"{where(source, mesh_info.skeleton)}: no SkelAnimation bound (skel:animationSource), "
+                    f"so the example at time {t:g} has no pose"
+                )
+            pose_x = posespace.pose_coordinates(bind_local, scene.joint_local_transforms(mesh, t))
+            box = SkinningBlackBox(scene, mesh, t, deformers)
+            inverse = invert_example(box, rest, sculpt, rtol=settings.rtol)
+            examples.append(Example(label=label, source=source, time=t, pose=pose_x))
+            inverses.append(inverse)
+            done += 1
+            if progress:
+                progress(done, total, f"{mesh} {label}")
+        fits.append(_fit_rbf(asset, asset_scene, mesh_info, examples, inverses, bind_local, settings, notes))
+    return FitResult(
+        asset=asset,
+        example_files=tuple(example_files),
+        settings=settings,
+        meshes=tuple(fits),
+        warnings=tuple(notes),
+        seconds=_time.perf_counter() - started,
+    )
+
+
+def _fit_rbf(asset, asset_scene, mesh_info, examples, inverses, bind_local, settings, notes) -> MeshFit:
+    mesh, joints = mesh_info.path, mesh_info.joints
+    poses = np.array([e.pose for e in examples])
+    if settings.drivers:
+        driver_idx = _resolve_drivers(settings.drivers, joints, where(asset, mesh_info.skeleton))
+    else:
+        driver_idx = list(np.nonzero(posespace.rotated_joints(poses, tol.DRIVER_ANGLE_ATOL))[0])
+        if not driver_idx:
+            raise FitError(
+                f"{where(asset, mesh)}: every example is at the bind pose, so no joint drives the correctives "
+                "(name joints with --driver)"
+            )
+    cols = np.concatenate([[3 * j, 3 * j + 1, 3 * j + 2] for j in driver_idx])
+    centers, labels, outputs = [], [], []
+    if settings.rest_example:
+        centers.append(np.zeros(len(cols)))
+        labels.append("bind")
+    base = mesh_info.path.split("/")[-1]
+    root_rel = os.path.relpath(mesh, mesh_info.skel_root) if mesh != mesh_info.skel_root else base
+    prefix = "psd_" + _safe_token(root_rel)
+    channels = []
+    for k, (example, inverse) in enumerate(zip(examples, inverses)):
+        if len(inverse.indices) == 0:
+            msg = f"{where(example.source, mesh)}: example at time {example.time:g} equals plain skinning; it is kept as a zero example"
+            notes.append(msg)
+            warnings.warn(msg, PsdWarning, stacklevel=2)
+            channels.append("")
+        else:
+            outputs.append(len(centers))
+            channels.append(f"{prefix}_{k:02d}")
+        centers.append(example.pose[cols])
+        labels.append(example.label)
+    if not outputs:
+        raise FitError(f"{where(asset, mesh)}: no example differs from plain skinning: nothing to correct")
+    model = rbf.fit_cardinal(
+        np.array(centers), outputs, labels,
+        kernel=settings.kernel, sigma=settings.sigma, degree=settings.degree, smoothing=settings.smoothing,
+    )
+    self_weights = model.weights(model.centers[outputs])
+    for col, row in enumerate(outputs):
+        if self_weights[col, col] < tol.SELF_WEIGHT_MIN:
+            msg = (f"{where(asset, mesh)}: example {labels[row]} reaches a weight of only "
+                   f"{self_weights[col, col]:.3f} at its own pose (smoothing {settings.smoothing:g})")
+            notes.append(msg)
+            warnings.warn(msg, PsdWarning, stacklevel=2)
+    near = rbf.check_distinct(model.centers, labels)
+    for a, b, d in near:
+        msg = f"{where(asset, mesh)}: examples {a} and {b} are only {d:.3g} rad apart in pose space"
+        notes.append(msg)
+        warnings.warn(msg, PsdWarning, stacklevel=2)
+    data = usdwrite.DriverData(
+        drivers=[joints[j] for j in driver_idx],
+        bind_rotations=_bind_quaternions(bind_local[driver_idx]),
+        pose_space="rotationVector",
+        kernel=model.kernel,
+        sigma=model.sigma,
+        degree=model.degree,
+        smoothing=model.smoothing,
+        centers=model.centers,
+        center_labels=labels,
+        shapes=[c for c in channels if c],
+        coefficients=model.coefficients,
+        powers=model.powers,
+        shift=model.shift,
+        scale=model.scale,
+        example_times=[e.time for e in examples],
+        example_sources=[os.path.basename(e.source) for e in examples],
+    )
+    existing, targets = existing_blend_shapes(asset_scene, mesh)
+    return MeshFit(
+        mesh=mesh,
+        skeleton=mesh_info.skeleton,
+        point_count=mesh_info.point_count,
+        examples=tuple(examples),
+        inverses=tuple(inverses),
+        channels=tuple(channels),
+        drivers=tuple(data.drivers),
+        driver_data=data,
+        existing_channels=tuple(existing),
+        existing_targets=tuple(targets),
+    )
+
+
+def correctives_layer(result: FitResult):
+    """CORRECTIVES as an in-memory layer: BlendShapes, bindings and psd: driver data."""
+    from . import __version__
+
+    layer = usdwrite.new_layer(f"psdbake {__version__} fit: rest-space correctives (inverse PSD)")
+    for m in sorted(result.meshes, key=lambda m: m.mesh):
+        shapes = [
+            usdwrite.BlendShapeData(name=f"psd_{k:02d}", channel=ch, indices=inv.indices, offsets=inv.offsets)
+            for k, (ch, inv) in enumerate(zip(m.channels, m.inverses))
+            if ch
+        ]
+        usdwrite.author_blend_shapes(layer, m.mesh, shapes, m.existing_channels, m.existing_targets)
+        usdwrite.author_driver_data(layer, m.mesh, m.driver_data)
+    return layer
+
+
+def write_correctives(result: FitResult, path: str) -> str:
+    """Export CORRECTIVES atomically; inputs are never overwritten."""
+    return usdwrite.export_atomic(correctives_layer(result), path, [result.asset, *result.example_files])
+
+
+# --- eval --------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class AnimWeights:
+    """Blend-shape channels and weights to author on one SkelAnimation."""
+
+    animation: str
+    channels: tuple[str, ...]  # existing channels first, then psdbake's
+    times: NDArray[np.float64]  # (f,)
+    weights: NDArray[np.float64]  # (f, c)
+    psd_channels: int  # how many of the channels are psdbake's
+
+
+@dataclass(frozen=True)
+class WeightsResult:
+    asset: str
+    correctives: str
+    anim: str
+    animations: tuple[AnimWeights, ...]
+    fps: float | None
+    seconds: float = 0.0
+
+
+def parse_frames(text: str | None) -> tuple[float, float] | None:
+    """'A:B' -> (A, B), inclusive whole frames."""
+    if text is None:
+        return None
+    m = re.fullmatch(r"\s*(-?\d+(?:\.\d*)?)\s*:\s*(-?\d+(?:\.\d*)?)\s*", text)
+    if not m or float(m.group(1)) > float(m.group(2)):
+        raise InputError(f"--frames {text!r}: expected START:END with START <= END (e.g. 1:240)")
+    return float(m.group(1)), float(m.group(2))
+
+
+def _frames(scene: Scene, mesh: str, frames: tuple[float, float] | None) -> NDArray[np.float64]:
+    if frames is not None:
+        start, end = frames
+        return np.arange(np.ceil(start), np.floor(end) + 1.0)
+    times = scene.animation_times(mesh)
+    if not times:
+        raise InputError(f"{where(scene.label, scene.animation_prim(mesh) or mesh)}: the animation has no time samples; give --frames")
+    return np.array(times, dtype=np.float64)
+
+
+def rbf_from_driver_data(data: usdwrite.DriverData) -> rbf.CardinalRbf:
+    if data.kernel not in rbf.KERNELS:
+        raise InputError(f"psd:kernel {data.kernel!r} is unknown")
+    return rbf.CardinalRbf(
+        centers=data.centers, kernel=data.kernel, sigma=data.sigma, degree=data.degree,
+        smoothing=data.smoothing, coefficients=data.coefficients, powers=data.powers,
+        shift=data.shift, scale=data.scale,
+    )
+
+
+def evaluate(
+    asset: str,
+    correctives: str,
+    anim: str,
+    *,
+    frames: tuple[float, float] | None = None,
+    progress: Progress | None = None,
+) -> WeightsResult:
+    """RBF weights of every corrective at every frame of ANIM."""
+    started = _time.perf_counter()
+    scene = Scene([anim, correctives, asset], label=correctives)
+    scene.require_skinned()
+    per_anim: dict[str, list] = {}
+    for info in scene.skinned_meshes():
+        data = read_driver_data(scene, info.path)
+        if data is None:
+            continue
+        if data.pose_space != "rotationVector":
+            raise InputError(f"{where(correctives, info.path, 'psd:poseSpace')}: unknown pose space {data.pose_space!r}")
+        missing = [d for d in data.drivers if d not in info.joints]
+        if missing:
+            raise InputError(f"{where(correctives, info.path, 'psd:drivers')}: joint {missing[0]!r} is not in skeleton <{info.skeleton}>")
+        anim_prim = scene.animation_prim(info.path)
+        if anim_prim is None:
+            raise InputError(f"{where(anim, info.skeleton)}: no SkelAnimation bound (skel:animationSource)")
+        per_anim.setdefault(anim_prim, []).append((info, data))
+    if not per_anim:
+        raise InputError(f"{correctives}: no psd: driver data on any skinned mesh of {asset}")
+    results = []
+    for anim_prim in sorted(per_anim):
+        entries = per_anim[anim_prim]
+        first = entries[0][0].path
+        times = _frames(scene, first, frames)
+        existing_channels, existing_weights = _existing_channels(scene, first, times)
+        psd_channels, columns = [], []
+        for info, data in entries:
+            model = rbf_from_driver_data(data)
+            idx = [info.joints.index(d) for d in data.drivers]
+            x = np.empty((len(times), 3 * len(idx)))
+            for f, t in enumerate(times):
+                local = scene.joint_local_transforms(info.path, float(t))[idx]
+                x[f] = posespace.pose_coordinates_from_quaternions(data.bind_rotations, local)
+                if progress:
+                    progress(f + 1, len(times), info.path)
+            columns.append(model.weights(x))
+            psd_channels += list(data.shapes)
+        ours = np.concatenate(columns, axis=1)
+        keep = [i for i, c in enumerate(existing_channels) if c not in set(psd_channels)]
+        channels = tuple([existing_channels[i] for i in keep] + psd_channels)
+        weights = np.concatenate([existing_weights[:, keep], ours], axis=1)
+        results.append(AnimWeights(anim_prim, channels, times, weights, len(psd_channels)))
+    fps = scene.stage.GetTimeCodesPerSecond()
+    return WeightsResult(asset, correctives, anim, tuple(results), fps, _time.perf_counter() - started)
+
+
+def _existing_channels(scene: Scene, mesh: str, times: NDArray[np.float64]) -> tuple[list[str], NDArray[np.float64]]:
+    """The animation's own blend-shape channels and their weights at times (kept in WEIGHTS)."""
+    _, skel_query = scene.query(mesh)
+    anim = skel_query.GetAnimQuery()
+    order = [str(c) for c in anim.GetBlendShapeOrder()] if anim else []
+    weights = np.zeros((len(times), len(order)))
+    if order:
+        for f, t in enumerate(times):
+            w = anim.ComputeBlendShapeWeights(float(t))
+            if w is not None and len(w) == len(order):
+                weights[f] = np.array(w, dtype=np.float64)
+    return order, weights
+
+
+def weights_layer(result: WeightsResult):
+    """WEIGHTS as an in-memory layer."""
+    from . import __version__
+
+    return usdwrite.weights_layer(
+        f"psdbake {__version__} eval: corrective blend-shape weights",
+        [(a.animation, a.channels, a.times, a.weights) for a in result.animations],
+        result.fps,
+    )
+
+
+def write_weights(result: WeightsResult, path: str) -> str:
+    return usdwrite.export_atomic(weights_layer(result), path, [result.asset, result.correctives, result.anim])
+
+
+def points_cache_layer(result: WeightsResult, deformers: Sequence[str] = (), *, progress: Progress | None = None):
+    """Final posed points per frame (correctives, existing shapes, skinning, deformers),
+    as a layer that needs no UsdSkel: the SkelRoots become Xforms, like BakeSkinning.
+
+    The points come from UsdSkel evaluating the stack ASSET + CORRECTIVES + ANIM + WEIGHTS
+    (the correctives are ordinary blend shapes there), then the deformer chain.
+    """
+    from . import __version__
+
+    chain = load_deformers(deformers)
+    wl = weights_layer(result)
+    scene = Scene([wl, result.anim, result.correctives, result.asset], label=result.correctives)
+    times = sorted({float(t) for a in result.animations for t in a.times})
+    meshes = scene.skinned_meshes()
+    total = len(meshes) * len(times)
+
+    def samples():
+        done = 0
+        for info in meshes:
+            rest = scene.rest_points(info.path)
+            for t in times:
+                yield info.path, t, SkinningBlackBox(scene, info.path, t, chain)(rest)
+                done += 1
+                if progress:
+                    progress(done, total, info.path)
+
+    return usdwrite.points_layer(
+        f"psdbake {__version__} eval: points cache (no UsdSkel needed)",
+        {m.skel_root for m in meshes}, samples(), times, result.fps,
+    )
+
+
+def write_points_cache(result: WeightsResult, path: str, deformers: Sequence[str] = (), *, progress=None) -> str:
+    return usdwrite.export_atomic(
+        points_cache_layer(result, deformers, progress=progress), path, [result.asset, result.correctives, result.anim]
+    )
+
+
+# --- pose --------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class PoseResult:
+    asset: str
+    poses: str
+    times: tuple[float, ...]
+    meshes: tuple[str, ...]
+    layer: object  # Sdf.Layer
+
+
+def pose(asset: str, poses: str, deformers: Sequence[str] = (), *, progress: Progress | None = None) -> PoseResult:
+    """EXAMPLES to sculpt on: skinned points per time code of POSES, with the pose itself."""
+    from . import __version__
+
+    chain: list[tuple[str, Factory]] = load_deformers(deformers)
+    asset_scene = Scene([asset])
+    asset_scene.require_skinned()
+    scene = Scene([poses, asset], label=poses)
+    meshes = scene.skinned_meshes()
+    anims = sorted({a for m in meshes if (a := scene.animation_prim(m.path))})
+    if not anims:
+        raise InputError(f"{poses}: no SkelAnimation is bound to the skeleton (skel:animationSource)")
+    times = sorted({t for m in meshes for t in scene.animation_times(m.path)})
+    if not times:
+        raise InputError(f"{where(poses, anims[0])}: the animation has no time samples: nothing to pose")
+    fps = scene.stage.GetTimeCodesPerSecond()
+    animations, seen = [], set()
+    for info in meshes:
+        anim_path = scene.animation_prim(info.path)
+        if anim_path is None or info.skeleton in seen:
+            continue
+        seen.add(info.skeleton)
+        path, joints, channels, anim_samples = animation_components(scene, info.path, times)
+        animations.append((info.skeleton, path, joints, channels, anim_samples))
+    total = len(meshes) * len(times)
+
+    def samples():
+        done = 0
+        for info in meshes:
+            rest = asset_scene.rest_points(info.path)
+            for t in times:
+                yield info.path, t, SkinningBlackBox(scene, info.path, t, chain)(rest)
+                done += 1
+                if progress:
+                    progress(done, total, info.path)
+
+    layer = usdwrite.examples_layer(
+        f"psdbake {__version__} pose: skinned examples to sculpt on", animations, samples(), times, fps
+    )
+    return PoseResult(asset, poses, tuple(times), tuple(m.path for m in meshes), layer)
+
+
+def write_pose(result: PoseResult, path: str) -> str:
+    return usdwrite.export_atomic(result.layer, path, [result.asset, result.poses])

@@ -1,0 +1,273 @@
+"""The ``psdbake`` command: a thin shell over ``psdbake.api``.
+
+It parses options, calls one library function per command, renders a summary and
+maps errors to exit codes in one place (``main``). No numerics and no USD here.
+
+Exit codes: 0 success, 1 unexpected failure, 2 usage error, 3 bad input,
+4 ill-posed fit, 5 deformer failure, 6 output not writable, 7 ``--strict`` and some
+vertices missed tolerance, 130 interrupted.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import sys
+import warnings
+from collections.abc import Iterator, Sequence
+
+import click
+
+from . import __version__, api, atomic
+from . import tolerances as tol
+from .errors import PsdError, PsdWarning, StrictError
+from .rbf import KERNELS
+
+EXIT_INTERNAL, EXIT_USAGE, EXIT_INTERRUPTED = 1, 2, 130
+
+
+class _Ui:
+    """Where the CLI talks: summaries to stdout, progress and warnings to stderr."""
+
+    def __init__(self, quiet: bool, verbose: int, as_json: bool) -> None:
+        self.quiet, self.verbose, self.as_json = quiet, verbose, as_json
+
+    def say(self, text: str = "") -> None:
+        if not self.quiet and not self.as_json:
+            click.echo(text)
+
+    @contextlib.contextmanager
+    def progress(self, label: str) -> Iterator:
+        if self.quiet or self.as_json or not sys.stderr.isatty():
+            yield None
+            return
+        bar = None
+
+        def update(done: int, total: int, what: str) -> None:
+            nonlocal bar
+            if bar is None:
+                bar = click.progressbar(length=total, label=label, file=sys.stderr, show_pos=True)
+                bar.__enter__()
+            bar.update(done - bar.pos)
+
+        try:
+            yield update
+        finally:
+            if bar is not None:
+                bar.__exit__(None, None, None)
+
+
+@contextlib.contextmanager
+def _collect_warnings(ui: _Ui) -> Iterator[list[str]]:
+    found: list[str] = []
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", PsdWarning)
+        yield found
+    for w in caught:
+        if issubclass(w.category, PsdWarning):
+            found.append(str(w.message))
+            if not ui.quiet:
+                click.echo(f"psdbake: warning: {w.message}", err=True)
+
+
+def _write_json(path: str, payload: dict, inputs: Sequence[str]) -> None:
+    """Small JSON side files are written atomically too."""
+    atomic.write_text(path, json.dumps(payload, indent=2, sort_keys=True) + "\n", inputs)
+
+
+common = [
+    click.option("-q", "--quiet", is_flag=True, help="Print nothing but errors."),
+    click.option("-v", "--verbose", count=True, help="More detail in the summary."),
+    click.option("--json", "as_json", is_flag=True, help="Print a machine-readable summary on stdout."),
+]
+
+
+def _common(fn):
+    for option in reversed(common):
+        fn = option(fn)
+    return fn
+
+
+deformer_option = click.option(
+    "--deformer", "deformers", multiple=True, metavar="MODULE:FACTORY",
+    help="A studio deformer applied after skinning (repeatable, chained in order): "
+         "package.module:factory or file.py:factory. This runs your code.",
+)
+
+
+@click.group(context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100})
+@click.version_option(__version__, prog_name="psdbake")
+def cli() -> None:
+    """Inverse Pose Space Deformation correctives for UsdSkel assets.
+
+    pose -> (artists sculpt) -> fit -> eval. See README.md for the file conventions.
+    """
+
+
+@cli.command("pose")
+@click.argument("asset", type=click.Path(dir_okay=False))
+@click.option("--anim", "poses", required=True, type=click.Path(dir_okay=False), help="POSES layer: one pose per time code.")
+@click.option("-o", "--output", required=True, type=click.Path(dir_okay=False), help="EXAMPLES layer to write.")
+@deformer_option
+@_common
+def pose_cmd(asset, poses, output, deformers, quiet, verbose, as_json) -> None:
+    """Write the skinned character at every time code of POSES, for artists to sculpt."""
+    ui = _Ui(quiet, verbose, as_json)
+    with _collect_warnings(ui), ui.progress("posing") as progress:
+        result = api.pose(asset, poses, deformers, progress=progress)
+        api.write_pose(result, output)
+    summary = {"output": output, "times": list(result.times), "meshes": list(result.meshes)}
+    if as_json:
+        click.echo(json.dumps(summary, sort_keys=True))
+    ui.say(f"psdbake pose: {len(result.meshes)} mesh(es) at {len(result.times)} time code(s)")
+    ui.say(f"wrote {output}: sculpt the points at each time code, then run psdbake fit")
+
+
+@cli.command("fit")
+@click.argument("asset", type=click.Path(dir_okay=False))
+@click.argument("examples", nargs=-1, required=True, type=click.Path(dir_okay=False))
+@click.option("-o", "--output", required=True, type=click.Path(dir_okay=False), help="CORRECTIVES layer to write.")
+@click.option("--driver", "drivers", multiple=True, metavar="JOINT",
+              help="Driver joint (path or unique name; repeatable). Default: every joint rotated in any example.")
+@click.option("--kernel", type=click.Choice(sorted(KERNELS)), default="gaussian", show_default=True)
+@click.option("--sigma", type=float, default=None, help="Kernel width in radians. Default: mean nearest-neighbour distance between example poses.")
+@click.option("--degree", type=int, default=None, help="Polynomial degree (-1: none). Default: the kernel's minimum (none for gaussian).")
+@click.option("--smoothing", type=float, default=0.0, show_default=True, help="RBF smoothing (0 interpolates exactly).")
+@click.option("--no-rest-example", is_flag=True, help="Do not add the bind pose as an implicit zero example.")
+@click.option("--tolerance", type=float, default=tol.INVERSE_RTOL, show_default=True,
+              help="Inverse residual tolerance, fraction of the mesh's bounding-box diagonal.")
+@click.option("--mesh", "meshes", multiple=True, metavar="PATH", help="Only fit this mesh (repeatable).")
+@click.option("--report", type=click.Path(dir_okay=False), help="Write a JSON report here.")
+@click.option("--strict", is_flag=True, help="Fail (exit 7, nothing written) if any vertex misses tolerance.")
+@deformer_option
+@_common
+def fit_cmd(asset, examples, output, drivers, kernel, sigma, degree, smoothing, no_rest_example, tolerance,
+            meshes, report, strict, deformers, quiet, verbose, as_json) -> None:
+    """Fit rest-space corrective BlendShapes and their RBF drivers from sculpted EXAMPLES."""
+    ui = _Ui(quiet, verbose, as_json)
+    settings = api.FitSettings(
+        drivers=tuple(drivers), kernel=kernel, sigma=sigma, degree=degree, smoothing=smoothing,
+        rest_example=not no_rest_example, rtol=tolerance, meshes=tuple(meshes), deformers=tuple(deformers),
+    )
+    with _collect_warnings(ui), ui.progress("fitting examples") as progress:
+        result = api.fit(asset, examples, settings, progress=progress)
+    payload = fit_report(result, output)
+    if strict and result.missed:
+        raise StrictError(f"{output}: not written: {result.missed} vertices missed the tolerance (--strict)")
+    api.write_correctives(result, output)
+    if report:
+        _write_json(report, payload, [asset, *examples, output])
+    if as_json:
+        click.echo(json.dumps(payload, sort_keys=True))
+    _render_fit(ui, result, output)
+
+
+def fit_report(result: api.FitResult, output: str) -> dict:
+    """The --report / --json payload: per mesh and example, what was solved and how well."""
+    meshes = []
+    for m in result.meshes:
+        examples = []
+        for ex, inv, channel in zip(m.examples, m.inverses, m.channels):
+            diag = inv.diagonal or 1.0
+            examples.append({
+                "example": ex.label, "source": ex.source, "time": ex.time, "blend_shape": channel or None,
+                "vertices_solved": len(inv.indices), "evaluations": inv.evaluations,
+                "max_residual": inv.max_residual, "rms_residual": inv.rms_residual,
+                "max_residual_rel": inv.max_residual / diag, "rms_residual_rel": inv.rms_residual / diag,
+                "tolerance": inv.atol, "missed": len(inv.missed),
+                "missed_vertices": [int(i) for i in inv.missed[:100]], "seconds": round(inv.seconds, 6),
+            })
+        d = m.driver_data
+        meshes.append({
+            "mesh": m.mesh, "skeleton": m.skeleton, "points": m.point_count, "drivers": list(m.drivers),
+            "kernel": d.kernel, "sigma": d.sigma, "degree": d.degree, "examples": examples,
+        })
+    return {
+        "psdbake": __version__, "command": "fit", "asset": result.asset, "output": output,
+        "examples": list(result.example_files), "meshes": meshes, "missed": result.missed,
+        "warnings": list(result.warnings), "seconds": round(result.seconds, 6),
+    }
+
+
+def _render_fit(ui: _Ui, result: api.FitResult, output: str) -> None:
+    n_ex = sum(len(m.examples) for m in result.meshes)
+    solved = sum(len(inv.indices) for m in result.meshes for inv in m.inverses)
+    ui.say(f"psdbake fit: {len(result.meshes)} mesh(es), {n_ex} example(s), {solved} vertices solved in {result.seconds:.2f} s")
+    for m in result.meshes:
+        d = m.driver_data
+        drivers = ", ".join(j.split("/")[-1] for j in m.drivers)
+        ui.say(f"  <{m.mesh}>  drivers: {drivers}  kernel: {d.kernel}  sigma: {d.sigma:.4g} rad  degree: {d.degree}")
+        ui.say(f"    {'example':<28} {'solved':>7} {'evals':>6} {'max/diag':>10} {'rms/diag':>10} {'missed':>7} {'seconds':>8}")
+        for ex, inv in zip(m.examples, m.inverses):
+            diag = inv.diagonal or 1.0
+            ui.say(
+                f"    {ex.label:<28} {len(inv.indices):>7} {inv.evaluations:>6} {inv.max_residual / diag:>10.2e} "
+                f"{inv.rms_residual / diag:>10.2e} {len(inv.missed):>7} {inv.seconds:>8.3f}"
+            )
+    if result.missed:
+        ui.say(f"  DEGRADED: {result.missed} vertices missed the tolerance (see --report; --strict makes this fatal)")
+    ui.say(f"wrote {output}")
+
+
+@cli.command("eval")
+@click.argument("asset", type=click.Path(dir_okay=False))
+@click.argument("correctives", type=click.Path(dir_okay=False))
+@click.option("--anim", required=True, type=click.Path(dir_okay=False), help="ANIM layer to drive the correctives over.")
+@click.option("-o", "--output", required=True, type=click.Path(dir_okay=False), help="WEIGHTS layer to write.")
+@click.option("--frames", metavar="START:END", help="Whole frames START..END (inclusive). Default: the animation's authored samples.")
+@click.option("--points-cache", type=click.Path(dir_okay=False), help="Also write final posed points per frame (no UsdSkel needed).")
+@deformer_option
+@_common
+def eval_cmd(asset, correctives, anim, output, frames, points_cache, deformers, quiet, verbose, as_json) -> None:
+    """Compute the correctives' weights over ANIM and write them as a WEIGHTS layer."""
+    ui = _Ui(quiet, verbose, as_json)
+    with _collect_warnings(ui):
+        with ui.progress("weights") as progress:
+            result = api.evaluate(asset, correctives, anim, frames=api.parse_frames(frames), progress=progress)
+        if points_cache:
+            atomic.check_output(points_cache, [asset, correctives, anim, output], (".usda", ".usdc", ".usd"))
+        api.write_weights(result, output)
+        if points_cache:
+            with ui.progress("points cache") as progress:
+                api.write_points_cache(result, points_cache, deformers, progress=progress)
+    frames_n = sum(len(a.times) for a in result.animations)
+    summary = {
+        "output": output, "points_cache": points_cache, "seconds": round(result.seconds, 6),
+        "animations": [
+            {"animation": a.animation, "frames": len(a.times), "channels": list(a.channels),
+             "psd_channels": a.psd_channels, "first": float(a.times[0]), "last": float(a.times[-1])}
+            for a in result.animations
+        ],
+    }
+    if as_json:
+        click.echo(json.dumps(summary, sort_keys=True))
+    ui.say(f"psdbake eval: {frames_n} frame(s) on {len(result.animations)} animation(s) in {result.seconds:.2f} s")
+    for a in result.animations:
+        ui.say(f"  <{a.animation}>  {a.psd_channels} corrective channel(s), frames {a.times[0]:g}..{a.times[-1]:g}")
+    ui.say(f"wrote {output}" + (f" and {points_cache}" if points_cache else ""))
+
+
+def main(argv: Sequence[str] | None = None) -> None:
+    """Entry point: run the CLI, turn every failure into one line and an exit code."""
+    try:
+        cli.main(args=list(argv) if argv is not None else None, prog_name="psdbake", standalone_mode=False)
+    except click.exceptions.Abort:
+        click.echo("psdbake: interrupted", err=True)
+        sys.exit(EXIT_INTERRUPTED)
+    except click.ClickException as exc:
+        exc.show()
+        sys.exit(exc.exit_code)
+    except PsdError as exc:
+        click.echo(f"psdbake: error: {exc}", err=True)
+        sys.exit(exc.exit_code)
+    except KeyboardInterrupt:
+        click.echo("psdbake: interrupted", err=True)
+        sys.exit(EXIT_INTERRUPTED)
+    except Exception as exc:  # noqa: BLE001 - last resort: one line, never a traceback
+        if os.environ.get("PSDBAKE_DEBUG"):
+            raise
+        first = (str(exc).strip().splitlines() or [""])[0]
+        click.echo(f"psdbake: internal error: {type(exc).__name__}: {first} (set PSDBAKE_DEBUG=1 for a traceback)", err=True)
+        sys.exit(EXIT_INTERNAL)
+    sys.exit(0)

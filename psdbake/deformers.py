@@ -1,0 +1,55 @@
+"""Load the studio's own deformers named on the command line (``--deformer``).
+
+A deformer spec is ``package.module:factory`` (importable) or ``path/to/file.py:factory``.
+psdbake calls ``factory(stage, mesh_path, time)`` once per mesh and time code and gets a
+function mapping posed points (n, 3) float64 -> (n, 3), applied after UsdSkel skinning
+in mesh local space. Fit, eval's points cache and ``pose`` apply the same chain.
+
+This is code execution by design: specs are only ever taken from the command line
+(or a batch file a user wrote), never from data inside a USD file.
+"""
+
+from __future__ import annotations
+
+import importlib
+import importlib.util
+import os
+import sys
+from collections.abc import Callable, Sequence
+from typing import Any
+
+from .errors import DeformerError
+
+Factory = Callable[[Any, str, float], Callable]
+
+
+def load_deformer(spec: str) -> Factory:
+    """Resolve one spec to its factory, or raise DeformerError saying why."""
+    module_name, sep, attr = spec.rpartition(":")
+    if not sep or not module_name or not attr:
+        raise DeformerError(f"deformer {spec!r}: expected package.module:factory or file.py:factory")
+    try:
+        if module_name.endswith(".py"):
+            if not os.path.isfile(module_name):
+                raise DeformerError(f"deformer {spec!r}: file {module_name} not found")
+            name = "psdbake_user_deformer_" + os.path.splitext(os.path.basename(module_name))[0]
+            loader_spec = importlib.util.spec_from_file_location(name, module_name)
+            module = importlib.util.module_from_spec(loader_spec)
+            loader_spec.loader.exec_module(module)
+        else:
+            if os.getcwd() not in sys.path:
+                sys.path.append(os.getcwd())
+            module = importlib.import_module(module_name)
+    except DeformerError:
+        raise
+    except Exception as exc:  # noqa: BLE001 - user code: report, never crash
+        raise DeformerError(f"deformer {spec!r}: cannot import {module_name}: {type(exc).__name__}: {exc}") from None
+    factory = getattr(module, attr, None)
+    if not callable(factory):
+        raise DeformerError(f"deformer {spec!r}: {module_name} has no callable {attr!r}")
+    return factory
+
+
+def load_deformers(specs: Sequence[str]) -> list[tuple[str, Factory]]:
+    """Load a chain of specs, in order."""
+    return [(spec, load_deformer(spec)) for spec in specs]

@@ -1,0 +1,1 @@
+"""The only package that imports pxr: reading stages, the UsdSkel black box, writing layers."""

@@ -1,0 +1,259 @@
+"""Author psdbake's output layers in memory and export each one atomically.
+
+Every writer builds an anonymous ``Sdf.Layer`` (prims and properties authored in
+sorted, deterministic order; no time stamps, no absolute paths) and
+``export_atomic`` writes it to a temporary file beside the destination, flushes it
+to disk and renames it over the destination: a failed or interrupted run leaves
+either the old file or the complete new one, never a partial one.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+from pxr import Gf, Sdf, Tf, Vt
+
+from .. import atomic
+from ..errors import OutputError
+
+FORMATS = (".usda", ".usdc", ".usd")
+#: Version of the psd: attribute schema written by this psdbake.
+PSD_VERSION = 1
+
+
+def export_atomic(layer: Sdf.Layer, path: str, inputs: Iterable[str] = ()) -> str:
+    """Write layer to path via temp file + fsync + rename (``atomic.replacing``)."""
+    ext = os.path.splitext(path)[1].lower()
+    try:
+        with atomic.replacing(path, inputs, FORMATS) as tmp:
+            args = {"format": "usdc"} if ext == ".usd" else {}
+            if not layer.Export(tmp, args=args):
+                raise OutputError(f"{path}: USD could not write the layer")
+    except Tf.ErrorException as exc:
+        raise OutputError(f"{path}: USD could not write the layer ({str(exc).strip().splitlines()[0]})") from None
+    return path
+
+
+def new_layer(doc: str, times: Sequence[float] | None = None, fps: float | None = None) -> Sdf.Layer:
+    layer = Sdf.Layer.CreateAnonymous("psdbake.usda")
+    layer.documentation = doc
+    if times:
+        layer.startTimeCode, layer.endTimeCode = float(min(times)), float(max(times))
+    if fps:
+        layer.timeCodesPerSecond = float(fps)
+        layer.framesPerSecond = float(fps)
+    return layer
+
+
+def over(layer: Sdf.Layer, path: str) -> Sdf.PrimSpec:
+    """An ``over`` for path, its ancestors ``over`` too (Sdf.CreatePrimInLayer)."""
+    return Sdf.CreatePrimInLayer(layer, Sdf.Path(path))
+
+
+def define(layer: Sdf.Layer, path: str, type_name: str) -> Sdf.PrimSpec:
+    spec = over(layer, path)
+    spec.specifier = Sdf.SpecifierDef
+    spec.typeName = type_name
+    return spec
+
+
+def attribute(
+    prim: Sdf.PrimSpec, name: str, type_name: Sdf.ValueTypeName, value=None, *, uniform: bool = False,
+    custom: bool = False,
+) -> Sdf.AttributeSpec:
+    variability = Sdf.VariabilityUniform if uniform else Sdf.VariabilityVarying
+    attr = prim.properties.get(name) if name in prim.properties else None
+    if attr is None:
+        attr = Sdf.AttributeSpec(prim, name, type_name, variability, custom)
+    if value is not None:
+        attr.default = value
+    return attr
+
+
+def apply_binding_api(prim: Sdf.PrimSpec) -> None:
+    ops = prim.GetInfo("apiSchemas")
+    items = list(ops.prependedItems) if ops else []
+    if "SkelBindingAPI" not in items:
+        prim.SetInfo("apiSchemas", Sdf.TokenListOp.Create(prependedItems=[*items, "SkelBindingAPI"]))
+
+
+def relationship(prim: Sdf.PrimSpec, name: str, targets: Sequence[str]) -> None:
+    rel = Sdf.RelationshipSpec(prim, name, custom=False)
+    rel.targetPathList.explicitItems = [Sdf.Path(t) for t in targets]
+
+
+# --- value conversions ------------------------------------------------------------------
+
+def vec3f_array(values: NDArray[np.float64]) -> Vt.Vec3fArray:
+    return Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(values, dtype=np.float32).reshape(-1, 3))
+
+
+def double_array(values: NDArray[np.float64]) -> Vt.DoubleArray:
+    return Vt.DoubleArray.FromNumpy(np.ascontiguousarray(values, dtype=np.float64).reshape(-1))
+
+
+def int_array(values) -> Vt.IntArray:
+    return Vt.IntArray.FromNumpy(np.ascontiguousarray(values, dtype=np.int32).reshape(-1))
+
+
+def float_array(values) -> Vt.FloatArray:
+    return Vt.FloatArray.FromNumpy(np.ascontiguousarray(values, dtype=np.float32).reshape(-1))
+
+
+def quatd_array(xyzw: NDArray[np.float64]) -> Vt.QuatdArray:
+    return Vt.QuatdArray([Gf.Quatd(float(q[3]), Gf.Vec3d(float(q[0]), float(q[1]), float(q[2]))) for q in xyzw])
+
+
+@dataclass(frozen=True)
+class BlendShapeData:
+    """One corrective BlendShape: sparse rest-space offsets in the mesh's point space."""
+
+    name: str  # prim name under the mesh
+    channel: str  # skel:blendShapes token (SkelAnimation channel)
+    indices: NDArray[np.int64]
+    offsets: NDArray[np.float64]  # (k, 3)
+
+
+def author_blend_shapes(
+    layer: Sdf.Layer,
+    mesh: str,
+    shapes: Sequence[BlendShapeData],
+    existing_channels: Sequence[str],
+    existing_targets: Sequence[str],
+) -> None:
+    """BlendShape prims under mesh plus the mesh's skel:blendShapes/targets (existing kept first)."""
+    mesh_spec = over(layer, mesh)
+    apply_binding_api(mesh_spec)
+    ours = {s.channel for s in shapes}
+    keep = [(c, t) for c, t in zip(existing_channels, existing_targets) if c not in ours]
+    channels = [c for c, _ in keep] + [s.channel for s in shapes]
+    targets = [t for _, t in keep] + [f"{mesh}/{s.name}" for s in shapes]
+    attribute(mesh_spec, "skel:blendShapes", Sdf.ValueTypeNames.TokenArray, Vt.TokenArray(channels), uniform=True)
+    relationship(mesh_spec, "skel:blendShapeTargets", targets)
+    for shape in shapes:
+        spec = define(layer, f"{mesh}/{shape.name}", "BlendShape")
+        attribute(spec, "offsets", Sdf.ValueTypeNames.Vector3fArray, vec3f_array(shape.offsets), uniform=True)
+        attribute(spec, "pointIndices", Sdf.ValueTypeNames.IntArray, int_array(shape.indices), uniform=True)
+
+
+@dataclass(frozen=True)
+class DriverData:
+    """The RBF driver data of one mesh, as stored in the psd: namespace (README: psd schema)."""
+
+    drivers: Sequence[str]  # joint paths, skeleton joint tokens
+    bind_rotations: NDArray[np.float64]  # (d, 4) xyzw, each driver's bind local rotation
+    pose_space: str
+    kernel: str
+    sigma: float
+    degree: int
+    smoothing: float
+    centers: NDArray[np.float64]  # (k, 3 d)
+    center_labels: Sequence[str]
+    shapes: Sequence[str]  # channels, one per coefficient column
+    coefficients: NDArray[np.float64]  # (k + p, s)
+    powers: NDArray[np.int64]  # (p, 3 d)
+    shift: NDArray[np.float64]  # (3 d,)
+    scale: NDArray[np.float64]  # (3 d,)
+    example_times: Sequence[float]
+    example_sources: Sequence[str]
+
+
+def author_driver_data(layer: Sdf.Layer, mesh: str, data: DriverData) -> None:
+    """psd: attributes on the mesh prim, every one uniform and custom."""
+    spec = over(layer, mesh)
+    t = Sdf.ValueTypeNames
+
+    def put(name: str, type_name: Sdf.ValueTypeName, value) -> None:
+        attribute(spec, f"psd:{name}", type_name, value, uniform=True, custom=True)
+
+    put("version", t.Int, PSD_VERSION)
+    put("poseSpace", t.Token, data.pose_space)
+    put("drivers", t.TokenArray, Vt.TokenArray(list(data.drivers)))
+    put("driverBindRotations", t.QuatdArray, quatd_array(data.bind_rotations))
+    put("kernel", t.Token, data.kernel)
+    put("sigma", t.Double, float(data.sigma))
+    put("degree", t.Int, int(data.degree))
+    put("smoothing", t.Double, float(data.smoothing))
+    put("centers", t.DoubleArray, double_array(data.centers))
+    put("centerLabels", t.StringArray, Vt.StringArray(list(data.center_labels)))
+    put("shapes", t.TokenArray, Vt.TokenArray(list(data.shapes)))
+    put("coefficients", t.DoubleArray, double_array(data.coefficients))
+    put("polyPowers", t.IntArray, int_array(data.powers))
+    put("polyShift", t.DoubleArray, double_array(data.shift))
+    put("polyScale", t.DoubleArray, double_array(data.scale))
+    put("exampleTimes", t.DoubleArray, double_array(np.asarray(data.example_times, dtype=np.float64)))
+    put("exampleSources", t.StringArray, Vt.StringArray(list(data.example_sources)))
+
+
+def weights_layer(doc: str, animations, fps: float | None) -> Sdf.Layer:
+    """WEIGHTS: blendShapes + blendShapeWeights samples on each SkelAnimation.
+
+    animations: iterable of (anim path, channels, times (f,), weights (f, c)).
+    """
+    animations = list(animations)
+    times = [float(t) for _, _, ts, _ in animations for t in ts]
+    layer = new_layer(doc, times, fps)
+    t_ = Sdf.ValueTypeNames
+    for path, channels, ts, weights in animations:
+        spec = over(layer, path)
+        attribute(spec, "blendShapes", t_.TokenArray, Vt.TokenArray(list(channels)), uniform=True)
+        attr = attribute(spec, "blendShapeWeights", t_.FloatArray)
+        for t, w in zip(ts, weights):
+            layer.SetTimeSample(attr.path, float(t), float_array(w))
+    return layer
+
+
+def points_layer(doc: str, skel_roots: Sequence[str], samples, times: Sequence[float], fps: float | None) -> Sdf.Layer:
+    """A points cache: SkelRoots become Xforms (no UsdSkel needed), points + extent per time.
+
+    samples: iterable of (mesh path, time, points (n, 3)).
+    """
+    layer = new_layer(doc, times, fps)
+    t_ = Sdf.ValueTypeNames
+    for root in sorted(skel_roots):
+        define(layer, root, "Xform")
+    for mesh, t, pts in samples:
+        spec = over(layer, mesh)
+        points = attribute(spec, "points", t_.Point3fArray)
+        extent = attribute(spec, "extent", t_.Float3Array)
+        layer.SetTimeSample(points.path, float(t), vec3f_array(pts))
+        layer.SetTimeSample(extent.path, float(t), vec3f_array(np.stack([pts.min(axis=0), pts.max(axis=0)])))
+    return layer
+
+
+def examples_layer(doc: str, animations, samples, times: Sequence[float], fps: float | None) -> Sdf.Layer:
+    """EXAMPLES to sculpt on: the bound animations' samples plus skinned points per time.
+
+    animations: iterable of (skeleton path, anim path, joints, channels, samples) with
+        samples [(t, translations, rotations, scales, weights)] (see read.animation_components).
+    samples: iterable of (mesh path, time, points (n, 3)).
+    """
+    layer = new_layer(doc, times, fps)
+    t_ = Sdf.ValueTypeNames
+    for skeleton, anim, joints, channels, anim_samples in animations:
+        skel_spec = over(layer, skeleton)
+        apply_binding_api(skel_spec)
+        relationship(skel_spec, "skel:animationSource", [anim])
+        spec = define(layer, anim, "SkelAnimation")
+        attribute(spec, "joints", t_.TokenArray, Vt.TokenArray(joints), uniform=True)
+        tr = attribute(spec, "translations", t_.Float3Array)
+        ro = attribute(spec, "rotations", t_.QuatfArray)
+        sc = attribute(spec, "scales", t_.Half3Array)
+        bw = None
+        if channels:
+            attribute(spec, "blendShapes", t_.TokenArray, Vt.TokenArray(channels), uniform=True)
+            bw = attribute(spec, "blendShapeWeights", t_.FloatArray)
+        for t, translations, rotations, scales, weights in anim_samples:
+            layer.SetTimeSample(tr.path, t, translations)
+            layer.SetTimeSample(ro.path, t, rotations)
+            layer.SetTimeSample(sc.path, t, scales)
+            if bw is not None:
+                layer.SetTimeSample(bw.path, t, weights)
+    for mesh, t, pts in samples:
+        attr = attribute(over(layer, mesh), "points", t_.Point3fArray)
+        layer.SetTimeSample(attr.path, float(t), vec3f_array(pts))
+    return layer

@@ -1,0 +1,64 @@
+"""Shared helpers: fixture paths, an in-process CLI runner, Pixar's bake of a stack."""
+
+from __future__ import annotations
+
+import os
+import sys
+
+import numpy as np
+import pytest
+from pxr import Gf, Sdf, Usd, UsdGeom, UsdSkel
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+FIXTURES = os.path.join(ROOT, "fixtures")
+sys.path[:0] = [ROOT, FIXTURES]
+
+import generate  # noqa: E402  (fixtures/generate.py)
+
+from psdbake.cli import main  # noqa: E402
+
+
+def fixture(*parts: str) -> str:
+    return os.path.join(FIXTURES, *parts)
+
+
+CESIUM = fixture("cesiumman", "CesiumMan.usdz")
+CESIUM_EXAMPLES = fixture("cesiumman", "cesiumman_examples.usda")
+
+
+@pytest.fixture
+def run(capsys):
+    """Run the CLI in-process: returns (exit code, stdout, stderr)."""
+
+    def _run(*args: str) -> tuple[int, str, str]:
+        with pytest.raises(SystemExit) as exc:
+            main([str(a) for a in args])
+        out, err = capsys.readouterr()
+        return exc.value.code, out, err
+
+    return _run
+
+
+def bake_stack(layers: list[str], time: float) -> dict[str, np.ndarray]:
+    """UsdSkel.BakeSkinning of the given layers (strongest first) at time: mesh -> points."""
+    root = Sdf.Layer.CreateAnonymous(".usda")
+    for path in layers:
+        root.subLayerPaths.append(path)
+    stage = Usd.Stage.Open(root)
+    stage.SetEditTarget(Usd.EditTarget(root))
+    skel_roots = [p for p in stage.Traverse() if p.IsA(UsdSkel.Root)]
+    meshes = []
+    for p in skel_roots:
+        meshes += [m for m in Usd.PrimRange(p) if m.IsA(UsdGeom.Mesh)]
+    for p in skel_roots:
+        assert UsdSkel.BakeSkinning(UsdSkel.Root(p), Gf.Interval(time, time))
+    return {str(m.GetPath()): np.array(UsdGeom.Mesh(m).GetPointsAttr().Get(time), dtype=np.float64) for m in meshes}
+
+
+def sculpt(path: str, mesh: str, time: float) -> np.ndarray:
+    layer = Sdf.Layer.FindOrOpen(path)
+    return np.array(layer.QueryTimeSample(Sdf.Path(mesh).AppendProperty("points"), time), dtype=np.float64)
+
+
+def diagonal(points: np.ndarray) -> float:
+    return float(np.linalg.norm(points.max(axis=0) - points.min(axis=0)))
