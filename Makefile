@@ -20,7 +20,7 @@ demo: $(STAMP)
 	$(BIN)/psdbake pose fixtures/arm_lbs.usda --anim fixtures/arm_poses.usda -o $(OUT)/to_sculpt.usda
 	$(BIN)/psdbake fit fixtures/arm_lbs.usda fixtures/arm_lbs_examples.usda -o $(OUT)/correctives.usda --report $(OUT)/fit_report.json
 	$(BIN)/psdbake eval fixtures/arm_lbs.usda $(OUT)/correctives.usda --anim fixtures/arm_anim.usda -o $(OUT)/weights.usda --points-cache $(OUT)/points_cache.usda
-	$(BIN)/python -m psdbake.stack $(OUT)/shot.usda fixtures/arm_lbs.usda $(OUT)/correctives.usda fixtures/arm_anim.usda $(OUT)/weights.usda
+	$(BIN)/psdbake stack $(OUT)/shot.usda fixtures/arm_lbs.usda $(OUT)/correctives.usda fixtures/arm_anim.usda $(OUT)/weights.usda
 	@echo
 	@echo "Outputs in $(OUT)/:"
 	@echo "  to_sculpt.usda     the character posed by plain skinning, one frame per pose (sculpt these)"

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 __version__ = "0.1.0"
 
-from .api import (  # noqa: E402 - version first: api reads it when writing layers
+from .api import (
     Example,
     FitResult,
     FitSettings,
@@ -27,10 +27,10 @@ from .api import (  # noqa: E402 - version first: api reads it when writing laye
     write_pose,
     write_weights,
 )
-from .errors import DeformerError, FitError, InputError, OutputError, PsdError, PsdWarning, StrictError  # noqa: E402
-from .inverse import InverseResult, invert_example  # noqa: E402
-from .powell import PowellResult, minimize_lockstep  # noqa: E402
-from .rbf import CardinalRbf, fit_cardinal  # noqa: E402
+from .errors import DeformerError, FitError, InputError, OutputError, PsdError, PsdWarning, StrictError
+from .inverse import InverseResult, invert_example
+from .powell import PowellResult, minimize_lockstep
+from .rbf import CardinalRbf, fit_cardinal
 
 __all__ = [
     "CardinalRbf",

@@ -241,9 +241,12 @@ def _fit_rbf(asset, asset_scene, mesh_info, examples, inverses, bind_local, sett
     root_rel = os.path.relpath(mesh, mesh_info.skel_root) if mesh != mesh_info.skel_root else base
     prefix = "psd_" + _safe_token(root_rel)
     channels = []
-    for k, (example, inverse) in enumerate(zip(examples, inverses)):
+    for k, (example, inverse) in enumerate(zip(examples, inverses, strict=True)):
         if len(inverse.indices) == 0:
-            msg = f"{where(example.source, mesh)}: example at time {example.time:g} equals plain skinning; it is kept as a zero example"
+            msg = (
+                f"{where(example.source, mesh)}: example at time {example.time:g} equals plain skinning; "
+                "it is kept as a zero example"
+            )
             notes.append(msg)
             warnings.warn(msg, PsdWarning, stacklevel=2)
             channels.append("")
@@ -311,7 +314,7 @@ def correctives_layer(result: FitResult):
     for m in sorted(result.meshes, key=lambda m: m.mesh):
         shapes = [
             usdwrite.BlendShapeData(name=f"psd_{k:02d}", channel=ch, indices=inv.indices, offsets=inv.offsets)
-            for k, (ch, inv) in enumerate(zip(m.channels, m.inverses))
+            for k, (ch, inv) in enumerate(zip(m.channels, m.inverses, strict=True))
             if ch
         ]
         usdwrite.author_blend_shapes(layer, m.mesh, shapes, m.existing_channels, m.existing_targets)
@@ -363,7 +366,8 @@ def _frames(scene: Scene, mesh: str, frames: tuple[float, float] | None) -> NDAr
         return np.arange(np.ceil(start), np.floor(end) + 1.0)
     times = scene.animation_times(mesh)
     if not times:
-        raise InputError(f"{where(scene.label, scene.animation_prim(mesh) or mesh)}: the animation has no time samples; give --frames")
+        anim = scene.animation_prim(mesh) or mesh
+        raise InputError(f"{where(scene.label, anim)}: the animation has no time samples; give --frames")
     return np.array(times, dtype=np.float64)
 
 
@@ -398,7 +402,9 @@ def evaluate(
             raise InputError(f"{where(correctives, info.path, 'psd:poseSpace')}: unknown pose space {data.pose_space!r}")
         missing = [d for d in data.drivers if d not in info.joints]
         if missing:
-            raise InputError(f"{where(correctives, info.path, 'psd:drivers')}: joint {missing[0]!r} is not in skeleton <{info.skeleton}>")
+            raise InputError(
+                f"{where(correctives, info.path, 'psd:drivers')}: joint {missing[0]!r} is not in skeleton <{info.skeleton}>"
+            )
         anim_prim = scene.animation_prim(info.path)
         if anim_prim is None:
             raise InputError(f"{where(anim, info.skeleton)}: no SkelAnimation bound (skel:animationSource)")
@@ -554,3 +560,10 @@ def pose(asset: str, poses: str, deformers: Sequence[str] = (), *, progress: Pro
 
 def write_pose(result: PoseResult, path: str) -> str:
     return usdwrite.export_atomic(result.layer, path, [result.asset, result.poses])
+
+
+def write_stack(path: str, layers: Sequence[str]) -> str:
+    """A viewable stack: sublayers ``layers`` (weakest first: ASSET, CORRECTIVES, ANIM, WEIGHTS)."""
+    for layer in layers:
+        open_layer(layer)
+    return usdwrite.export_atomic(usdwrite.stack_layer(path, layers), path, layers)

@@ -131,8 +131,10 @@ def pose_cmd(asset, poses, output, deformers, quiet, verbose, as_json) -> None:
 @click.option("--driver", "drivers", multiple=True, metavar="JOINT",
               help="Driver joint (path or unique name; repeatable). Default: every joint rotated in any example.")
 @click.option("--kernel", type=click.Choice(sorted(KERNELS)), default="gaussian", show_default=True)
-@click.option("--sigma", type=float, default=None, help="Kernel width in radians. Default: mean nearest-neighbour distance between example poses.")
-@click.option("--degree", type=int, default=None, help="Polynomial degree (-1: none). Default: the kernel's minimum (none for gaussian).")
+@click.option("--sigma", type=float, default=None,
+              help="Kernel width in radians. Default: mean nearest-neighbour distance between example poses.")
+@click.option("--degree", type=int, default=None,
+              help="Polynomial degree (-1: none). Default: the kernel's minimum (none for gaussian).")
 @click.option("--smoothing", type=float, default=0.0, show_default=True, help="RBF smoothing (0 interpolates exactly).")
 @click.option("--no-rest-example", is_flag=True, help="Do not add the bind pose as an implicit zero example.")
 @click.option("--tolerance", type=float, default=tol.INVERSE_RTOL, show_default=True,
@@ -168,7 +170,7 @@ def fit_report(result: api.FitResult, output: str) -> dict:
     meshes = []
     for m in result.meshes:
         examples = []
-        for ex, inv, channel in zip(m.examples, m.inverses, m.channels):
+        for ex, inv, channel in zip(m.examples, m.inverses, m.channels, strict=True):
             diag = inv.diagonal or 1.0
             examples.append({
                 "example": ex.label, "source": ex.source, "time": ex.time, "blend_shape": channel or None,
@@ -199,7 +201,7 @@ def _render_fit(ui: _Ui, result: api.FitResult, output: str) -> None:
         drivers = ", ".join(j.split("/")[-1] for j in m.drivers)
         ui.say(f"  <{m.mesh}>  drivers: {drivers}  kernel: {d.kernel}  sigma: {d.sigma:.4g} rad  degree: {d.degree}")
         ui.say(f"    {'example':<28} {'solved':>7} {'evals':>6} {'max/diag':>10} {'rms/diag':>10} {'missed':>7} {'seconds':>8}")
-        for ex, inv in zip(m.examples, m.inverses):
+        for ex, inv in zip(m.examples, m.inverses, strict=True):
             diag = inv.diagonal or 1.0
             ui.say(
                 f"    {ex.label:<28} {len(inv.indices):>7} {inv.evaluations:>6} {inv.max_residual / diag:>10.2e} "
@@ -215,8 +217,10 @@ def _render_fit(ui: _Ui, result: api.FitResult, output: str) -> None:
 @click.argument("correctives", type=click.Path(dir_okay=False))
 @click.option("--anim", required=True, type=click.Path(dir_okay=False), help="ANIM layer to drive the correctives over.")
 @click.option("-o", "--output", required=True, type=click.Path(dir_okay=False), help="WEIGHTS layer to write.")
-@click.option("--frames", metavar="START:END", help="Whole frames START..END (inclusive). Default: the animation's authored samples.")
-@click.option("--points-cache", type=click.Path(dir_okay=False), help="Also write final posed points per frame (no UsdSkel needed).")
+@click.option("--frames", metavar="START:END",
+              help="Whole frames START..END (inclusive). Default: the animation's authored samples.")
+@click.option("--points-cache", type=click.Path(dir_okay=False),
+              help="Also write final posed points per frame (no UsdSkel needed).")
 @deformer_option
 @_common
 def eval_cmd(asset, correctives, anim, output, frames, points_cache, deformers, quiet, verbose, as_json) -> None:
@@ -248,6 +252,16 @@ def eval_cmd(asset, correctives, anim, output, frames, points_cache, deformers, 
     ui.say(f"wrote {output}" + (f" and {points_cache}" if points_cache else ""))
 
 
+@cli.command("stack")
+@click.argument("output", type=click.Path(dir_okay=False))
+@click.argument("layers", nargs=-1, required=True, type=click.Path(dir_okay=False))
+def stack_cmd(output, layers) -> None:
+    """Write OUTPUT sublayering LAYERS, given weakest first (ASSET CORRECTIVES ANIM WEIGHTS),
+    so any UsdSkel viewer shows the corrected character."""
+    api.write_stack(output, layers)
+    click.echo(f"wrote {output}")
+
+
 def main(argv: Sequence[str] | None = None) -> None:
     """Entry point: run the CLI, turn every failure into one line and an exit code."""
     try:
@@ -264,7 +278,7 @@ def main(argv: Sequence[str] | None = None) -> None:
     except KeyboardInterrupt:
         click.echo("psdbake: interrupted", err=True)
         sys.exit(EXIT_INTERRUPTED)
-    except Exception as exc:  # noqa: BLE001 - last resort: one line, never a traceback
+    except Exception as exc:
         if os.environ.get("PSDBAKE_DEBUG"):
             raise
         first = (str(exc).strip().splitlines() or [""])[0]

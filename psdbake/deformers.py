@@ -42,7 +42,7 @@ def load_deformer(spec: str) -> Factory:
             module = importlib.import_module(module_name)
     except DeformerError:
         raise
-    except Exception as exc:  # noqa: BLE001 - user code: report, never crash
+    except Exception as exc:
         raise DeformerError(f"deformer {spec!r}: cannot import {module_name}: {type(exc).__name__}: {exc}") from None
     factory = getattr(module, attr, None)
     if not callable(factory):

@@ -212,9 +212,8 @@ def minimize_lockstep(
         replace = active & (f_start > fx2) & (t < 0.0) & np.isfinite(t)
         if replace.any():
             ju = None if jacobian is None else np.einsum("kab,kb->ka", jacobian, displacement)
-            a = np.where(replace, 1.0, 0.0)  # the displacement itself is the natural step
-            if ju is not None:
-                a = np.where(replace, _trial_steps(state.r, ju, displacement, floor / np.maximum(np.linalg.norm(displacement, axis=1), 1e-300)), 0.0)
+            length = np.maximum(np.linalg.norm(displacement, axis=1), 1e-300)
+            a = _trial_steps(state.r, ju, displacement, floor / length)
             state.line_minimise(replace, displacement, np.where(replace, a, 1.0))
             rows = np.nonzero(replace & np.any(displacement != 0.0, axis=1))[0]
             big = biggest_index[rows]

@@ -13,7 +13,8 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 FIXTURES = os.path.join(ROOT, "fixtures")
 sys.path[:0] = [ROOT, FIXTURES]
 
-import generate  # noqa: E402  (fixtures/generate.py)
+
+import generate  # noqa: E402, F401  (fixtures/generate.py, re-exported for the tests)
 
 from psdbake.cli import main  # noqa: E402
 

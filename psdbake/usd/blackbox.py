@@ -23,7 +23,7 @@ import numpy as np
 from numpy.typing import NDArray
 from pxr import Usd, UsdGeom, UsdSkel, Vt
 
-from ..errors import InputError, where
+from ..errors import DeformerError, InputError, where
 from .read import Scene
 
 Points = NDArray[np.float64]  # (n, 3)
@@ -84,6 +84,7 @@ class SkinningBlackBox:
         time: float,
         deformers: Sequence[tuple[str, DeformerFactory]] = (),
     ) -> None:
+        self._scene = scene  # UsdSkel queries die with their stage: keep it alive
         self.mesh = mesh
         self.time = float(time)
         self.label = scene.label
@@ -99,7 +100,7 @@ class SkinningBlackBox:
         to_local = skel_to_world @ np.linalg.inv(mesh_to_world)
         self._linear, self._translate = to_local[:3, :3], to_local[3, :3]
         self._deformers: list[tuple[str, PointFn]] = [
-            (spec, factory(scene.stage, mesh, self.time)) for spec, factory in deformers
+            (spec, _instantiate(spec, factory, scene, mesh, self.time)) for spec, factory in deformers
         ]
         self.evaluations = 0
 
@@ -120,12 +121,23 @@ class SkinningBlackBox:
         return posed
 
 
-def _checked(spec: str, fn: PointFn, points: Points, box: SkinningBlackBox) -> Points:
-    from ..errors import DeformerError
+def _instantiate(spec: str, factory: DeformerFactory, scene: Scene, mesh: str, time: float) -> PointFn:
+    try:
+        fn = factory(scene.stage, mesh, time)
+    except Exception as exc:
+        raise DeformerError(
+            f"deformer {spec} failed to set up for {where(scene.label, mesh)} at time {time:g}: "
+            f"{type(exc).__name__}: {exc}"
+        ) from None
+    if not callable(fn):
+        raise DeformerError(f"deformer {spec} returned {type(fn).__name__}, not a function of the points")
+    return fn
 
+
+def _checked(spec: str, fn: PointFn, points: Points, box: SkinningBlackBox) -> Points:
     try:
         out = fn(points.copy())
-    except Exception as exc:  # noqa: BLE001 - user code: any failure becomes a clean error
+    except Exception as exc:
         raise DeformerError(
             f"deformer {spec} failed on {where(box.label, box.mesh)} at time {box.time:g}: "
             f"{type(exc).__name__}: {exc}"

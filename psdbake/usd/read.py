@@ -105,7 +105,7 @@ class Scene:
         """Every skinned point-based prim, sorted by path."""
         out = []
         for path in sorted(self._targets):
-            query, skel_query, root = self._targets[path]
+            _, skel_query, root = self._targets[path]
             if not skel_query:
                 raise InputError(f"{where(self.label, path)}: bound skeleton is invalid")
             out.append(

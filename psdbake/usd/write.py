@@ -129,7 +129,7 @@ def author_blend_shapes(
     mesh_spec = over(layer, mesh)
     apply_binding_api(mesh_spec)
     ours = {s.channel for s in shapes}
-    keep = [(c, t) for c, t in zip(existing_channels, existing_targets) if c not in ours]
+    keep = [(c, t) for c, t in zip(existing_channels, existing_targets, strict=True) if c not in ours]
     channels = [c for c, _ in keep] + [s.channel for s in shapes]
     targets = [t for _, t in keep] + [f"{mesh}/{s.name}" for s in shapes]
     attribute(mesh_spec, "skel:blendShapes", Sdf.ValueTypeNames.TokenArray, Vt.TokenArray(channels), uniform=True)
@@ -202,7 +202,7 @@ def weights_layer(doc: str, animations, fps: float | None) -> Sdf.Layer:
         spec = over(layer, path)
         attribute(spec, "blendShapes", t_.TokenArray, Vt.TokenArray(list(channels)), uniform=True)
         attr = attribute(spec, "blendShapeWeights", t_.FloatArray)
-        for t, w in zip(ts, weights):
+        for t, w in zip(ts, weights, strict=True):
             layer.SetTimeSample(attr.path, float(t), float_array(w))
     return layer
 
@@ -256,4 +256,21 @@ def examples_layer(doc: str, animations, samples, times: Sequence[float], fps: f
     for mesh, t, pts in samples:
         attr = attribute(over(layer, mesh), "points", t_.Point3fArray)
         layer.SetTimeSample(attr.path, float(t), vec3f_array(pts))
+    return layer
+
+
+def stack_layer(out: str, layers: Sequence[str]) -> Sdf.Layer:
+    """A layer that sublayers ``layers`` (given weakest first, stored strongest first),
+    with paths relative to ``out`` and the frame range of the strongest timed layer."""
+    folder = os.path.dirname(os.path.abspath(out))
+    layer = new_layer("psdbake stack: ASSET + CORRECTIVES + ANIM + WEIGHTS")
+    for path in reversed(layers):
+        layer.subLayerPaths.append(os.path.relpath(os.path.abspath(path), folder))
+    for path in reversed(layers):
+        src = Sdf.Layer.FindOrOpen(path)
+        if src is not None and src.HasStartTimeCode() and src.HasEndTimeCode():
+            layer.startTimeCode, layer.endTimeCode = src.startTimeCode, src.endTimeCode
+            if src.HasTimeCodesPerSecond():
+                layer.timeCodesPerSecond = src.timeCodesPerSecond
+            break
     return layer
