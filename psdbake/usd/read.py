@@ -61,6 +61,8 @@ def compose(files: Sequence[str | Sdf.Layer]) -> Usd.Stage:
     keep = []
     for item in files:
         layer = item if isinstance(item, Sdf.Layer) else open_layer(item)
+        if layer.identifier in root.subLayerPaths:
+            continue  # e.g. --anim ASSET: the asset's own animation
         keep.append(layer)
         root.subLayerPaths.append(layer.identifier)
     try:
