@@ -310,7 +310,9 @@ def correctives_layer(result: FitResult):
     """CORRECTIVES as an in-memory layer: BlendShapes, bindings and psd: driver data."""
     from . import __version__
 
-    layer = usdwrite.new_layer(f"psdbake {__version__} fit: rest-space correctives (inverse PSD)")
+    layer = usdwrite.new_layer(
+        f"psdbake {__version__} fit: rest-space correctives (inverse PSD)", metadata=usdwrite.asset_metadata(result.asset)
+    )
     for m in sorted(result.meshes, key=lambda m: m.mesh):
         shapes = [
             usdwrite.BlendShapeData(name=f"psd_{k:02d}", channel=ch, indices=inv.indices, offsets=inv.offsets)
@@ -460,6 +462,7 @@ def weights_layer(result: WeightsResult):
         f"psdbake {__version__} eval: corrective blend-shape weights",
         [(a.animation, a.channels, a.times, a.weights) for a in result.animations],
         result.fps,
+        usdwrite.asset_metadata(result.asset),
     )
 
 
@@ -495,7 +498,7 @@ def points_cache_layer(result: WeightsResult, deformers: Sequence[str] = (), *, 
 
     return usdwrite.points_layer(
         f"psdbake {__version__} eval: points cache (no UsdSkel needed)",
-        {m.skel_root for m in meshes}, samples(), times, result.fps,
+        {m.skel_root for m in meshes}, samples(), times, result.fps, usdwrite.asset_metadata(result.asset),
     )
 
 
@@ -553,7 +556,8 @@ def pose(asset: str, poses: str, deformers: Sequence[str] = (), *, progress: Pro
                     progress(done, total, info.path)
 
     layer = usdwrite.examples_layer(
-        f"psdbake {__version__} pose: skinned examples to sculpt on", animations, samples(), times, fps
+        f"psdbake {__version__} pose: skinned examples to sculpt on", animations, samples(), times, fps,
+        usdwrite.asset_metadata(asset),
     )
     return PoseResult(asset, poses, tuple(times), tuple(m.path for m in meshes), layer)
 

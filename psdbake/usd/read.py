@@ -58,12 +58,13 @@ def open_layer(path: str) -> Sdf.Layer:
 def compose(files: Sequence[str | Sdf.Layer]) -> Usd.Stage:
     """A stage over the given files (or in-memory layers), strongest first; inputs stay untouched."""
     root = Sdf.Layer.CreateAnonymous("psdbake.usda")
-    keep = []
-    for item in files:
+    keep: list[Sdf.Layer] = []
+    for item in reversed(files):  # weakest first, so a file given twice keeps its weakest place
         layer = item if isinstance(item, Sdf.Layer) else open_layer(item)
-        if layer.identifier in root.subLayerPaths:
-            continue  # e.g. --anim ASSET: the asset's own animation
-        keep.append(layer)
+        if any(layer.identifier == k.identifier for k in keep):
+            continue  # e.g. --anim ASSET: the asset's own animation must stay weaker than CORRECTIVES
+        keep.insert(0, layer)
+    for layer in keep:
         root.subLayerPaths.append(layer.identifier)
     try:
         stage = Usd.Stage.Open(root, Usd.Stage.LoadAll)

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
-from pxr import Gf, Sdf, Tf, Vt
+from pxr import Gf, Sdf, Tf, Usd, UsdGeom, Vt
 
 from .. import atomic
 from ..errors import OutputError
@@ -38,9 +38,30 @@ def export_atomic(layer: Sdf.Layer, path: str, inputs: Iterable[str] = ()) -> st
     return path
 
 
-def new_layer(doc: str, times: Sequence[float] | None = None, fps: float | None = None) -> Sdf.Layer:
+def asset_metadata(asset: str) -> dict:
+    """upAxis, metersPerUnit and defaultPrim of the asset, so each output layer validates
+    on its own (UsdGeom's fallbacks when the asset authors none)."""
+    stage = Usd.Stage.Open(Sdf.Layer.FindOrOpen(asset), Usd.Stage.LoadNone)
+    default = stage.GetDefaultPrim()
+    if not default:
+        roots = [p for p in stage.GetPseudoRoot().GetChildren() if p.IsDefined()]
+        default = roots[0] if roots else None
+    return {
+        "upAxis": str(UsdGeom.GetStageUpAxis(stage)),
+        "metersPerUnit": float(UsdGeom.GetStageMetersPerUnit(stage)),
+        "defaultPrim": default.GetName() if default else None,
+    }
+
+
+def new_layer(doc: str, times: Sequence[float] | None = None, fps: float | None = None,
+              metadata: dict | None = None) -> Sdf.Layer:
     layer = Sdf.Layer.CreateAnonymous("psdbake.usda")
     layer.documentation = doc
+    if metadata:
+        layer.pseudoRoot.SetInfo("upAxis", metadata["upAxis"])
+        layer.pseudoRoot.SetInfo("metersPerUnit", metadata["metersPerUnit"])
+        if metadata.get("defaultPrim"):
+            layer.defaultPrim = metadata["defaultPrim"]
     if times:
         layer.startTimeCode, layer.endTimeCode = float(min(times)), float(max(times))
     if fps:
@@ -189,14 +210,14 @@ def author_driver_data(layer: Sdf.Layer, mesh: str, data: DriverData) -> None:
     put("exampleSources", t.StringArray, Vt.StringArray(list(data.example_sources)))
 
 
-def weights_layer(doc: str, animations, fps: float | None) -> Sdf.Layer:
+def weights_layer(doc: str, animations, fps: float | None, metadata: dict | None = None) -> Sdf.Layer:
     """WEIGHTS: blendShapes + blendShapeWeights samples on each SkelAnimation.
 
     animations: iterable of (anim path, channels, times (f,), weights (f, c)).
     """
     animations = list(animations)
     times = [float(t) for _, _, ts, _ in animations for t in ts]
-    layer = new_layer(doc, times, fps)
+    layer = new_layer(doc, times, fps, metadata)
     t_ = Sdf.ValueTypeNames
     for path, channels, ts, weights in animations:
         spec = over(layer, path)
@@ -207,12 +228,13 @@ def weights_layer(doc: str, animations, fps: float | None) -> Sdf.Layer:
     return layer
 
 
-def points_layer(doc: str, skel_roots: Sequence[str], samples, times: Sequence[float], fps: float | None) -> Sdf.Layer:
+def points_layer(doc: str, skel_roots: Sequence[str], samples, times: Sequence[float], fps: float | None,
+                 metadata: dict | None = None) -> Sdf.Layer:
     """A points cache: SkelRoots become Xforms (no UsdSkel needed), points + extent per time.
 
     samples: iterable of (mesh path, time, points (n, 3)).
     """
-    layer = new_layer(doc, times, fps)
+    layer = new_layer(doc, times, fps, metadata)
     t_ = Sdf.ValueTypeNames
     for root in sorted(skel_roots):
         define(layer, root, "Xform")
@@ -225,14 +247,15 @@ def points_layer(doc: str, skel_roots: Sequence[str], samples, times: Sequence[f
     return layer
 
 
-def examples_layer(doc: str, animations, samples, times: Sequence[float], fps: float | None) -> Sdf.Layer:
+def examples_layer(doc: str, animations, samples, times: Sequence[float], fps: float | None,
+                   metadata: dict | None = None) -> Sdf.Layer:
     """EXAMPLES to sculpt on: the bound animations' samples plus skinned points per time.
 
     animations: iterable of (skeleton path, anim path, joints, channels, samples) with
         samples [(t, translations, rotations, scales, weights)] (see read.animation_components).
     samples: iterable of (mesh path, time, points (n, 3)).
     """
-    layer = new_layer(doc, times, fps)
+    layer = new_layer(doc, times, fps, metadata)
     t_ = Sdf.ValueTypeNames
     for skeleton, anim, joints, channels, anim_samples in animations:
         skel_spec = over(layer, skeleton)
@@ -263,9 +286,14 @@ def stack_layer(out: str, layers: Sequence[str]) -> Sdf.Layer:
     """A layer that sublayers ``layers`` (given weakest first, stored strongest first),
     with paths relative to ``out`` and the frame range of the strongest timed layer."""
     folder = os.path.dirname(os.path.abspath(out))
-    layer = new_layer("psdbake stack: ASSET + CORRECTIVES + ANIM + WEIGHTS")
-    for path in reversed(layers):
-        layer.subLayerPaths.append(os.path.relpath(os.path.abspath(path), folder))
+    layer = new_layer("psdbake stack: ASSET + CORRECTIVES + ANIM + WEIGHTS", metadata=asset_metadata(layers[0]))
+    ordered: list[str] = []
+    for path in layers:  # weakest first; a layer listed twice keeps its weakest place
+        rel = os.path.relpath(os.path.abspath(path), folder)
+        if rel not in ordered:
+            ordered.append(rel)
+    for rel in reversed(ordered):
+        layer.subLayerPaths.append(rel)
     for path in reversed(layers):
         src = Sdf.Layer.FindOrOpen(path)
         if src is not None and src.HasStartTimeCode() and src.HasEndTimeCode():
