@@ -10,6 +10,9 @@ prints. ``write_*`` export layers atomically.
 
 from __future__ import annotations
 
+import concurrent.futures
+import functools
+import multiprocessing
 import os
 import re
 import time as _time
@@ -147,6 +150,69 @@ def _gather_examples(
     return found
 
 
+@dataclass(frozen=True)
+class _InverseTask:
+    """One example's inverse, described by file names only so it can run in any process."""
+
+    asset: str
+    source: str
+    mesh: str
+    time: float
+    deformers: tuple[str, ...]
+    rtol: float
+    points: int
+
+
+@functools.lru_cache(maxsize=8)
+def _scene(files: tuple[str, ...]) -> Scene:
+    return Scene(list(files), label=files[0])
+
+
+def _invert(task: _InverseTask) -> InverseResult:
+    """Solve one example: the same code whether it runs here or in a worker process."""
+    scene = _scene((task.source, task.asset))
+    rest = _scene((task.asset,)).rest_points(task.mesh)
+    sculpt = scene.point_sample(open_layer(task.source), task.mesh, task.time)
+    box = SkinningBlackBox(scene, task.mesh, task.time, load_deformers(task.deformers))
+    return invert_example(box, rest, sculpt, rtol=task.rtol)
+
+
+#: Below this many example points in total, worker start-up costs more than it saves.
+PARALLEL_MIN_POINTS = 1_000_000
+
+
+def _auto_jobs(tasks: Sequence[_InverseTask], jobs: int | None) -> int:
+    if jobs is not None:
+        return max(1, min(int(jobs), len(tasks)))
+    if len(tasks) < 2 or sum(t.points for t in tasks) < PARALLEL_MIN_POINTS:
+        return 1
+    return max(1, min(os.cpu_count() or 1, len(tasks)))
+
+
+def _solve_all(tasks: Sequence[_InverseTask], jobs: int | None, progress: Progress | None) -> list[InverseResult]:
+    """Every example's inverse, in task order, serially or on a process pool."""
+    n = _auto_jobs(tasks, jobs)
+    results: list[InverseResult | None] = [None] * len(tasks)
+    try:
+        if n == 1:
+            for i, task in enumerate(tasks):
+                results[i] = _invert(task)
+                if progress:
+                    progress(i + 1, len(tasks), f"{task.mesh} {os.path.basename(task.source)}@{task.time:g}")
+        else:
+            ctx = multiprocessing.get_context("spawn")  # USD is multithreaded: never fork it
+            with concurrent.futures.ProcessPoolExecutor(max_workers=n, mp_context=ctx) as pool:
+                futures = {pool.submit(_invert, task): i for i, task in enumerate(tasks)}
+                for done, future in enumerate(concurrent.futures.as_completed(futures), start=1):
+                    results[futures[future]] = future.result()
+                    if progress:
+                        task = tasks[futures[future]]
+                        progress(done, len(tasks), f"{task.mesh} {os.path.basename(task.source)}@{task.time:g}")
+    finally:
+        _scene.cache_clear()
+    return [r for r in results if r is not None]
+
+
 def _bind_quaternions(bind_local: NDArray[np.float64]) -> NDArray[np.float64]:
     return posespace.rotations(bind_local).as_quat()
 
@@ -156,14 +222,19 @@ def fit(
     example_files: Sequence[str],
     settings: FitSettings = FitSettings(),
     *,
+    jobs: int | None = None,
     progress: Progress | None = None,
 ) -> FitResult:
-    """Fit rest-space correctives and their RBF drivers from sculpted examples."""
+    """Fit rest-space correctives and their RBF drivers from sculpted examples.
+
+    jobs: worker processes for the per-example inverses (None: all cores when the fit is
+    big enough to pay for starting them, see ``_auto_jobs``). The output does not depend on it.
+    """
     started = _time.perf_counter()
     if not example_files:
         raise InputError("fit needs at least one EXAMPLES file")
     notes: list[str] = []
-    deformers = load_deformers(settings.deformers)
+    load_deformers(settings.deformers)  # fail fast on a bad spec; each solve loads its own chain
     asset_scene = Scene([asset])
     asset_scene.require_skinned()
     all_meshes = [m.path for m in asset_scene.skinned_meshes()]
@@ -178,17 +249,16 @@ def fit(
             f"{', '.join(example_files)}: no examples: no points time samples on the skinned meshes "
             f"{', '.join(f'<{m}>' for m in meshes)}"
         )
-    total, done = len(work), 0
-    fits = []
+    # Validate every example (cheap) before solving any (expensive).
+    tasks: list[_InverseTask] = []
+    per_mesh: dict[str, list[Example]] = {}
     for mesh_info in asset_scene.skinned_meshes():
         mesh = mesh_info.path
         if mesh not in meshes or not found[mesh]:
             continue
         rest = asset_scene.rest_points(mesh)
         bind_local = asset_scene.bind_local_transforms(mesh)
-        examples, inverses = [], []
         for scene, source, t, sculpt in found[mesh]:
-            label = f"{os.path.basename(source)}@{t:g}"
             if sculpt.shape != rest.shape:
                 raise InputError(
                     f"{where(source, mesh, 'points')}: example at time {t:g} has {len(sculpt)} points, "
@@ -202,14 +272,20 @@ def fit(
                     f"so the example at time {t:g} has no pose"
                 )
             pose_x = posespace.pose_coordinates(bind_local, scene.joint_local_transforms(mesh, t))
-            box = SkinningBlackBox(scene, mesh, t, deformers)
-            inverse = invert_example(box, rest, sculpt, rtol=settings.rtol)
-            examples.append(Example(label=label, source=source, time=t, pose=pose_x))
-            inverses.append(inverse)
-            done += 1
-            if progress:
-                progress(done, total, f"{mesh} {label}")
-        fits.append(_fit_rbf(asset, asset_scene, mesh_info, examples, inverses, bind_local, settings, notes))
+            label = f"{os.path.basename(source)}@{t:g}"
+            per_mesh.setdefault(mesh, []).append(Example(label=label, source=source, time=t, pose=pose_x))
+            tasks.append(_InverseTask(asset, source, mesh, t, settings.deformers, settings.rtol, len(rest)))
+    inverses = _solve_all(tasks, jobs, progress)
+    fits = []
+    k = 0
+    for mesh_info in asset_scene.skinned_meshes():
+        if mesh_info.path not in per_mesh:
+            continue
+        examples = per_mesh[mesh_info.path]
+        mine = inverses[k : k + len(examples)]
+        k += len(examples)
+        bind_local = asset_scene.bind_local_transforms(mesh_info.path)
+        fits.append(_fit_rbf(asset, asset_scene, mesh_info, examples, mine, bind_local, settings, notes))
     return FitResult(
         asset=asset,
         example_files=tuple(example_files),

@@ -142,10 +142,13 @@ def pose_cmd(asset, poses, output, deformers, quiet, verbose, as_json) -> None:
 @click.option("--mesh", "meshes", multiple=True, metavar="PATH", help="Only fit this mesh (repeatable).")
 @click.option("--report", type=click.Path(dir_okay=False), help="Write a JSON report here.")
 @click.option("--strict", is_flag=True, help="Fail (exit 7, nothing written) if any vertex misses tolerance.")
+@click.option("--jobs", "-j", type=click.IntRange(min=1), default=None,
+              help="Worker processes for the examples. Default: all cores once the fit is big enough to gain from them. "
+                   "The output is byte-identical whatever N is.")
 @deformer_option
 @_common
 def fit_cmd(asset, examples, output, drivers, kernel, sigma, degree, smoothing, no_rest_example, tolerance,
-            meshes, report, strict, deformers, quiet, verbose, as_json) -> None:
+            meshes, report, strict, jobs, deformers, quiet, verbose, as_json) -> None:
     """Fit rest-space corrective BlendShapes and their RBF drivers from sculpted EXAMPLES."""
     ui = _Ui(quiet, verbose, as_json)
     settings = api.FitSettings(
@@ -153,7 +156,7 @@ def fit_cmd(asset, examples, output, drivers, kernel, sigma, degree, smoothing, 
         rest_example=not no_rest_example, rtol=tolerance, meshes=tuple(meshes), deformers=tuple(deformers),
     )
     with _collect_warnings(ui), ui.progress("fitting examples") as progress:
-        result = api.fit(asset, examples, settings, progress=progress)
+        result = api.fit(asset, examples, settings, jobs=jobs, progress=progress)
     payload = fit_report(result, output)
     if strict and result.missed:
         raise StrictError(f"{output}: not written: {result.missed} vertices missed the tolerance (--strict)")

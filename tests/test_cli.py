@@ -152,3 +152,16 @@ def test_inputs_are_never_modified(run, tmp_path):
     assert run("eval", ASSET, corr, "--anim", ANIM, "-o", tmp_path / "w.usda", "-q")[0] == 0
     assert {p: Path(p).read_bytes() for p in before} == before
 
+
+
+def test_jobs_do_not_change_the_output(run, tmp_path):
+    """Examples solved in worker processes give byte-identical CORRECTIVES."""
+    outs = []
+    for jobs in ("1", "2"):
+        out = tmp_path / f"c{jobs}.usdc"
+        code, _, err = run("fit", ASSET, EXAMPLES, fixture("arm_lbs_examples.usda"), "-o", out, "-j", jobs, "-q")
+        assert code == 4 and "same pose" in err  # the same file twice: duplicate poses, named
+        code, _, err = run("fit", ASSET, EXAMPLES, "-o", out, "-j", jobs, "-q")
+        assert code == 0, err
+        outs.append(out.read_bytes())
+    assert outs[0] == outs[1]
