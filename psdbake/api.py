@@ -438,7 +438,8 @@ def parse_frames(text: str | None) -> tuple[float, float] | None:
     return float(m.group(1)), float(m.group(2))
 
 
-def _frames(scene: Scene, mesh: str, frames: tuple[float, float] | None) -> NDArray[np.float64]:
+def frames_of(scene: Scene, mesh: str, frames: tuple[float, float] | None) -> NDArray[np.float64]:
+    """Whole frames A..B when given, else the animation's authored time samples."""
     if frames is not None:
         start, end = frames
         return np.arange(np.ceil(start), np.floor(end) + 1.0)
@@ -493,7 +494,7 @@ def evaluate(
     for anim_prim in sorted(per_anim):
         entries = per_anim[anim_prim]
         first = entries[0][0].path
-        times = _frames(scene, first, frames)
+        times = frames_of(scene, first, frames)
         existing_channels, existing_weights = _existing_channels(scene, first, times)
         psd_channels, columns = [], []
         for info, data in entries:

@@ -1,0 +1,146 @@
+"""Plain skinning vs forward PSD vs inverse PSD, frame by frame (the paper's analysis).
+
+For each frame x of an animation, with the *same* cardinal RBF weights b_j(x):
+
+- SSD:      SKINNING_x(rest)
+- forward:  SKINNING_x(rest) + sum_j b_j(x) delta_j      delta_j = sculpt_j - SKINNING_j(rest)
+            (posed-space deltas, interpolated and added after skinning)
+- inverse:  SKINNING_x(rest + sum_j b_j(x) d'_j)          d'_j from the black-box inverse (psdbake)
+
+so the comparison isolates the one thing the paper changes: the space in which the
+examples are interpolated. The correction vector of a vertex is the result minus SSD.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from . import api, posespace
+from .deformers import load_deformers
+from .errors import InputError
+from .usd.blackbox import SkinningBlackBox
+from .usd.read import Scene, open_layer
+
+Points = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class MeshComparison:
+    """Per-frame results for one mesh."""
+
+    mesh: str
+    times: NDArray[np.float64]  # (f,)
+    driver_angles: NDArray[np.float64]  # (f, drivers) rotation angle of each driver, radians
+    weights: NDArray[np.float64]  # (f, s) cardinal weights
+    ssd: NDArray[np.float64]  # (f, n, 3)
+    forward: NDArray[np.float64]  # (f, n, 3)
+    inverse: NDArray[np.float64]  # (f, n, 3)
+    corrected: NDArray[np.int64]  # vertices with a corrective in any example
+    diagonal: float
+
+
+@dataclass(frozen=True)
+class Comparison:
+    fit: api.FitResult
+    anim: str
+    meshes: tuple[MeshComparison, ...]
+
+
+def posed_deltas(fit_result: api.FitResult, mesh_fit: api.MeshFit) -> list[Points]:
+    """delta_j = sculpt_j - SKINNING_j(rest) per example (forward PSD's data), (n, 3) each."""
+    asset = fit_result.asset
+    rest = Scene([asset]).rest_points(mesh_fit.mesh)
+    chain = load_deformers(fit_result.settings.deformers)
+    out = []
+    for ex in mesh_fit.examples:
+        scene = Scene([ex.source, asset], label=ex.source)
+        sculpt = scene.point_sample(open_layer(ex.source), mesh_fit.mesh, ex.time)
+        out.append(sculpt - SkinningBlackBox(scene, mesh_fit.mesh, ex.time, chain)(rest))
+    return out
+
+
+def compare(
+    asset: str,
+    example_files: Sequence[str],
+    anim: str,
+    settings: api.FitSettings = api.FitSettings(),
+    *,
+    frames: tuple[float, float] | None = None,
+    fit_result: api.FitResult | None = None,
+) -> Comparison:
+    """Fit (unless given) and evaluate SSD, forward PSD and inverse PSD at every frame."""
+    result = fit_result or api.fit(asset, example_files, settings)
+    chain = load_deformers(result.settings.deformers)
+    scene = Scene([anim, asset], label=anim)
+    meshes = []
+    for m in result.meshes:
+        model = api.rbf_from_driver_data(m.driver_data)
+        data = m.driver_data
+        info = next(i for i in scene.skinned_meshes() if i.path == m.mesh)
+        idx = [info.joints.index(d) for d in data.drivers]
+        times = api.frames_of(scene, m.mesh, frames)
+        rest = scene.rest_points(m.mesh)
+        outputs = [j for j, ch in enumerate(m.channels) if ch]
+        d_rest = np.zeros((len(outputs), *rest.shape))
+        for k, j in enumerate(outputs):
+            inv = m.inverses[j]
+            d_rest[k, inv.indices] = inv.offsets
+        deltas = posed_deltas(result, m)
+        d_posed = np.stack([deltas[j] for j in outputs])
+        # forward PSD interpolates the same vertices psdbake corrects
+        corrected = np.unique(np.concatenate([m.inverses[j].indices for j in outputs]))
+        mask = np.zeros(len(rest), dtype=bool)
+        mask[corrected] = True
+        d_posed[:, ~mask] = 0.0
+        f = len(times)
+        ssd, fwd, inv_pts = (np.empty((f, *rest.shape)) for _ in range(3))
+        weights = np.empty((f, len(outputs)))
+        angles = np.empty((f, len(idx)))
+        for i, t in enumerate(times):
+            local = scene.joint_local_transforms(m.mesh, float(t))[idx]
+            x = posespace.pose_coordinates_from_quaternions(data.bind_rotations, local)
+            angles[i] = np.linalg.norm(x.reshape(-1, 3), axis=1)
+            weights[i] = model.weights(x[None])[0]
+            box = SkinningBlackBox(scene, m.mesh, float(t), chain)
+            ssd[i] = box(rest)
+            fwd[i] = ssd[i] + np.tensordot(weights[i], d_posed, axes=1)
+            inv_pts[i] = box(rest + np.tensordot(weights[i], d_rest, axes=1))
+        diag = float(np.linalg.norm(ssd[0].max(axis=0) - ssd[0].min(axis=0)))
+        meshes.append(MeshComparison(m.mesh, times, angles, weights, ssd, fwd, inv_pts, corrected, diag))
+    if not meshes:
+        raise InputError(f"{asset}: nothing was fitted, nothing to compare")
+    return Comparison(result, anim, tuple(meshes))
+
+
+def correction_turn(comparison: MeshComparison, vertex: int, reference: int | None = None
+                    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """How far the correction vector of one vertex has turned, per frame: the angle
+    (radians) between its direction at each frame and at the reference frame (default: the
+    frame where the inverse correction is largest). The paper's Figure 3 quantity.
+
+    Returns (forward, inverse), each (f,); NaN where a correction vanishes."""
+    fwd = comparison.forward[:, vertex] - comparison.ssd[:, vertex]
+    inv = comparison.inverse[:, vertex] - comparison.ssd[:, vertex]
+    if reference is None:
+        reference = int(np.argmax(np.linalg.norm(inv, axis=1)))
+    out = []
+    for c in (fwd, inv):
+        norms = np.linalg.norm(c, axis=1)
+        live = norms > 1e-9 * max(comparison.diagonal, 1e-30)
+        angle = np.full(len(c), np.nan)
+        if live[reference]:
+            u = c[live] / norms[live, None]
+            ref = c[reference] / norms[reference]
+            angle[live] = np.arccos(np.clip(u @ ref, -1.0, 1.0))
+        out.append(angle)
+    return out[0], out[1]
+
+
+def most_corrected_vertex(comparison: MeshComparison) -> int:
+    """The vertex whose inverse-PSD correction is largest over the animation."""
+    mag = np.linalg.norm(comparison.inverse - comparison.ssd, axis=2).max(axis=0)
+    return int(np.argmax(mag))
