@@ -7,7 +7,7 @@ BIN    := $(VENV)/bin
 OUT    ?= out
 STAMP  := $(VENV)/.installed
 
-.PHONY: demo test lint bench fixtures clean
+.PHONY: demo test lint bench fidelity fixtures clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -37,6 +37,9 @@ test: $(STAMP)
 
 lint: $(STAMP)
 	$(BIN)/ruff check psdbake tests benchmarks fixtures/generate.py
+
+fidelity: $(STAMP)
+	$(BIN)/python -m benchmarks.fidelity
 
 bench: $(STAMP)
 	$(BIN)/python -m benchmarks.run

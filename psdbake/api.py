@@ -333,18 +333,19 @@ def _fit_rbf(asset, asset_scene, mesh_info, examples, inverses, bind_local, sett
         labels.append(example.label)
     if not outputs:
         raise FitError(f"{where(asset, mesh)}: no example differs from plain skinning: nothing to correct")
+    full_centers = np.array(centers)
     model = rbf.fit_cardinal(
-        np.array(centers), outputs, labels,
+        full_centers, outputs, labels,
         kernel=settings.kernel, sigma=settings.sigma, degree=settings.degree, smoothing=settings.smoothing,
     )
-    self_weights = model.weights(model.centers[outputs])
+    self_weights = model.weights(full_centers[outputs])
     for col, row in enumerate(outputs):
         if self_weights[col, col] < tol.SELF_WEIGHT_MIN:
             msg = (f"{where(asset, mesh)}: example {labels[row]} reaches a weight of only "
                    f"{self_weights[col, col]:.3f} at its own pose (smoothing {settings.smoothing:g})")
             notes.append(msg)
             warnings.warn(msg, PsdWarning, stacklevel=2)
-    near = rbf.check_distinct(model.centers, labels)
+    near = rbf.check_distinct(full_centers, labels)
     for a, b, d in near:
         msg = f"{where(asset, mesh)}: examples {a} and {b} are only {d:.3g} rad apart in pose space"
         notes.append(msg)
@@ -364,6 +365,7 @@ def _fit_rbf(asset, asset_scene, mesh_info, examples, inverses, bind_local, sett
         powers=model.powers,
         shift=model.shift,
         scale=model.scale,
+        dims=model.dims,
         example_times=[e.time for e in examples],
         example_sources=[os.path.basename(e.source) for e in examples],
     )
@@ -456,7 +458,7 @@ def rbf_from_driver_data(data: usdwrite.DriverData) -> rbf.CardinalRbf:
     return rbf.CardinalRbf(
         centers=data.centers, kernel=data.kernel, sigma=data.sigma, degree=data.degree,
         smoothing=data.smoothing, coefficients=data.coefficients, powers=data.powers,
-        shift=data.shift, scale=data.scale,
+        shift=data.shift, scale=data.scale, dims=data.dims,
     )
 
 

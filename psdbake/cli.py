@@ -132,7 +132,7 @@ def pose_cmd(asset, poses, output, deformers, quiet, verbose, as_json) -> None:
               help="Driver joint (path or unique name; repeatable). Default: every joint rotated in any example.")
 @click.option("--kernel", type=click.Choice(sorted(KERNELS)), default="gaussian", show_default=True)
 @click.option("--sigma", type=float, default=None,
-              help="Kernel width in radians. Default: mean nearest-neighbour distance between example poses.")
+              help="Kernel width in radians. Default: mean distance between example poses.")
 @click.option("--degree", type=int, default=None,
               help="Polynomial degree (-1: none). Default: the kernel's minimum (none for gaussian).")
 @click.option("--smoothing", type=float, default=0.0, show_default=True, help="RBF smoothing (0 interpolates exactly).")

@@ -67,13 +67,13 @@ def compare(
     asset: str,
     example_files: Sequence[str],
     anim: str,
-    settings: api.FitSettings = api.FitSettings(),
+    settings: api.FitSettings | None = None,
     *,
     frames: tuple[float, float] | None = None,
     fit_result: api.FitResult | None = None,
 ) -> Comparison:
     """Fit (unless given) and evaluate SSD, forward PSD and inverse PSD at every frame."""
-    result = fit_result or api.fit(asset, example_files, settings)
+    result = fit_result or api.fit(asset, example_files, settings or api.FitSettings())
     chain = load_deformers(result.settings.deformers)
     scene = Scene([anim, asset], label=anim)
     meshes = []

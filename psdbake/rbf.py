@@ -17,9 +17,16 @@ solved coefficients, shift, scale and powers are copied out so that any program 
 evaluate the formula above (``CardinalRbf.weights`` is that evaluation, checked
 against scipy at fit time).
 
-Automatic sigma: the mean, over centres, of the distance to the nearest other
-centre (the typical spacing of the examples), so each Gaussian reaches its
-neighbours at exp(-1) ~ 0.37.
+Automatic sigma: the mean distance between all pairs of example poses (bind pose
+included), the "average distance between nodes" that scipy's classic ``Rbf`` uses
+for its default epsilon. Sparse PSD example sets need Gaussians that reach across
+the gaps between examples; the nearest-neighbour spacing makes them too narrow and
+the weights sag between examples (measured in ``benchmarks/fidelity.py``).
+
+Dimensions: x above is the pose vector restricted to ``dims``. Without a polynomial
+term that is every coordinate. With one, coordinates that no example varies (a hinge
+joint's two other rotation axes, say) are dropped: their monomials would be constant
+columns and make the polynomial system singular.
 """
 
 from __future__ import annotations
@@ -56,7 +63,7 @@ SCALE_FREE = frozenset({"linear", "thin_plate_spline", "cubic", "quintic"})
 class CardinalRbf:
     """Everything needed to evaluate the cardinal weights b_s(x)."""
 
-    centers: NDArray[np.float64]  # (k, d) example pose coordinates (bind pose included)
+    centers: NDArray[np.float64]  # (k, d) example pose coordinates (bind pose included), over dims
     kernel: str
     sigma: float  # eps = 1 / sigma
     degree: int  # polynomial degree, -1 for none
@@ -65,14 +72,15 @@ class CardinalRbf:
     powers: NDArray[np.int64]  # (p, d)
     shift: NDArray[np.float64]  # (d,)
     scale: NDArray[np.float64]  # (d,)
+    dims: NDArray[np.int64]  # (d,) indices of the pose coordinates used
 
     @property
     def epsilon(self) -> float:
         return 1.0 / self.sigma
 
     def weights(self, x: NDArray[np.float64]) -> NDArray[np.float64]:
-        """b(x): (f, d) pose coordinates -> (f, s) weights, by the documented formula."""
-        x = np.atleast_2d(np.asarray(x, dtype=np.float64))
+        """b(x): (f, D) full pose coordinates -> (f, s) weights, by the documented formula."""
+        x = np.atleast_2d(np.asarray(x, dtype=np.float64))[:, self.dims]
         k = len(self.centers)
         r = self.epsilon * cdist(x, self.centers)
         basis = KERNELS[self.kernel](r)
@@ -89,12 +97,11 @@ def default_degree(kernel: str) -> int:
 
 
 def auto_sigma(centers: NDArray[np.float64]) -> float:
-    """Mean nearest-neighbour distance between centres (DEFAULT_SIGMA for one centre)."""
+    """Mean pairwise distance between centres (DEFAULT_SIGMA for one centre)."""
     if len(centers) < 2:
         return tol.DEFAULT_SIGMA
     d = cdist(centers, centers)
-    np.fill_diagonal(d, np.inf)
-    sigma = float(np.mean(d.min(axis=1)))
+    sigma = float(d[np.triu_indices(len(centers), k=1)].mean())
     return sigma if sigma > 0 else tol.DEFAULT_SIGMA
 
 
@@ -128,11 +135,16 @@ def fit_cardinal(
 
     centers: (k, d) example poses; labels name them in errors.
     """
-    centers = np.asarray(centers, dtype=np.float64)
+    full = np.asarray(centers, dtype=np.float64)
     if kernel not in KERNELS:
         raise FitError(f"unknown kernel {kernel!r}: choose one of {', '.join(sorted(KERNELS))}")
-    check_distinct(centers, labels)
+    check_distinct(full, labels)
     deg = default_degree(kernel) if degree is None else int(degree)
+    if deg >= 0:
+        dims = np.nonzero(np.ptp(full, axis=0) > tol.DRIVER_ANGLE_ATOL)[0]
+    else:
+        dims = np.arange(full.shape[1])
+    centers = full[:, dims]
     if deg < MIN_DEGREE.get(kernel, -1):
         raise FitError(f"kernel {kernel!r} needs a polynomial degree of at least {MIN_DEGREE[kernel]} (got {deg})")
     if kernel in SCALE_FREE:
@@ -160,8 +172,9 @@ def fit_cardinal(
         powers=np.array(interp.powers, dtype=np.int64).reshape(-1, centers.shape[1]),
         shift=np.array(interp._shift, dtype=np.float64),
         scale=np.array(interp._scale, dtype=np.float64),
+        dims=dims.astype(np.int64),
     )
     # Guard the copy of scipy's internals: the documented formula must equal scipy.
-    if not np.allclose(model.weights(centers), interp(centers), rtol=0, atol=1e-9):
+    if not np.allclose(model.weights(full), interp(centers), rtol=0, atol=1e-9):
         raise RuntimeError("scipy RBFInterpolator internals changed: stored coefficients no longer reproduce it")
     return model

@@ -80,3 +80,15 @@ def test_inverse_correction_turns_with_the_joint_forward_does_not(tmp_path):
     # same weights for both: at the example pose both reproduce the sculpt
     np.testing.assert_allclose(m.inverse[-1, 3], [-1.3, 1.2, 0.0], atol=1e-6)
     np.testing.assert_allclose(m.forward[-1, 3], [-1.3, 1.2, 0.0], atol=1e-6)
+
+
+def test_ground_truth_table_inverse_beats_forward_and_ssd(tmp_path):
+    """benchmarks/fidelity.py, default settings, non-linear (sin) bulge: inverse PSD's mean
+    error at the intermediate poses is at most a third of forward PSD's, and its worst
+    vertex is better than both forward PSD's and plain skinning's."""
+    from benchmarks import fidelity
+
+    rows = {(r.settings, r.method): r for r in fidelity.run(str(tmp_path), truths=("sin",))}
+    ssd, fwd, inv = (rows[("gaussian", m)] for m in ("SSD", "forward PSD", "inverse PSD"))
+    assert inv.mean <= fwd.mean / 3
+    assert inv.max < fwd.max and inv.max < ssd.max

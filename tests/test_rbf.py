@@ -30,9 +30,9 @@ def test_cardinal_and_stored_formula_match_scipy(kernel, degree):
     np.testing.assert_allclose(model.weights(x), ref(x), atol=1e-10)
 
 
-def test_auto_sigma_is_mean_nearest_neighbour_distance():
+def test_auto_sigma_is_mean_pairwise_distance():
     pts = np.array([[0.0], [1.0], [3.0]])
-    assert rbf.auto_sigma(pts) == pytest.approx((1.0 + 1.0 + 2.0) / 3.0, abs=1e-12)
+    assert rbf.auto_sigma(pts) == pytest.approx((1.0 + 3.0 + 2.0) / 3.0, abs=1e-12)
     assert rbf.auto_sigma(pts[:1]) == 1.0
 
 

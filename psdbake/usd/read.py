@@ -239,14 +239,16 @@ def read_driver_data(scene: Scene, mesh: str):
             f"(reads {', '.join(map(str, READABLE_PSD_VERSIONS))}); upgrade psdbake or re-fit"
         )
     drivers = [str(d) for d in get("drivers")]
-    dim = 3 * len(drivers)
+    dims = np.array(get("dimensions"), dtype=np.int64)
+    dim = len(dims)
     shapes = [str(s) for s in get("shapes")]
     centers = np.array(get("centers"), dtype=np.float64)
     powers = np.array(get("polyPowers"), dtype=np.int64)
     coefficients = np.array(get("coefficients"), dtype=np.float64)
     quats = get("driverBindRotations")
     bind = np.array([[*q.GetImaginary(), q.GetReal()] for q in quats], dtype=np.float64).reshape(-1, 4)
-    if dim == 0 or centers.size % dim or powers.size % dim or len(bind) != len(drivers):
+    bad_dims = dim == 0 or dims.min() < 0 or dims.max() >= 3 * len(drivers)
+    if bad_dims or centers.size % dim or powers.size % dim or len(bind) != len(drivers):
         raise InputError(f"{where(label, mesh)}: psd: driver data sizes do not match {len(drivers)} drivers")
     centers = centers.reshape(-1, dim)
     powers = powers.reshape(-1, dim)
@@ -270,6 +272,7 @@ def read_driver_data(scene: Scene, mesh: str):
         powers=powers,
         shift=np.array(get("polyShift"), dtype=np.float64),
         scale=np.array(get("polyScale"), dtype=np.float64),
+        dims=dims,
         example_times=[float(t) for t in get("exampleTimes")],
         example_sources=[str(s) for s in get("exampleSources")],
     )

@@ -172,13 +172,14 @@ class DriverData:
     sigma: float
     degree: int
     smoothing: float
-    centers: NDArray[np.float64]  # (k, 3 d)
+    centers: NDArray[np.float64]  # (k, m) over dims
     center_labels: Sequence[str]
     shapes: Sequence[str]  # channels, one per coefficient column
     coefficients: NDArray[np.float64]  # (k + p, s)
-    powers: NDArray[np.int64]  # (p, 3 d)
-    shift: NDArray[np.float64]  # (3 d,)
-    scale: NDArray[np.float64]  # (3 d,)
+    powers: NDArray[np.int64]  # (p, m)
+    shift: NDArray[np.float64]  # (m,)
+    scale: NDArray[np.float64]  # (m,)
+    dims: NDArray[np.int64]  # (m,) pose coordinates used, indices into the 3 d vector
     example_times: Sequence[float]
     example_sources: Sequence[str]
 
@@ -204,6 +205,7 @@ def author_driver_data(layer: Sdf.Layer, mesh: str, data: DriverData) -> None:
     put("shapes", t.TokenArray, Vt.TokenArray(list(data.shapes)))
     put("coefficients", t.DoubleArray, double_array(data.coefficients))
     put("polyPowers", t.IntArray, int_array(data.powers))
+    put("dimensions", t.IntArray, int_array(data.dims))
     put("polyShift", t.DoubleArray, double_array(data.shift))
     put("polyScale", t.DoubleArray, double_array(data.scale))
     put("exampleTimes", t.DoubleArray, double_array(np.asarray(data.example_times, dtype=np.float64)))
