@@ -22,6 +22,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.spatial.transform import Rotation
 
 from . import posespace, rbf
 from . import tolerances as tol
@@ -65,6 +66,10 @@ class FitSettings:
     degree: int | None = None  # None: rbf.default_degree(kernel)
     smoothing: float = 0.0
     rest_example: bool = True
+    pose_space: str = "rotationVector"  # posespace.POSE_SPACES
+    twist_axis: tuple[float, float, float] | None = None  # swingTwist: axis in each driver's bind frame
+    clamp_weights: bool = False  # clamp b(x) to [0, 1] at eval time (stored, off by default)
+    normalize_weights: bool = False  # divide b(x) by max(1, sum) at eval time (stored, off by default)
     rtol: float = tol.INVERSE_RTOL
     meshes: tuple[str, ...] = ()  # empty: every mesh with examples
     deformers: tuple[str, ...] = ()
@@ -77,7 +82,7 @@ class Example:
     label: str  # "file.usda@t" for messages and reports
     source: str  # EXAMPLES file path
     time: float
-    pose: NDArray[np.float64]  # (3 j,) pose coordinates over all skeleton joints
+    pose: NDArray[np.float64]  # (j, 4) every joint's rotation away from the bind pose, quaternions xyzw
 
 
 @dataclass(frozen=True)
@@ -271,7 +276,8 @@ def fit(
                     f"{where(source, mesh_info.skeleton)}: no SkelAnimation bound (skel:animationSource), "
                     f"so the example at time {t:g} has no pose"
                 )
-            pose_x = posespace.pose_coordinates(bind_local, scene.joint_local_transforms(mesh, t))
+            local = scene.joint_local_transforms(mesh, t)
+            pose_x = posespace.relative_rotations(bind_local, local).as_quat().reshape(-1, 4)
             label = f"{os.path.basename(source)}@{t:g}"
             per_mesh.setdefault(mesh, []).append(Example(label=label, source=source, time=t, pose=pose_x))
             tasks.append(_InverseTask(asset, source, mesh, t, settings.deformers, settings.rtol, len(rest)))
@@ -308,10 +314,18 @@ def _fit_rbf(asset, asset_scene, mesh_info, examples, inverses, bind_local, sett
                 f"{where(asset, mesh)}: every example is at the bind pose, so no joint drives the correctives "
                 "(name joints with --driver)"
             )
-    cols = np.concatenate([[3 * j, 3 * j + 1, 3 * j + 2] for j in driver_idx])
+    if settings.pose_space not in posespace.POSE_SPACES:
+        raise FitError(f"unknown pose space {settings.pose_space!r}: choose one of {', '.join(posespace.POSE_SPACES)}")
+    if settings.pose_space == "swingTwist" and settings.twist_axis is None:
+        raise FitError("--pose-space swingTwist needs --twist-axis (the twist axis in each driver's bind frame)")
+
+    def coordinates(pose: NDArray[np.float64]) -> NDArray[np.float64]:
+        delta = Rotation.from_quat(pose[driver_idx])
+        return posespace.features(delta, settings.pose_space, settings.twist_axis)
+
     centers, labels, outputs = [], [], []
     if settings.rest_example:
-        centers.append(np.zeros(len(cols)))
+        centers.append(coordinates(np.tile([0.0, 0.0, 0.0, 1.0], (len(joints), 1))))
         labels.append("bind")
     base = mesh_info.path.split("/")[-1]
     root_rel = os.path.relpath(mesh, mesh_info.skel_root) if mesh != mesh_info.skel_root else base
@@ -329,7 +343,7 @@ def _fit_rbf(asset, asset_scene, mesh_info, examples, inverses, bind_local, sett
         else:
             outputs.append(len(centers))
             channels.append(f"{prefix}_{k:02d}")
-        centers.append(example.pose[cols])
+        centers.append(coordinates(example.pose))
         labels.append(example.label)
     if not outputs:
         raise FitError(f"{where(asset, mesh)}: no example differs from plain skinning: nothing to correct")
@@ -353,7 +367,10 @@ def _fit_rbf(asset, asset_scene, mesh_info, examples, inverses, bind_local, sett
     data = usdwrite.DriverData(
         drivers=[joints[j] for j in driver_idx],
         bind_rotations=_bind_quaternions(bind_local[driver_idx]),
-        pose_space="rotationVector",
+        pose_space=settings.pose_space,
+        twist_axis=settings.twist_axis,
+        clamp_weights=settings.clamp_weights,
+        normalize_weights=settings.normalize_weights,
         kernel=model.kernel,
         sigma=model.sigma,
         degree=model.degree,
@@ -462,6 +479,21 @@ def rbf_from_driver_data(data: usdwrite.DriverData) -> rbf.CardinalRbf:
     )
 
 
+def driver_weights(data: usdwrite.DriverData, local: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Weights (f, s) of the stored correctives for driver local transforms (f, d, 4, 4):
+    pose coordinates, cardinal RBF, then the stored clamp/normalise options."""
+    f = len(local)
+    delta = posespace.relative_from_quaternions(np.tile(data.bind_rotations, (f, 1)), local.reshape(-1, 4, 4))
+    width = posespace.WIDTH[data.pose_space]
+    x = posespace.features(delta, data.pose_space, data.twist_axis).reshape(f, width * len(data.drivers))
+    w = rbf_from_driver_data(data).weights(x)
+    if data.clamp_weights:
+        w = np.clip(w, 0.0, 1.0)
+    if data.normalize_weights:
+        w = w / np.maximum(1.0, w.sum(axis=1, keepdims=True))
+    return w
+
+
 def evaluate(
     asset: str,
     correctives: str,
@@ -479,7 +511,7 @@ def evaluate(
         data = read_driver_data(scene, info.path)
         if data is None:
             continue
-        if data.pose_space != "rotationVector":
+        if data.pose_space not in posespace.POSE_SPACES:
             raise InputError(f"{where(correctives, info.path, 'psd:poseSpace')}: unknown pose space {data.pose_space!r}")
         missing = [d for d in data.drivers if d not in info.joints]
         if missing:
@@ -500,15 +532,11 @@ def evaluate(
         existing_channels, existing_weights = _existing_channels(scene, first, times)
         psd_channels, columns = [], []
         for info, data in entries:
-            model = rbf_from_driver_data(data)
             idx = [info.joints.index(d) for d in data.drivers]
-            x = np.empty((len(times), 3 * len(idx)))
-            for f, t in enumerate(times):
-                local = scene.joint_local_transforms(info.path, float(t))[idx]
-                x[f] = posespace.pose_coordinates_from_quaternions(data.bind_rotations, local)
-                if progress:
-                    progress(f + 1, len(times), info.path)
-            columns.append(model.weights(x))
+            locals_ = np.stack([scene.joint_local_transforms(info.path, float(t))[idx] for t in times])
+            if progress:
+                progress(len(times), len(times), info.path)
+            columns.append(driver_weights(data, locals_))
             psd_channels += list(data.shapes)
         ours = np.concatenate(columns, axis=1)
         keep = [i for i, c in enumerate(existing_channels) if c not in set(psd_channels)]

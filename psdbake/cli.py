@@ -137,6 +137,12 @@ def pose_cmd(asset, poses, output, deformers, quiet, verbose, as_json) -> None:
               help="Polynomial degree (-1: none). Default: the kernel's minimum (none for gaussian).")
 @click.option("--smoothing", type=float, default=0.0, show_default=True, help="RBF smoothing (0 interpolates exactly).")
 @click.option("--no-rest-example", is_flag=True, help="Do not add the bind pose as an implicit zero example.")
+@click.option("--pose-space", type=click.Choice(["rotationVector", "swingTwist", "quaternion"]),
+              default="rotationVector", show_default=True, help="Pose coordinates of each driver joint (README).")
+@click.option("--twist-axis", type=(float, float, float), default=None, metavar="X Y Z",
+              help="swingTwist: the twist axis in each driver's bind frame, e.g. 1 0 0 for a bone along x.")
+@click.option("--clamp-weights", is_flag=True, help="Clamp weights to [0, 1] at eval time (stored in psd:).")
+@click.option("--normalize-weights", is_flag=True, help="Scale weights so they sum to at most 1 (stored in psd:).")
 @click.option("--tolerance", type=float, default=tol.INVERSE_RTOL, show_default=True,
               help="Inverse residual tolerance, fraction of the mesh's bounding-box diagonal.")
 @click.option("--mesh", "meshes", multiple=True, metavar="PATH", help="Only fit this mesh (repeatable).")
@@ -147,13 +153,16 @@ def pose_cmd(asset, poses, output, deformers, quiet, verbose, as_json) -> None:
                    "The output is byte-identical whatever N is.")
 @deformer_option
 @_common
-def fit_cmd(asset, examples, output, drivers, kernel, sigma, degree, smoothing, no_rest_example, tolerance,
-            meshes, report, strict, jobs, deformers, quiet, verbose, as_json) -> None:
+def fit_cmd(asset, examples, output, drivers, kernel, sigma, degree, smoothing, no_rest_example, pose_space,
+            twist_axis, clamp_weights, normalize_weights, tolerance, meshes, report, strict, jobs, deformers,
+            quiet, verbose, as_json) -> None:
     """Fit rest-space corrective BlendShapes and their RBF drivers from sculpted EXAMPLES."""
     ui = _Ui(quiet, verbose, as_json)
     settings = api.FitSettings(
         drivers=tuple(drivers), kernel=kernel, sigma=sigma, degree=degree, smoothing=smoothing,
-        rest_example=not no_rest_example, rtol=tolerance, meshes=tuple(meshes), deformers=tuple(deformers),
+        rest_example=not no_rest_example, pose_space=pose_space, twist_axis=twist_axis,
+        clamp_weights=clamp_weights, normalize_weights=normalize_weights, rtol=tolerance,
+        meshes=tuple(meshes), deformers=tuple(deformers),
     )
     with _collect_warnings(ui), ui.progress("fitting examples") as progress:
         result = api.fit(asset, examples, settings, jobs=jobs, progress=progress)
@@ -253,6 +262,58 @@ def eval_cmd(asset, correctives, anim, output, frames, points_cache, deformers, 
     for a in result.animations:
         ui.say(f"  <{a.animation}>  {a.psd_channels} corrective channel(s), frames {a.times[0]:g}..{a.times[-1]:g}")
     ui.say(f"wrote {output}" + (f" and {points_cache}" if points_cache else ""))
+
+
+@cli.command("compare")
+@click.argument("asset", type=click.Path(dir_okay=False))
+@click.argument("examples", nargs=-1, required=True, type=click.Path(dir_okay=False))
+@click.option("--anim", required=True, type=click.Path(dir_okay=False), help="ANIM layer to compare over (may be ASSET).")
+@click.option("-o", "--output", "report_dir", required=True, type=click.Path(),
+              help="REPORT_DIR: created if missing; a non-empty folder must hold an earlier psdbake compare report.")
+@click.option("--vertex", type=click.IntRange(min=0), default=None,
+              help="Vertex for the correction-angle figure. Default: the most corrected one (and the one where "
+                   "forward and inverse disagree most).")
+@click.option("--mesh", default=None, metavar="PATH", help="Only fit and report this mesh.")
+@click.option("--frames", metavar="START:END", help="Whole frames START..END (inclusive). Default: the animation's samples.")
+@click.option("--views", metavar="F1,F2,...", help="Frames to draw the mesh at. Default: three chosen frames.")
+@click.option("--driver", "drivers", multiple=True, metavar="JOINT", help="Driver joint, as for fit (repeatable).")
+@click.option("--kernel", type=click.Choice(sorted(KERNELS)), default="gaussian", show_default=True)
+@click.option("--sigma", type=float, default=None, help="Kernel width in radians, as for fit.")
+@click.option("--degree", type=int, default=None, help="Polynomial degree, as for fit.")
+@deformer_option
+@_common
+def compare_cmd(asset, examples, anim, report_dir, vertex, mesh, frames, views, drivers, kernel, sigma, degree,
+                deformers, quiet, verbose, as_json) -> None:
+    """Fit EXAMPLES, then compare plain skinning, forward PSD and inverse PSD (same RBF weights)
+    at every frame of ANIM; write an HTML report with figures and per-frame statistics."""
+    from . import compare, report
+
+    ui = _Ui(quiet, verbose, as_json)
+    settings = api.FitSettings(drivers=tuple(drivers), kernel=kernel, sigma=sigma, degree=degree,
+                               meshes=(mesh,) if mesh else (), deformers=tuple(deformers))
+    span, view_frames = api.parse_frames(frames), report.parse_views(views)
+    report.check_report_dir(report_dir, [asset, *examples, anim])  # before the fit, not after
+    with _collect_warnings(ui), ui.progress("fitting examples") as progress:
+        result = compare.compare(asset, examples, anim, settings, frames=span,
+                                 fit_result=api.fit(asset, examples, settings, progress=progress))
+        files = report.write_report(result, report_dir, asset_label=asset, mesh=mesh, vertex=vertex, views=view_frames)
+    with open(os.path.join(report_dir, "stats.json"), encoding="utf-8") as fh:
+        stats = json.load(fh)
+    summary = {"output": report_dir, "files": files, "mesh": stats["mesh"], "frames": len(stats["frames"]),
+               "views": stats["views"], "vertex_turn": [{k: t[k] for k in ("vertex", "why", "joint", "reference_time")}
+                                                        for t in stats["vertex_turn"]]}
+    if as_json:
+        click.echo(json.dumps(summary, sort_keys=True))
+    ui.say(f"psdbake compare: <{stats['mesh']}> over {len(stats['frames'])} frame(s)")
+    for key, name in (("forward_ssd", "forward - SSD"), ("inverse_ssd", "inverse - SSD"), ("inverse_forward", "inverse - forward")):
+        worst = max(stats["frames"], key=lambda f, k=key: f[f"{k}_max"])
+        ui.say(f"  largest |{name}|: {worst[f'{key}_max']:.4g} ({worst[f'{key}_max_rel'] * 100:.3g}% of diagonal) "
+               f"at frame {worst['time']:g}")
+    for t in stats["vertex_turn"]:
+        top = [max((v for v in t[k] if v is not None), default=0.0) * 57.29577951308232 for k in ("inverse", "forward", "joint_turn")]
+        ui.say(f"  vertex {t['vertex']} ({t['why']}): correction turns up to {top[0]:.1f} deg (inverse) vs {top[1]:.1f} deg "
+               f"(forward); its bone {t['joint'].split('/')[-1] if t['joint'] else '?'} turns {top[2]:.1f} deg")
+    ui.say(f"wrote {os.path.join(report_dir, 'index.html')} and {len(files) - 1} other file(s)")
 
 
 @cli.command("stack")

@@ -78,7 +78,6 @@ def compare(
     scene = Scene([anim, asset], label=anim)
     meshes = []
     for m in result.meshes:
-        model = api.rbf_from_driver_data(m.driver_data)
         data = m.driver_data
         info = next(i for i in scene.skinned_meshes() if i.path == m.mesh)
         idx = [info.joints.index(d) for d in data.drivers]
@@ -102,9 +101,8 @@ def compare(
         angles = np.empty((f, len(idx)))
         for i, t in enumerate(times):
             local = scene.joint_local_transforms(m.mesh, float(t))[idx]
-            x = posespace.pose_coordinates_from_quaternions(data.bind_rotations, local)
-            angles[i] = np.linalg.norm(x.reshape(-1, 3), axis=1)
-            weights[i] = model.weights(x[None])[0]
+            angles[i] = posespace.relative_from_quaternions(data.bind_rotations, local).magnitude()
+            weights[i] = api.driver_weights(data, local[None])[0]
             box = SkinningBlackBox(scene, m.mesh, float(t), chain)
             ssd[i] = box(rest)
             fwd[i] = ssd[i] + np.tensordot(weights[i], d_posed, axes=1)

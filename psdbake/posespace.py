@@ -4,16 +4,27 @@ A pose is described, per driver joint j, by the rotation that takes the joint's
 bind-pose local orientation to its current local orientation, expressed in the
 joint's own bind frame (column-vector convention)::
 
-    delta_j = R_bind_j^-1 R_j          x_j = rotvec(delta_j)  (radians, 3 numbers)
+    delta_j = R_bind_j^-1 R_j
 
-and the pose coordinate vector is x = concat(x_j over drivers) in the order of
-``psd:drivers``. Distances between poses are Euclidean in x. The bind pose (the pose
-at which UsdSkel skinning is the identity) is x = 0.
+and turned into coordinates by one of three pose spaces (``psd:poseSpace``):
 
-Input matrices follow Gf's row-vector convention (p' = p . M), as UsdSkel returns
-them; this module is the one place that converts. Scale and translation are ignored:
-rows of the 3x3 block are normalised (no shear, as UsdSkel joints) before the
-rotation is taken.
+- ``rotationVector`` (default): rotvec(delta_j), 3 numbers in radians; the bind pose is 0.
+- ``swingTwist``: delta_j = swing . twist with twist about the unit axis a
+  (``psd:twistAxis``, in the joint's bind frame) and swing about an axis
+  perpendicular to a; coordinates [rotvec(swing), twist angle], 4 numbers in radians.
+  Separates a forearm's twist from its bend, which production rigs drive apart.
+- ``quaternion``: the quaternion (chordal) distance between rotations. Coordinates are
+  R(delta_j) - I (9 numbers, row-major, the bind pose is 0); the Euclidean distance
+  between two of them is 2 sqrt(2) sin(theta / 2) = 2 sqrt(2) sqrt(1 - (q1 . q2)^2),
+  theta the angle between the rotations: the same for q and -q and continuous
+  everywhere, where rotation vectors jump at 180 degrees.
+
+The pose vector x is the concatenation over drivers in ``psd:drivers`` order; distances
+between poses are Euclidean in x.
+
+Input matrices follow Gf's row-vector convention (p' = p . M), as UsdSkel returns them;
+this module is the one place that converts. Scale and translation are ignored: rows of
+the 3x3 block are normalised (no shear, as UsdSkel joints) before the rotation is taken.
 """
 
 from __future__ import annotations
@@ -24,6 +35,9 @@ from scipy.spatial.transform import Rotation
 
 Matrices = NDArray[np.float64]  # (j, 4, 4) Gf row-vector transforms
 Quaternions = NDArray[np.float64]  # (j, 4) scalar-last (x, y, z, w), as scipy
+
+POSE_SPACES = ("rotationVector", "swingTwist", "quaternion")
+WIDTH = {"rotationVector": 3, "swingTwist": 4, "quaternion": 9}
 
 
 def rotations(matrices: Matrices) -> Rotation:
@@ -39,22 +53,56 @@ def relative_rotations(bind_local: Matrices, local: Matrices) -> Rotation:
     return rotations(bind_local).inv() * rotations(local)
 
 
-def pose_coordinates(bind_local: Matrices, local: Matrices) -> NDArray[np.float64]:
-    """Pose coordinates x (3 j,) of driver joints: concatenated rotation vectors."""
-    return relative_rotations(bind_local, local).as_rotvec().reshape(-1)
+def relative_from_quaternions(bind_rotations: Quaternions, local: Matrices) -> Rotation:
+    """As ``relative_rotations`` with the bind rotations given as stored quaternions."""
+    return Rotation.from_quat(bind_rotations).inv() * rotations(local)
 
 
-def pose_coordinates_from_quaternions(bind_rotations: Quaternions, local: Matrices) -> NDArray[np.float64]:
+def swing_twist(delta: Rotation, axis: NDArray[np.float64]) -> tuple[Rotation, NDArray[np.float64]]:
+    """delta = swing * twist, twist about axis; returns (swing, signed twist angle)."""
+    a = np.asarray(axis, dtype=np.float64) / np.linalg.norm(axis)
+    q = delta.as_quat().reshape(-1, 4)
+    proj = (q[:, :3] @ a)[:, None] * a
+    twist_q = np.concatenate([proj, q[:, 3:4]], axis=1)
+    norm = np.linalg.norm(twist_q, axis=1, keepdims=True)
+    twist_q = np.where(norm > 1e-12, twist_q / np.where(norm > 0, norm, 1.0), [0.0, 0.0, 0.0, 1.0])
+    twist = Rotation.from_quat(twist_q)
+    angle = 2.0 * np.arctan2(twist_q[:, :3] @ a, twist_q[:, 3])
+    angle = (angle + np.pi) % (2.0 * np.pi) - np.pi
+    return Rotation.from_quat(q) * twist.inv(), angle
+
+
+def features(delta: Rotation, space: str = "rotationVector", twist_axis=None) -> NDArray[np.float64]:
+    """Pose coordinates of the joints' relative rotations, concatenated: (WIDTH[space] j,)."""
+    if space == "rotationVector":
+        return delta.as_rotvec().reshape(-1)
+    if space == "quaternion":
+        return (delta.as_matrix().reshape(-1, 3, 3) - np.eye(3)).reshape(-1)
+    if space == "swingTwist":
+        if twist_axis is None:
+            raise ValueError("swingTwist pose space needs a twist axis")
+        swing, twist = swing_twist(delta, twist_axis)
+        return np.concatenate([swing.as_rotvec().reshape(-1, 3), twist[:, None]], axis=1).reshape(-1)
+    raise ValueError(f"unknown pose space {space!r}: choose one of {', '.join(POSE_SPACES)}")
+
+
+def pose_coordinates(bind_local: Matrices, local: Matrices, space: str = "rotationVector",
+                     twist_axis=None) -> NDArray[np.float64]:
+    """Pose coordinates x of the given joints (bind and current local transforms)."""
+    return features(relative_rotations(bind_local, local), space, twist_axis)
+
+
+def pose_coordinates_from_quaternions(bind_rotations: Quaternions, local: Matrices, space: str = "rotationVector",
+                                      twist_axis=None) -> NDArray[np.float64]:
     """As ``pose_coordinates`` with the bind rotations given as stored quaternions."""
-    delta = Rotation.from_quat(bind_rotations).inv() * rotations(local)
-    return delta.as_rotvec().reshape(-1)
+    return features(relative_from_quaternions(bind_rotations, local), space, twist_axis)
 
 
-def rotated_joints(coordinates: NDArray[np.float64], atol: float) -> NDArray[np.bool_]:
+def rotated_joints(deltas: NDArray[np.float64], atol: float) -> NDArray[np.bool_]:
     """Which joints rotate more than atol (radians) in any of the given poses.
 
-    coordinates: (poses, 3 j) pose coordinates over all joints.
+    deltas: (poses, j, 4) relative rotations as quaternions.
     """
-    x = np.asarray(coordinates, dtype=np.float64)
-    angles = np.linalg.norm(x.reshape(len(x), -1, 3), axis=2)
+    q = np.asarray(deltas, dtype=np.float64)
+    angles = 2.0 * np.arctan2(np.linalg.norm(q[..., :3], axis=-1), np.abs(q[..., 3]))
     return np.any(angles > atol, axis=0)

@@ -165,3 +165,32 @@ def test_jobs_do_not_change_the_output(run, tmp_path):
         assert code == 0, err
         outs.append(out.read_bytes())
     assert outs[0] == outs[1]
+
+
+@pytest.mark.parametrize("space", [["--pose-space", "quaternion"], ["--pose-space", "swingTwist", "--twist-axis", "1", "0", "0"]])
+def test_pose_spaces_are_stored_and_reproduced_by_eval(run, tmp_path, space):
+    """Whatever the pose space, eval (reading only psd:) gives each example weight 1 at its
+    own pose, and the round trip through BakeSkinning still reproduces the sculpts."""
+    corr, weights = tmp_path / "c.usda", tmp_path / "w.usda"
+    assert run("fit", ASSET, EXAMPLES, "-o", corr, "-q", *space)[0] == 0
+    assert run("eval", ASSET, corr, "--anim", POSES, "-o", weights, "-q")[0] == 0
+    layer = Sdf.Layer.FindOrOpen(str(weights))
+    path = Sdf.Path(generate.ANIM).AppendProperty("blendShapeWeights")
+    for k, t in enumerate((1.0, 2.0, 3.0)):
+        np.testing.assert_allclose(layer.QueryTimeSample(path, t), np.eye(3)[k], atol=1e-6)  # float32 storage
+    assert Usd.Stage.Open(str(corr)).GetPrimAtPath(generate.MESH).GetAttribute("psd:poseSpace").Get() == space[1]
+
+
+def test_clamp_and_normalize_are_explicit_stored_options(run, tmp_path):
+    plain, clamped = tmp_path / "p.usda", tmp_path / "c.usda"
+    assert run("fit", ASSET, EXAMPLES, "-o", plain, "-q")[0] == 0
+    assert run("fit", ASSET, EXAMPLES, "-o", clamped, "-q", "--clamp-weights", "--normalize-weights")[0] == 0
+    w = {}
+    for name, corr in (("plain", plain), ("clamped", clamped)):
+        out = tmp_path / f"w_{name}.usda"
+        assert run("eval", ASSET, corr, "--anim", ANIM, "-o", out, "-q")[0] == 0
+        layer = Sdf.Layer.FindOrOpen(str(out))
+        path = Sdf.Path(generate.ANIM).AppendProperty("blendShapeWeights")
+        w[name] = np.array([layer.QueryTimeSample(path, t) for t in layer.ListTimeSamplesForPath(path)])
+    assert w["plain"].min() < 0.0  # cardinal Gaussian weights do go negative: nothing hides it by default
+    assert w["clamped"].min() >= 0.0 and w["clamped"].sum(axis=1).max() <= 1.0 + 1e-6

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from pxr import Gf
 
 from psdbake import posespace
@@ -41,3 +42,29 @@ def test_stored_quaternions_give_the_same_coordinates():
     a = posespace.pose_coordinates(bind, posed)
     b = posespace.pose_coordinates_from_quaternions(bind_r.as_quat(), posed)
     np.testing.assert_allclose(a, b, atol=1e-12)
+
+
+def test_swing_twist_recombines_and_isolates_the_twist():
+    from scipy.spatial.transform import Rotation
+
+    twist = Rotation.from_rotvec([0.7, 0.0, 0.0])
+    swing = Rotation.from_rotvec([0.0, 0.4, -0.3])
+    delta = swing * twist
+    s, angle = posespace.swing_twist(delta, np.array([2.0, 0.0, 0.0]))
+    np.testing.assert_allclose(angle, [0.7], atol=1e-12)
+    recombined = (s * Rotation.from_rotvec([0.7, 0, 0])).as_matrix()
+    np.testing.assert_allclose(recombined, delta.as_matrix().reshape(1, 3, 3), atol=1e-12)
+    np.testing.assert_allclose(s.as_rotvec() @ [1.0, 0.0, 0.0], 0.0, atol=1e-12)  # swing is perpendicular
+
+
+def test_quaternion_space_is_continuous_through_180_degrees():
+    from scipy.spatial.transform import Rotation
+
+    a = Rotation.from_rotvec([0.0, 0.0, np.pi - 1e-3])
+    b = Rotation.from_rotvec([0.0, 0.0, -(np.pi - 1e-3)])  # 2e-3 rad away from a
+    qa, qb = posespace.features(a, "quaternion"), posespace.features(b, "quaternion")
+    # chordal distance 2 sqrt(2) sin(theta / 2) for the 2e-3 rad between them
+    assert np.linalg.norm(qa - qb) == pytest.approx(2 * np.sqrt(2) * np.sin(1e-3), rel=1e-6)
+    ra, rb = posespace.features(a), posespace.features(b)
+    assert np.linalg.norm(ra - rb) > 6.0  # rotation vectors jump across the antipode
+    np.testing.assert_allclose(posespace.features(Rotation.identity(), "quaternion"), 0.0, atol=1e-15)

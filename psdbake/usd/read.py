@@ -247,7 +247,12 @@ def read_driver_data(scene: Scene, mesh: str):
     coefficients = np.array(get("coefficients"), dtype=np.float64)
     quats = get("driverBindRotations")
     bind = np.array([[*q.GetImaginary(), q.GetReal()] for q in quats], dtype=np.float64).reshape(-1, 4)
-    bad_dims = dim == 0 or dims.min() < 0 or dims.max() >= 3 * len(drivers)
+    from ..posespace import WIDTH
+
+    space = str(get("poseSpace"))
+    if space not in WIDTH:
+        raise InputError(f"{where(label, mesh, 'psd:poseSpace')}: unknown pose space {space!r}")
+    bad_dims = dim == 0 or dims.min() < 0 or dims.max() >= WIDTH[space] * len(drivers)
     if bad_dims or centers.size % dim or powers.size % dim or len(bind) != len(drivers):
         raise InputError(f"{where(label, mesh)}: psd: driver data sizes do not match {len(drivers)} drivers")
     centers = centers.reshape(-1, dim)
@@ -261,6 +266,9 @@ def read_driver_data(scene: Scene, mesh: str):
         drivers=drivers,
         bind_rotations=bind,
         pose_space=str(get("poseSpace")),
+        twist_axis=tuple(float(v) for v in get("twistAxis")) if get("twistAxis", required=False) else None,
+        clamp_weights=bool(get("clampWeights", required=False) or False),
+        normalize_weights=bool(get("normalizeWeights", required=False) or False),
         kernel=str(get("kernel")),
         sigma=float(get("sigma")),
         degree=int(get("degree")),

@@ -168,6 +168,9 @@ class DriverData:
     drivers: Sequence[str]  # joint paths, skeleton joint tokens
     bind_rotations: NDArray[np.float64]  # (d, 4) xyzw, each driver's bind local rotation
     pose_space: str
+    twist_axis: tuple[float, float, float] | None
+    clamp_weights: bool
+    normalize_weights: bool
     kernel: str
     sigma: float
     degree: int
@@ -194,6 +197,10 @@ def author_driver_data(layer: Sdf.Layer, mesh: str, data: DriverData) -> None:
 
     put("version", t.Int, PSD_VERSION)
     put("poseSpace", t.Token, data.pose_space)
+    if data.twist_axis is not None:
+        put("twistAxis", t.Double3, Gf.Vec3d(*map(float, data.twist_axis)))
+    put("clampWeights", t.Bool, bool(data.clamp_weights))
+    put("normalizeWeights", t.Bool, bool(data.normalize_weights))
     put("drivers", t.TokenArray, Vt.TokenArray(list(data.drivers)))
     put("driverBindRotations", t.QuatdArray, quatd_array(data.bind_rotations))
     put("kernel", t.Token, data.kernel)
