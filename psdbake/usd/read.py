@@ -78,7 +78,8 @@ def compose(files: Sequence[str | Sdf.Layer]) -> Usd.Stage:
 
 
 def _matrices(values) -> NDArray[np.float64]:
-    return np.array([np.array(m, dtype=np.float64) for m in values], dtype=np.float64).reshape(-1, 4, 4)
+    """Vt.Matrix4dArray (or a list of Gf.Matrix4d) -> (n, 4, 4) float64, row-vector convention."""
+    return np.array(values, dtype=np.float64).reshape(-1, 4, 4)
 
 
 class Scene:
