@@ -28,7 +28,7 @@ from . import posespace, rbf
 from . import tolerances as tol
 from .deformers import Factory, load_deformers
 from .errors import FitError, InputError, PsdWarning, where
-from .inverse import InverseResult, invert_example
+from .inverse import InverseResult, SculptOutOfRangeError, invert_example
 from .usd import write as usdwrite
 from .usd.blackbox import SkinningBlackBox
 from .usd.read import (
@@ -38,11 +38,16 @@ from .usd.read import (
     open_layer,
     read_driver_data,
     stray_point_prims,
+    usd_diagnostics,
+    validate_animation,
+    validate_skinning,
 )
 
 Progress = Callable[[int, int, str], None]  # (done, total, what)
 
-__all__ = [
+__all__ = [  # noqa: RUF022 - grouped: results, then functions
+    "load_deformers",
+    "usd_diagnostics",
     "Example",
     "FitResult",
     "FitSettings",
@@ -73,6 +78,22 @@ class FitSettings:
     rtol: float = tol.INVERSE_RTOL
     meshes: tuple[str, ...] = ()  # empty: every mesh with examples
     deformers: tuple[str, ...] = ()
+
+    def __post_init__(self) -> None:
+        def positive(name: str, value: float | None, allow_zero: bool = False) -> None:
+            if value is None:
+                return
+            ok = np.isfinite(value) and (value >= 0 if allow_zero else value > 0)
+            if not ok:
+                raise InputError(f"--{name} {value!r}: must be a {'non-negative' if allow_zero else 'positive'} number")
+
+        positive("sigma", self.sigma)
+        positive("smoothing", self.smoothing, allow_zero=True)
+        positive("tolerance", self.rtol)
+        if self.twist_axis is not None and not (
+            np.all(np.isfinite(self.twist_axis)) and np.linalg.norm(self.twist_axis) > 0
+        ):
+            raise InputError(f"--twist-axis {self.twist_axis!r}: must be a non-zero finite vector")
 
 
 @dataclass(frozen=True)
@@ -179,7 +200,10 @@ def _invert(task: _InverseTask) -> InverseResult:
     rest = _scene((task.asset,)).rest_points(task.mesh)
     sculpt = scene.point_sample(open_layer(task.source), task.mesh, task.time)
     box = SkinningBlackBox(scene, task.mesh, task.time, load_deformers(task.deformers))
-    return invert_example(box, rest, sculpt, rtol=task.rtol)
+    try:
+        return invert_example(box, rest, sculpt, rtol=task.rtol)
+    except SculptOutOfRangeError as exc:
+        raise InputError(f"{where(task.source, task.mesh, 'points')}: example at time {task.time:g}: {exc}") from None
 
 
 #: Below this many example points in total, worker start-up costs more than it saves.
@@ -218,6 +242,30 @@ def _solve_all(tasks: Sequence[_InverseTask], jobs: int | None, progress: Progre
     return [r for r in results if r is not None]
 
 
+def open_asset(asset: str, notes: list[str] | None = None) -> Scene:
+    """The asset on its own, with every skinned mesh's influences and skeleton validated."""
+    scene = Scene([asset])
+    scene.require_skinned()
+    for info in scene.skinned_meshes():
+        for msg in validate_skinning(scene, info.path):
+            if notes is not None:
+                notes.append(msg)
+            warnings.warn(msg, PsdWarning, stacklevel=3)
+    return scene
+
+
+def _check_pose(scene: Scene, mesh: str, local: NDArray[np.float64], t: float, joints: Sequence[str]) -> None:
+    """A joint whose local transform has a zero-scale axis has no rotation: no pose, and
+    skinning through it cannot be inverted."""
+    norms = np.linalg.norm(local[:, :3, :3], axis=2)
+    bad = np.nonzero(np.any(norms < 1e-12, axis=1) | ~np.all(np.isfinite(local), axis=(1, 2)))[0]
+    if len(bad):
+        raise FitError(
+            f"{where(scene.label, mesh)}: joint {joints[bad[0]]!r} has zero scale (or NaN) at time {t:g}: "
+            "its pose is undefined and skinning through it cannot be inverted"
+        )
+
+
 def _bind_quaternions(bind_local: NDArray[np.float64]) -> NDArray[np.float64]:
     return posespace.rotations(bind_local).as_quat()
 
@@ -240,8 +288,7 @@ def fit(
         raise InputError("fit needs at least one EXAMPLES file")
     notes: list[str] = []
     load_deformers(settings.deformers)  # fail fast on a bad spec; each solve loads its own chain
-    asset_scene = Scene([asset])
-    asset_scene.require_skinned()
+    asset_scene = open_asset(asset, notes)
     all_meshes = [m.path for m in asset_scene.skinned_meshes()]
     for wanted in settings.meshes:
         if wanted not in all_meshes:
@@ -276,7 +323,9 @@ def fit(
                     f"{where(source, mesh_info.skeleton)}: no SkelAnimation bound (skel:animationSource), "
                     f"so the example at time {t:g} has no pose"
                 )
+            validate_animation(scene, mesh)
             local = scene.joint_local_transforms(mesh, t)
+            _check_pose(scene, mesh, local, t, mesh_info.joints)
             pose_x = posespace.relative_rotations(bind_local, local).as_quat().reshape(-1, 4)
             label = f"{os.path.basename(source)}@{t:g}"
             per_mesh.setdefault(mesh, []).append(Example(label=label, source=source, time=t, pose=pose_x))
@@ -310,8 +359,9 @@ def _fit_rbf(asset, asset_scene, mesh_info, examples, inverses, bind_local, sett
     else:
         driver_idx = list(np.nonzero(posespace.rotated_joints(poses, tol.DRIVER_ANGLE_ATOL))[0])
         if not driver_idx:
+            files = ", ".join(sorted({e.source for e in examples}))
             raise FitError(
-                f"{where(asset, mesh)}: every example is at the bind pose, so no joint drives the correctives "
+                f"{files} {where(None, mesh)}: every example is at the bind pose, so no joint drives the correctives "
                 "(name joints with --driver)"
             )
     if settings.pose_space not in posespace.POSE_SPACES:
@@ -346,7 +396,8 @@ def _fit_rbf(asset, asset_scene, mesh_info, examples, inverses, bind_local, sett
         centers.append(coordinates(example.pose))
         labels.append(example.label)
     if not outputs:
-        raise FitError(f"{where(asset, mesh)}: no example differs from plain skinning: nothing to correct")
+        files = ", ".join(sorted({e.source for e in examples}))
+        raise FitError(f"{files} {where(None, mesh)}: no example differs from plain skinning: nothing to correct")
     full_centers = np.array(centers)
     model = rbf.fit_cardinal(
         full_centers, outputs, labels,
@@ -457,15 +508,19 @@ def parse_frames(text: str | None) -> tuple[float, float] | None:
     return float(m.group(1)), float(m.group(2))
 
 
-def frames_of(scene: Scene, mesh: str, frames: tuple[float, float] | None) -> NDArray[np.float64]:
+def frames_of(scene: Scene, mesh: str, frames: tuple[float, float] | None, label: str | None = None
+              ) -> NDArray[np.float64]:
     """Whole frames A..B when given, else the animation's authored time samples."""
     if frames is not None:
         start, end = frames
-        return np.arange(np.ceil(start), np.floor(end) + 1.0)
+        whole = np.arange(np.ceil(start), np.floor(end) + 1.0)
+        if not len(whole):
+            raise InputError(f"--frames {start:g}:{end:g}: no whole frame in that range")
+        return whole
     times = scene.animation_times(mesh)
     if not times:
         anim = scene.animation_prim(mesh) or mesh
-        raise InputError(f"{where(scene.label, anim)}: the animation has no time samples; give --frames")
+        raise InputError(f"{where(label or scene.label, anim)}: the animation has no time samples; give --frames")
     return np.array(times, dtype=np.float64)
 
 
@@ -504,6 +559,7 @@ def evaluate(
 ) -> WeightsResult:
     """RBF weights of every corrective at every frame of ANIM."""
     started = _time.perf_counter()
+    open_asset(asset)
     scene = Scene([anim, correctives, asset], label=correctives)
     scene.require_skinned()
     per_anim: dict[str, list] = {}
@@ -521,6 +577,7 @@ def evaluate(
         anim_prim = scene.animation_prim(info.path)
         if anim_prim is None:
             raise InputError(f"{where(anim, info.skeleton)}: no SkelAnimation bound (skel:animationSource)")
+        validate_animation(Scene([anim, asset], label=anim), info.path)
         per_anim.setdefault(anim_prim, []).append((info, data))
     if not per_anim:
         raise InputError(f"{correctives}: no psd: driver data on any skinned mesh of {asset}")
@@ -528,7 +585,7 @@ def evaluate(
     for anim_prim in sorted(per_anim):
         entries = per_anim[anim_prim]
         first = entries[0][0].path
-        times = frames_of(scene, first, frames)
+        times = frames_of(scene, first, frames, label=anim)
         existing_channels, existing_weights = _existing_channels(scene, first, times)
         psd_channels, columns = [], []
         for info, data in entries:
@@ -609,6 +666,11 @@ def points_cache_layer(result: WeightsResult, deformers: Sequence[str] = (), *, 
     )
 
 
+def export_layer(layer, path: str, inputs: Sequence[str]) -> str:
+    """Export an in-memory layer atomically (temp file + rename); inputs are never overwritten."""
+    return usdwrite.export_atomic(layer, path, inputs)
+
+
 def write_points_cache(result: WeightsResult, path: str, deformers: Sequence[str] = (), *, progress=None) -> str:
     return usdwrite.export_atomic(
         points_cache_layer(result, deformers, progress=progress), path, [result.asset, result.correctives, result.anim]
@@ -631,10 +693,11 @@ def pose(asset: str, poses: str, deformers: Sequence[str] = (), *, progress: Pro
     from . import __version__
 
     chain: list[tuple[str, Factory]] = load_deformers(deformers)
-    asset_scene = Scene([asset])
-    asset_scene.require_skinned()
+    asset_scene = open_asset(asset)
     scene = Scene([poses, asset], label=poses)
     meshes = scene.skinned_meshes()
+    for info in meshes:
+        validate_animation(scene, info.path)
     anims = sorted({a for m in meshes if (a := scene.animation_prim(m.path))})
     if not anims:
         raise InputError(f"{poses}: no SkelAnimation is bound to the skeleton (skel:animationSource)")

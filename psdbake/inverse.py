@@ -33,6 +33,15 @@ Points = NDArray[np.float64]  # (n, 3)
 BlackBox = Callable[[Points], Points]
 
 
+class SculptOutOfRangeError(ValueError):
+    """A sculpted vertex lies absurdly far from its skinned position."""
+
+    def __init__(self, vertex: int, distance: float, diagonal: float) -> None:
+        super().__init__(f"vertex {vertex} is {distance:.3g} away from its skinned position, far outside the mesh "
+                         f"({distance / max(diagonal, 1e-300):.3g} times its size): broken data or a unit mix-up")
+        self.vertex, self.distance, self.diagonal = vertex, distance, diagonal
+
+
 @dataclass(frozen=True)
 class InverseResult:
     """Rest-space offsets for the sculpted vertices of one example."""
@@ -42,7 +51,7 @@ class InverseResult:
     residual: NDArray[np.float64]  # (k,) |sculpt - SKINNING(rest + d')| per vertex
     status: NDArray[np.int8]  # (k,) powell status codes
     evaluations: int  # black-box calls, all of them (detection, Jacobian, Powell)
-    diagonal: float  # bounding-box diagonal of the sculpt, the unit of tolerances
+    diagonal: float  # bounding-box diagonal of the skinned rest shape, the unit of tolerances
     atol: float  # absolute residual tolerance used
     seconds: float
 
@@ -98,7 +107,8 @@ def invert_example(
     """Solve the rest-space offsets that make ``blackbox`` reproduce ``sculpt``.
 
     rest, sculpt: (n, 3) float64. rtol: residual tolerance as a fraction of the
-    sculpt's bounding-box diagonal (never below the float32 floor of the data).
+    bounding-box diagonal of the skinned rest shape (never below the float32 floor of
+    the data). Raises SculptOutOfRangeError for a vertex absurdly far from its skinned position.
     """
     started = time.perf_counter()
     rest = np.asarray(rest, dtype=np.float64)
@@ -110,13 +120,16 @@ def invert_example(
         calls += 1
         return blackbox(points)
 
-    diagonal = tol.bbox_diagonal(sculpt)
-    floor = tol.float32_floor(np.concatenate([sculpt, rest]))
+    posed_rest = call(rest)
+    diagonal = tol.bbox_diagonal(posed_rest)
+    moved_by = np.linalg.norm(sculpt - posed_rest, axis=1)
+    worst = int(np.argmax(moved_by)) if len(moved_by) else 0
+    if len(moved_by) and moved_by[worst] > tol.ABSURD_SCULPT_DIAGONALS * diagonal:
+        raise SculptOutOfRangeError(worst, float(moved_by[worst]), diagonal)
+    floor = tol.float32_floor(np.concatenate([posed_rest, rest]))
     atol = max(rtol * diagonal, floor)
     unmoved = max(tol.UNMOVED_RTOL * diagonal, floor)
-
-    posed_rest = call(rest)
-    idx = np.nonzero(np.linalg.norm(sculpt - posed_rest, axis=1) > unmoved)[0].astype(np.int64)
+    idx = np.nonzero(moved_by > unmoved)[0].astype(np.int64)
     if len(idx) == 0:
         return InverseResult(
             indices=idx, offsets=np.zeros((0, 3)), residual=np.zeros(0), status=np.zeros(0, np.int8),

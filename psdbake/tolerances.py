@@ -57,6 +57,10 @@ NEAR_DUPLICATE_POSE_ATOL = 1e-2
 #: float32 quaternions carry ~1e-7 rad of noise.
 DRIVER_ANGLE_ATOL = 1e-5
 
+#: A sculpted vertex farther than this many diagonals from where skinning puts it is
+#: not a sculpt but broken data (1e30 coordinates, a unit mix-up): refused, never fitted.
+ABSURD_SCULPT_DIAGONALS = 10.0
+
 #: Automatic sigma falls back to this (radians) with only one example pose.
 DEFAULT_SIGMA = 1.0
 

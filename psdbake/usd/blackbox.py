@@ -92,7 +92,7 @@ class SkinningBlackBox:
         self._query, skel_query = scene.query(mesh)
         self._tc = tc
         self._xforms = skel_query.ComputeSkinningTransforms(tc)
-        if self._xforms is None:
+        if self._xforms is None or len(self._xforms) != len(skel_query.GetJointOrder()):
             raise InputError(f"{where(scene.label, mesh)}: UsdSkel cannot compute skinning transforms at time {time:g}")
         self._blend = _BlendShapes(scene, mesh, tc)
         skel_to_world = _matrix(UsdGeom.Xformable(skel_query.GetPrim()).ComputeLocalToWorldTransform(tc))

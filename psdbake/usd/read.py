@@ -11,8 +11,10 @@ Gf convention: matrices are row-vector (p' = p . M); they are converted to numpy
 
 from __future__ import annotations
 
+import contextlib
 import os
-from collections.abc import Sequence
+import re
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -33,9 +35,14 @@ class SkinnedMesh:
     point_count: int
 
 
-def _first_line(exc: BaseException) -> str:
-    text = str(exc).strip().splitlines()
-    return (text[0] if text else type(exc).__name__).strip()
+def _first_line(exc: BaseException | str) -> str:
+    """USD's message without its C++ source location ("Error in '...' at line N in file ...")."""
+    text = str(exc).strip()
+    quoted = re.findall(r" : '(.*?)'\s*(?:\n|$)", text, flags=re.S)
+    if quoted:
+        text = quoted[-1]
+    lines = [line.strip() for line in text.splitlines() if line.strip()]
+    return lines[0] if lines else type(exc).__name__
 
 
 def open_layer(path: str) -> Sdf.Layer:
@@ -72,9 +79,23 @@ def compose(files: Sequence[str | Sdf.Layer]) -> Usd.Stage:
         raise InputError(f"{files[0]}: cannot compose ({_first_line(exc)})") from None
     errors = stage.GetCompositionErrors() if hasattr(stage, "GetCompositionErrors") else []
     if errors:
-        raise InputError(f"{files[0]}: composition error: {_first_line(Exception(errors[0].GetErrorMessage()))}")
+        raise InputError(f"{files[0]}: composition error: {_first_line(str(errors[0]))}")
     stage.psdbake_layers = keep  # keep in-memory sublayers alive as long as the stage
     return stage
+
+
+@contextlib.contextmanager
+def usd_diagnostics() -> Iterator[list[str]]:
+    """Trap USD's own warnings and errors (printed from C++ otherwise) and hand back their
+    one-line texts, so the CLI decides what users see."""
+    found: list[str] = []
+    with Tf.DiagnosticTrap() as trap:
+        try:
+            yield found
+        finally:
+            for diagnostic in list(trap.GetWarnings()) + list(trap.GetStatuses()) + list(trap.GetErrors()):
+                found.append(_first_line(getattr(diagnostic, "commentary", "") or str(diagnostic)))
+            trap.Clear()
 
 
 def _matrices(values) -> NDArray[np.float64]:
@@ -233,6 +254,8 @@ def read_driver_data(scene: Scene, mesh: str):
             raise InputError(f"{where(label, mesh, 'psd:' + name)}: missing (the CORRECTIVES layer is incomplete)")
         return value
 
+    from ..rbf import KERNELS
+
     version = get("version")
     if version not in READABLE_PSD_VERSIONS:
         raise InputError(
@@ -256,6 +279,8 @@ def read_driver_data(scene: Scene, mesh: str):
     bad_dims = dim == 0 or dims.min() < 0 or dims.max() >= WIDTH[space] * len(drivers)
     if bad_dims or centers.size % dim or powers.size % dim or len(bind) != len(drivers):
         raise InputError(f"{where(label, mesh)}: psd: driver data sizes do not match {len(drivers)} drivers")
+    if str(get("kernel")) not in KERNELS:
+        raise InputError(f"{where(label, mesh, 'psd:kernel')}: unknown kernel {get('kernel')!r}")
     centers = centers.reshape(-1, dim)
     powers = powers.reshape(-1, dim)
     rows = len(centers) + len(powers)
@@ -329,3 +354,69 @@ def animation_components(scene: Scene, mesh: str, times: Sequence[float]):
         weights = anim.ComputeBlendShapeWeights(t) if order else None
         samples.append((t, *components, weights))
     return path, [str(j) for j in anim.GetJointOrder()], order, samples
+
+
+def validate_skinning(scene: Scene, mesh: str) -> list[str]:
+    """Refuse influences UsdSkel would mis-skin; return warnings (weights not summing to 1).
+
+    Checks: jointIndices/jointWeights authored, sizes agree with the points and the element
+    size, indices inside the joint list the mesh uses, weights finite, >= 0, not all zero."""
+    query, skel_query = scene.query(mesh)
+    label = where(scene.label, mesh)
+    binding = UsdSkel.BindingAPI(scene.prim(mesh))
+    ind_pv, w_pv = binding.GetJointIndicesPrimvar(), binding.GetJointWeightsPrimvar()
+    if not ind_pv or not ind_pv.HasAuthoredValue() or not w_pv or not w_pv.HasAuthoredValue():
+        raise InputError(f"{label}: no primvars:skel:jointIndices/jointWeights: the mesh has no skin influences")
+    indices = np.array(ind_pv.Get() or [], dtype=np.int64)
+    weights = np.array(w_pv.Get() or [], dtype=np.float64)
+    k = max(1, int(ind_pv.GetElementSize()))
+    n = len(scene.rest_points(mesh))
+    constant = ind_pv.GetInterpolation() == UsdGeom.Tokens.constant
+    expected = k if constant else n * k
+    if len(indices) != expected or len(weights) != len(indices):
+        raise InputError(
+            f"{label}: jointWeights has {len(weights)} values and jointIndices {len(indices)}, for {n} points "
+            f"with {k} influences each (expected {expected} of each)"
+        )
+    joints = query.GetJointOrder() or skel_query.GetJointOrder()
+    if len(indices) and (indices.min() < 0 or indices.max() >= len(joints)):
+        first = int(np.nonzero((indices < 0) | (indices >= len(joints)))[0][0])
+        raise InputError(
+            f"{label}: joint index {indices[first]} out of range at point {first // k} "
+            f"(the mesh uses {len(joints)} joints, indices 0..{len(joints) - 1})"
+        )
+    w = weights.reshape(-1, k)
+    if not np.all(np.isfinite(w)):
+        raise InputError(f"{label}: jointWeights contain NaN or inf (point {int(np.nonzero(~np.isfinite(w))[0][0])})")
+    if np.any(w < 0):
+        raise InputError(f"{label}: negative jointWeights (point {int(np.nonzero(w < 0)[0][0])})")
+    sums = w.sum(axis=1)
+    if np.any(sums <= 0):
+        raise InputError(f"{label}: all-zero jointWeights at point {int(np.nonzero(sums <= 0)[0][0])}: it follows no joint")
+    notes = []
+    off = np.abs(sums - 1.0) > 1e-3
+    if off.any():
+        notes.append(f"{label}: jointWeights of {int(off.sum())} point(s) do not sum to 1 (UsdSkel uses them as they are)")
+    bind = skel_query.GetSkeleton().GetBindTransformsAttr().Get()
+    skel_joints = skel_query.GetJointOrder()
+    if bind is None or len(bind) != len(skel_joints):
+        raise InputError(
+            f"{where(scene.label, str(skel_query.GetSkeleton().GetPrim().GetPath()), 'bindTransforms')}: "
+            f"{0 if bind is None else len(bind)} matrices for {len(skel_joints)} joints"
+        )
+    return notes
+
+
+def validate_animation(scene: Scene, mesh: str) -> None:
+    """The bound animation must name only joints of the skeleton (UsdSkel drops others silently)."""
+    _, skel_query = scene.query(mesh)
+    anim = skel_query.GetAnimQuery()
+    if not anim:
+        return
+    known = set(str(j) for j in skel_query.GetJointOrder())
+    unknown = [str(j) for j in anim.GetJointOrder() if str(j) not in known]
+    if unknown:
+        raise InputError(
+            f"{where(scene.label, str(anim.GetPrim().GetPath()), 'joints')}: joint {unknown[0]!r} is not in skeleton "
+            f"<{skel_query.GetSkeleton().GetPrim().GetPath()}>"
+        )

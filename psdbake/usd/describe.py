@@ -1,0 +1,64 @@
+"""What a USD file holds, for ``psdbake inspect``: skeletons, skinned meshes, animations,
+examples and psd: correctives. Works on an asset, an EXAMPLES/ANIM layer or a
+CORRECTIVES layer on its own (overs included)."""
+
+from __future__ import annotations
+
+from pxr import Sdf, Usd, UsdGeom, UsdSkel
+
+from .read import compose, open_layer
+
+
+def describe(path: str) -> dict:
+    """A JSON-ready summary of path (sorted, deterministic)."""
+    layer = open_layer(path)
+    stage = compose([path])
+    out: dict = {"file": path, "skel_roots": [], "skeletons": [], "meshes": [], "animations": [],
+                 "examples": [], "correctives": []}
+    for prim in stage.TraverseAll():
+        ppath = str(prim.GetPath())
+        if prim.IsA(UsdSkel.Root):
+            out["skel_roots"].append(ppath)
+        elif prim.IsA(UsdSkel.Skeleton):
+            joints = UsdSkel.Skeleton(prim).GetJointsAttr().Get() or []
+            anim = UsdSkel.BindingAPI(prim).GetAnimationSourceRel()
+            targets = [str(t) for t in anim.GetTargets()] if anim else []
+            out["skeletons"].append({"path": ppath, "joints": len(joints), "animation": targets[0] if targets else None})
+        elif prim.IsA(UsdSkel.Animation):
+            anim = UsdSkel.Animation(prim)
+            times = sorted(set(anim.GetRotationsAttr().GetTimeSamples()) | set(anim.GetTranslationsAttr().GetTimeSamples()))
+            out["animations"].append({
+                "path": ppath, "joints": len(anim.GetJointsAttr().Get() or []),
+                "blend_shapes": [str(c) for c in anim.GetBlendShapesAttr().Get() or []],
+                "samples": len(times), "first": times[0] if times else None, "last": times[-1] if times else None,
+            })
+        if prim.IsA(UsdGeom.PointBased) and prim.HasAPI(UsdSkel.BindingAPI):
+            binding = UsdSkel.BindingAPI(prim)
+            points = UsdGeom.PointBased(prim).GetPointsAttr().Get(Usd.TimeCode.Default())
+            indices = binding.GetJointIndicesPrimvar()
+            out["meshes"].append({
+                "path": ppath,
+                "points": len(points) if points is not None else None,
+                "influences": indices.GetElementSize() if indices and indices.HasAuthoredValue() else None,
+                "skinning_method": binding.GetSkinningMethodAttr().Get() if binding.GetSkinningMethodAttr() else None,
+                "blend_shapes": [str(c) for c in binding.GetBlendShapesAttr().Get() or []],
+            })
+        attr = prim.GetAttribute("points")
+        if attr and prim.IsA(UsdGeom.PointBased):
+            times = list(layer.ListTimeSamplesForPath(Sdf.Path(ppath).AppendProperty("points")))
+            if times:
+                out["examples"].append({"mesh": ppath, "time_codes": [float(t) for t in times]})
+        version = prim.GetAttribute("psd:version")
+        if version and version.HasAuthoredValue():
+            get = lambda n, p=prim: p.GetAttribute(f"psd:{n}").Get()  # noqa: E731
+            shapes = [str(s) for s in get("shapes") or []]
+            out["correctives"].append({
+                "mesh": ppath, "version": version.Get(), "drivers": [str(d) for d in get("drivers") or []],
+                "pose_space": get("poseSpace"), "kernel": get("kernel"), "sigma": get("sigma"),
+                "degree": get("degree"), "shapes": shapes, "examples": len(get("exampleTimes") or []),
+                "offsets": {
+                    c.GetName(): len(UsdSkel.BlendShape(c).GetPointIndicesAttr().Get() or [])
+                    for c in prim.GetChildren() if c.IsA(UsdSkel.BlendShape) and c.GetName().startswith("psd_")
+                },
+            })
+    return out
