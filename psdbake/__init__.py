@@ -25,7 +25,6 @@ _EXPORTS = {
     "inverse": ("InverseResult", "invert_example"),
     "powell": ("PowellResult", "minimize_lockstep"),
     "rbf": ("CardinalRbf", "fit_cardinal"),
-    "compare": ("Comparison", "compare"),
 }
 _WHERE = {name: module for module, names in _EXPORTS.items() for name in names}
 
@@ -64,7 +63,6 @@ if TYPE_CHECKING:  # for type checkers and IDEs: the same names, eagerly
         write_pose,
         write_weights,
     )
-    from .compare import Comparison, compare  # noqa: F401
     from .errors import DeformerError, FitError, InputError, OutputError, PsdError, PsdWarning, StrictError  # noqa: F401
     from .inverse import InverseResult, invert_example  # noqa: F401
     from .powell import PowellResult, minimize_lockstep  # noqa: F401

@@ -13,14 +13,16 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import signal
 import sys
 import warnings
 from collections.abc import Iterator, Sequence
 
 import click
 
-from . import __version__, api, atomic
+from . import __version__, api, atomic, report
 from . import tolerances as tol
+from .compare import compare as compare_meshes
 from .errors import PsdError, PsdWarning, StrictError
 from .rbf import KERNELS
 
@@ -106,9 +108,9 @@ def cli() -> None:
 
 
 @cli.command("pose")
-@click.argument("asset", type=click.Path(dir_okay=False))
-@click.option("--anim", "poses", required=True, type=click.Path(dir_okay=False), help="POSES layer: one pose per time code.")
-@click.option("-o", "--output", required=True, type=click.Path(dir_okay=False), help="EXAMPLES layer to write.")
+@click.argument("asset", type=str)
+@click.option("--anim", "poses", required=True, type=str, help="POSES layer: one pose per time code.")
+@click.option("-o", "--output", required=True, type=str, help="EXAMPLES layer to write.")
 @deformer_option
 @_common
 def pose_cmd(asset, poses, output, deformers, quiet, verbose, as_json) -> None:
@@ -125,9 +127,9 @@ def pose_cmd(asset, poses, output, deformers, quiet, verbose, as_json) -> None:
 
 
 @cli.command("fit")
-@click.argument("asset", type=click.Path(dir_okay=False))
-@click.argument("examples", nargs=-1, required=True, type=click.Path(dir_okay=False))
-@click.option("-o", "--output", required=True, type=click.Path(dir_okay=False), help="CORRECTIVES layer to write.")
+@click.argument("asset", type=str)
+@click.argument("examples", nargs=-1, required=True, type=str)
+@click.option("-o", "--output", required=True, type=str, help="CORRECTIVES layer to write.")
 @click.option("--driver", "drivers", multiple=True, metavar="JOINT",
               help="Driver joint (path or unique name; repeatable). Default: every joint rotated in any example.")
 @click.option("--kernel", type=click.Choice(sorted(KERNELS)), default="gaussian", show_default=True)
@@ -146,7 +148,7 @@ def pose_cmd(asset, poses, output, deformers, quiet, verbose, as_json) -> None:
 @click.option("--tolerance", type=float, default=tol.INVERSE_RTOL, show_default=True,
               help="Inverse residual tolerance, fraction of the mesh's bounding-box diagonal.")
 @click.option("--mesh", "meshes", multiple=True, metavar="PATH", help="Only fit this mesh (repeatable).")
-@click.option("--report", type=click.Path(dir_okay=False), help="Write a JSON report here.")
+@click.option("--report", type=str, help="Write a JSON report here.")
 @click.option("--strict", is_flag=True, help="Fail (exit 7, nothing written) if any vertex misses tolerance.")
 @click.option("--jobs", "-j", type=click.IntRange(min=1), default=None,
               help="Worker processes for the examples. Default: all cores once the fit is big enough to gain from them. "
@@ -164,6 +166,9 @@ def fit_cmd(asset, examples, output, drivers, kernel, sigma, degree, smoothing, 
         clamp_weights=clamp_weights, normalize_weights=normalize_weights, rtol=tolerance,
         meshes=tuple(meshes), deformers=tuple(deformers),
     )
+    atomic.check_output(output, [asset, *examples], (".usda", ".usdc", ".usd"))
+    if report:
+        atomic.check_output(report, [asset, *examples, output])
     with _collect_warnings(ui), ui.progress("fitting examples") as progress:
         result = api.fit(asset, examples, settings, jobs=jobs, progress=progress)
     payload = fit_report(result, output)
@@ -225,13 +230,13 @@ def _render_fit(ui: _Ui, result: api.FitResult, output: str) -> None:
 
 
 @cli.command("eval")
-@click.argument("asset", type=click.Path(dir_okay=False))
-@click.argument("correctives", type=click.Path(dir_okay=False))
-@click.option("--anim", required=True, type=click.Path(dir_okay=False), help="ANIM layer to drive the correctives over.")
-@click.option("-o", "--output", required=True, type=click.Path(dir_okay=False), help="WEIGHTS layer to write.")
+@click.argument("asset", type=str)
+@click.argument("correctives", type=str)
+@click.option("--anim", required=True, type=str, help="ANIM layer to drive the correctives over.")
+@click.option("-o", "--output", required=True, type=str, help="WEIGHTS layer to write.")
 @click.option("--frames", metavar="START:END",
               help="Whole frames START..END (inclusive). Default: the animation's authored samples.")
-@click.option("--points-cache", type=click.Path(dir_okay=False),
+@click.option("--points-cache", type=str,
               help="Also write final posed points per frame (no UsdSkel needed).")
 @deformer_option
 @_common
@@ -240,13 +245,17 @@ def eval_cmd(asset, correctives, anim, output, frames, points_cache, deformers, 
     ui = _Ui(quiet, verbose, as_json)
     with _collect_warnings(ui):
         with ui.progress("weights") as progress:
-            result = api.evaluate(asset, correctives, anim, frames=api.parse_frames(frames), progress=progress)
+            atomic.check_output(output, [asset, correctives, anim], (".usda", ".usdc", ".usd"))
+        api.load_deformers(deformers)
+        result = api.evaluate(asset, correctives, anim, frames=api.parse_frames(frames), progress=progress)
+        cache_layer = None
         if points_cache:
             atomic.check_output(points_cache, [asset, correctives, anim, output], (".usda", ".usdc", ".usd"))
-        api.write_weights(result, output)
-        if points_cache:
             with ui.progress("points cache") as progress:
-                api.write_points_cache(result, points_cache, deformers, progress=progress)
+                cache_layer = api.points_cache_layer(result, deformers, progress=progress)
+        api.write_weights(result, output)
+        if cache_layer is not None:
+            api.export_layer(cache_layer, points_cache, [asset, correctives, anim, output])
     frames_n = sum(len(a.times) for a in result.animations)
     summary = {
         "output": output, "points_cache": points_cache, "seconds": round(result.seconds, 6),
@@ -265,11 +274,12 @@ def eval_cmd(asset, correctives, anim, output, frames, points_cache, deformers, 
 
 
 @cli.command("compare")
-@click.argument("asset", type=click.Path(dir_okay=False))
-@click.argument("examples", nargs=-1, required=True, type=click.Path(dir_okay=False))
-@click.option("--anim", required=True, type=click.Path(dir_okay=False), help="ANIM layer to compare over (may be ASSET).")
-@click.option("-o", "--output", "report_dir", required=True, type=click.Path(),
-              help="REPORT_DIR: created if missing; a non-empty folder must hold an earlier psdbake compare report.")
+@click.argument("asset", type=str)
+@click.argument("examples", nargs=-1, required=True, type=str)
+@click.option("--anim", required=True, type=str, help="ANIM layer to compare over (may be ASSET).")
+@click.option("-o", "--output", "report_dir", required=True, type=str,
+              help="REPORT_DIR: created if missing; a non-empty folder must hold an earlier psdbake compare report "
+                   "(its files are replaced).")
 @click.option("--vertex", type=click.IntRange(min=0), default=None,
               help="Vertex for the correction-angle figure. Default: the most corrected one (and the one where "
                    "forward and inverse disagree most).")
@@ -280,45 +290,43 @@ def eval_cmd(asset, correctives, anim, output, frames, points_cache, deformers, 
 @click.option("--kernel", type=click.Choice(sorted(KERNELS)), default="gaussian", show_default=True)
 @click.option("--sigma", type=float, default=None, help="Kernel width in radians, as for fit.")
 @click.option("--degree", type=int, default=None, help="Polynomial degree, as for fit.")
+@click.option("--smoothing", type=float, default=0.0, show_default=True, help="RBF smoothing, as for fit.")
+@click.option("--no-rest-example", is_flag=True, help="As for fit.")
+@click.option("--pose-space", type=click.Choice(["rotationVector", "swingTwist", "quaternion"]),
+              default="rotationVector", show_default=True, help="As for fit.")
+@click.option("--twist-axis", type=(float, float, float), default=None, metavar="X Y Z", help="As for fit.")
+@click.option("--clamp-weights", is_flag=True, help="As for fit.")
+@click.option("--normalize-weights", is_flag=True, help="As for fit.")
 @deformer_option
 @_common
 def compare_cmd(asset, examples, anim, report_dir, vertex, mesh, frames, views, drivers, kernel, sigma, degree,
+                smoothing, no_rest_example, pose_space, twist_axis, clamp_weights, normalize_weights,
                 deformers, quiet, verbose, as_json) -> None:
     """Fit EXAMPLES, then compare plain skinning, forward PSD and inverse PSD (same RBF weights)
     at every frame of ANIM; write an HTML report with figures and per-frame statistics."""
-    from . import compare, report
-
     ui = _Ui(quiet, verbose, as_json)
-    settings = api.FitSettings(drivers=tuple(drivers), kernel=kernel, sigma=sigma, degree=degree,
-                               meshes=(mesh,) if mesh else (), deformers=tuple(deformers))
+    settings = api.FitSettings(
+        drivers=tuple(drivers), kernel=kernel, sigma=sigma, degree=degree, smoothing=smoothing,
+        rest_example=not no_rest_example, pose_space=pose_space, twist_axis=twist_axis,
+        clamp_weights=clamp_weights, normalize_weights=normalize_weights,
+        meshes=(mesh,) if mesh else (), deformers=tuple(deformers),
+    )
     span, view_frames = api.parse_frames(frames), report.parse_views(views)
     report.check_report_dir(report_dir, [asset, *examples, anim])  # before the fit, not after
     with _collect_warnings(ui), ui.progress("fitting examples") as progress:
-        result = compare.compare(asset, examples, anim, settings, frames=span,
-                                 fit_result=api.fit(asset, examples, settings, progress=progress))
-        files = report.write_report(result, report_dir, asset_label=asset, mesh=mesh, vertex=vertex, views=view_frames)
-    with open(os.path.join(report_dir, "stats.json"), encoding="utf-8") as fh:
-        stats = json.load(fh)
-    summary = {"output": report_dir, "files": files, "mesh": stats["mesh"], "frames": len(stats["frames"]),
-               "views": stats["views"], "vertex_turn": [{k: t[k] for k in ("vertex", "why", "joint", "reference_time")}
-                                                        for t in stats["vertex_turn"]]}
+        result = compare_meshes(asset, examples, anim, settings, frames=span,
+                                fit_result=api.fit(asset, examples, settings, progress=progress))
+        prepared = report.prepare(result, asset_label=asset, mesh=mesh, vertex=vertex, views=view_frames)
+        report.write_prepared(prepared, report_dir)
     if as_json:
-        click.echo(json.dumps(summary, sort_keys=True))
-    ui.say(f"psdbake compare: <{stats['mesh']}> over {len(stats['frames'])} frame(s)")
-    for key, name in (("forward_ssd", "forward - SSD"), ("inverse_ssd", "inverse - SSD"), ("inverse_forward", "inverse - forward")):
-        worst = max(stats["frames"], key=lambda f, k=key: f[f"{k}_max"])
-        ui.say(f"  largest |{name}|: {worst[f'{key}_max']:.4g} ({worst[f'{key}_max_rel'] * 100:.3g}% of diagonal) "
-               f"at frame {worst['time']:g}")
-    for t in stats["vertex_turn"]:
-        top = [max((v for v in t[k] if v is not None), default=0.0) * 57.29577951308232 for k in ("inverse", "forward", "joint_turn")]
-        ui.say(f"  vertex {t['vertex']} ({t['why']}): correction turns up to {top[0]:.1f} deg (inverse) vs {top[1]:.1f} deg "
-               f"(forward); its bone {t['joint'].split('/')[-1] if t['joint'] else '?'} turns {top[2]:.1f} deg")
-    ui.say(f"wrote {os.path.join(report_dir, 'index.html')} and {len(files) - 1} other file(s)")
+        click.echo(json.dumps(report.summary(prepared, report_dir), sort_keys=True))
+    for line in report.summary_lines(prepared, report_dir):
+        ui.say(line)
 
 
 @cli.command("stack")
-@click.argument("output", type=click.Path(dir_okay=False))
-@click.argument("layers", nargs=-1, required=True, type=click.Path(dir_okay=False))
+@click.argument("output", type=str)
+@click.argument("layers", nargs=-1, required=True, type=str)
 def stack_cmd(output, layers) -> None:
     """Write OUTPUT sublayering LAYERS, given weakest first (ASSET CORRECTIVES ANIM WEIGHTS),
     so any UsdSkel viewer shows the corrected character."""
@@ -326,10 +334,22 @@ def stack_cmd(output, layers) -> None:
     click.echo(f"wrote {output}")
 
 
+def _terminate(signum, frame) -> None:
+    """SIGTERM unwinds like Ctrl-C, so temporary files are removed on the way out."""
+    raise KeyboardInterrupt
+
+
 def main(argv: Sequence[str] | None = None) -> None:
     """Entry point: run the CLI, turn every failure into one line and an exit code."""
+    with contextlib.suppress(ValueError):  # only the main thread may set handlers
+        signal.signal(signal.SIGTERM, _terminate)
+    quiet = any(a in ("-q", "--quiet", "--json") for a in (argv if argv is not None else sys.argv[1:]))
     try:
-        cli.main(args=list(argv) if argv is not None else None, prog_name="psdbake", standalone_mode=False)
+        with api.usd_diagnostics() as usd_messages:
+            cli.main(args=list(argv) if argv is not None else None, prog_name="psdbake", standalone_mode=False)
+        if not quiet:
+            for message in dict.fromkeys(usd_messages):  # USD repeats itself; once is enough
+                click.echo(f"psdbake: warning: USD: {message}", err=True)
     except click.exceptions.Abort:
         click.echo("psdbake: interrupted", err=True)
         sys.exit(EXIT_INTERRUPTED)

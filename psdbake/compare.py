@@ -20,6 +20,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from . import api, posespace
+from . import tolerances as tol
 from .deformers import load_deformers
 from .errors import InputError
 from .usd.blackbox import SkinningBlackBox
@@ -76,10 +77,11 @@ def compare(
     result = fit_result or api.fit(asset, example_files, settings or api.FitSettings())
     chain = load_deformers(result.settings.deformers)
     scene = Scene([anim, asset], label=anim)
+    infos = {i.path: i for i in scene.skinned_meshes()}
     meshes = []
     for m in result.meshes:
         data = m.driver_data
-        info = next(i for i in scene.skinned_meshes() if i.path == m.mesh)
+        info = infos[m.mesh]
         idx = [info.joints.index(d) for d in data.drivers]
         times = api.frames_of(scene, m.mesh, frames)
         rest = scene.rest_points(m.mesh)
@@ -107,7 +109,7 @@ def compare(
             ssd[i] = box(rest)
             fwd[i] = ssd[i] + np.tensordot(weights[i], d_posed, axes=1)
             inv_pts[i] = box(rest + np.tensordot(weights[i], d_rest, axes=1))
-        diag = float(np.linalg.norm(ssd[0].max(axis=0) - ssd[0].min(axis=0)))
+        diag = float(np.linalg.norm(rest.max(axis=0) - rest.min(axis=0)))  # frame-independent unit
         meshes.append(MeshComparison(m.mesh, times, angles, weights, ssd, fwd, inv_pts, corrected, diag))
     if not meshes:
         raise InputError(f"{asset}: nothing was fitted, nothing to compare")
@@ -128,7 +130,8 @@ def correction_turn(comparison: MeshComparison, vertex: int, reference: int | No
     out = []
     for c in (fwd, inv):
         norms = np.linalg.norm(c, axis=1)
-        live = norms > 1e-9 * max(comparison.diagonal, 1e-30)
+        # below float32 round-off of the points a correction has no direction
+        live = norms > tol.float32_floor(comparison.ssd[:, vertex])
         angle = np.full(len(c), np.nan)
         if live[reference]:
             u = c[live] / norms[live, None]
