@@ -109,7 +109,9 @@ def compare(
             ssd[i] = box(rest)
             fwd[i] = ssd[i] + np.tensordot(weights[i], d_posed, axes=1)
             inv_pts[i] = box(rest + np.tensordot(weights[i], d_rest, axes=1))
-        diag = float(np.linalg.norm(rest.max(axis=0) - rest.min(axis=0)))  # frame-independent unit
+        # the unit of the fit's tolerances: the skinned mesh's diagonal at the example poses
+        # (independent of --frames; rest points may sit in another space, see geomBindTransform)
+        diag = max(m.inverses[j].diagonal for j in outputs)
         meshes.append(MeshComparison(m.mesh, times, angles, weights, ssd, fwd, inv_pts, corrected, diag))
     if not meshes:
         raise InputError(f"{asset}: nothing was fitted, nothing to compare")
