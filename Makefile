@@ -7,7 +7,7 @@ BIN    := $(VENV)/bin
 OUT    ?= out
 STAMP  := $(VENV)/.installed
 
-.PHONY: demo test lint bench fidelity fixtures clean
+.PHONY: demo test lint bench fidelity fuzz fixtures clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -47,6 +47,9 @@ fidelity: $(STAMP)
 
 bench: $(STAMP)
 	$(BIN)/python -m benchmarks.run
+
+fuzz: $(STAMP)
+	$(BIN)/python -m tests.fuzz --cases $${CASES:-20000} --seed $${SEED:-0}
 
 fixtures: $(STAMP)
 	$(BIN)/python fixtures/generate.py

@@ -534,6 +534,17 @@ def rbf_from_driver_data(data: usdwrite.DriverData) -> rbf.CardinalRbf:
     )
 
 
+def check_driver_transforms(local: NDArray[np.float64], times, drivers: Sequence[str], label: str) -> None:
+    """Driver transforms (f, d, 4, 4) must be finite with no zero-scale axis: else no pose."""
+    norms = np.linalg.norm(np.nan_to_num(local[..., :3, :3], nan=0.0, posinf=0.0, neginf=0.0), axis=-1)
+    bad = ~np.all(np.isfinite(local), axis=(-2, -1)) | np.any(norms < 1e-12, axis=-1)
+    if bad.any():
+        f, d = (int(i[0]) for i in np.nonzero(bad))
+        raise InputError(
+            f"{label}: joint {drivers[d]!r} has a NaN, infinite or zero-scale transform at time {float(times[f]):g}"
+        )
+
+
 def driver_weights(data: usdwrite.DriverData, local: NDArray[np.float64]) -> NDArray[np.float64]:
     """Weights (f, s) of the stored correctives for driver local transforms (f, d, 4, 4):
     pose coordinates, cardinal RBF, then the stored clamp/normalise options."""
@@ -591,6 +602,7 @@ def evaluate(
         for info, data in entries:
             idx = [info.joints.index(d) for d in data.drivers]
             locals_ = np.stack([scene.joint_local_transforms(info.path, float(t))[idx] for t in times])
+            check_driver_transforms(locals_, times, data.drivers, where(anim, anim_prim))
             if progress:
                 progress(len(times), len(times), info.path)
             columns.append(driver_weights(data, locals_))

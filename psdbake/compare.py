@@ -22,7 +22,7 @@ from numpy.typing import NDArray
 from . import api, posespace
 from . import tolerances as tol
 from .deformers import load_deformers
-from .errors import InputError
+from .errors import InputError, where
 from .usd.blackbox import SkinningBlackBox
 from .usd.read import Scene, open_layer
 
@@ -103,6 +103,7 @@ def compare(
         angles = np.empty((f, len(idx)))
         for i, t in enumerate(times):
             local = scene.joint_local_transforms(m.mesh, float(t))[idx]
+            api.check_driver_transforms(local[None], [t], data.drivers, where(anim, m.mesh))
             angles[i] = posespace.relative_from_quaternions(data.bind_rotations, local).magnitude()
             weights[i] = api.driver_weights(data, local[None])[0]
             box = SkinningBlackBox(scene, m.mesh, float(t), chain)

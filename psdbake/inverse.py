@@ -85,8 +85,10 @@ def _conjugate_start(
     jac: NDArray[np.float64], r0: Points
 ) -> tuple[NDArray[np.float64], Points, NDArray[np.bool_]]:
     """Directions J^-1 e_j and start J^-1 r per vertex; identity/zero where J is singular."""
-    s = np.linalg.svd(jac, compute_uv=False)
-    ok = s[:, -1] > tol.JACOBIAN_RCOND * np.maximum(s[:, 0], 1e-300)
+    # Conditioning test without an SVD (a third of an LBS example's time at 100k vertices):
+    # |det J| against |J|_F^3 is zero for a singular J and ~1 for a rotation.
+    scale = np.einsum("kab,kab->k", jac, jac) ** 1.5
+    ok = np.isfinite(scale) & (np.abs(np.linalg.det(jac)) > tol.JACOBIAN_RCOND * np.maximum(scale, 1e-300))
     directions = np.tile(np.eye(3), (len(jac), 1, 1))
     start = np.zeros_like(r0)
     if ok.any():

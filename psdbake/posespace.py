@@ -24,7 +24,8 @@ between poses are Euclidean in x.
 
 Input matrices follow Gf's row-vector convention (p' = p . M), as UsdSkel returns them;
 this module is the one place that converts. Scale and translation are ignored: rows of
-the 3x3 block are normalised (no shear, as UsdSkel joints) before the rotation is taken.
+the 3x3 block are normalised (no shear, as UsdSkel joints) and a mirrored (negative
+determinant) block is negated before the rotation is taken.
 """
 
 from __future__ import annotations
@@ -45,6 +46,9 @@ def rotations(matrices: Matrices) -> Rotation:
     m = np.asarray(matrices, dtype=np.float64)[..., :3, :3]
     norms = np.linalg.norm(m, axis=-1, keepdims=True)
     m = m / np.where(norms > 0, norms, 1.0)
+    # A mirrored joint (negative scale, common in mirrored rigs) is a reflection: negating
+    # the 3x3 block leaves a proper rotation; bind and posed frames flip alike, so delta is kept.
+    m = np.where(np.linalg.det(m)[..., None, None] < 0, -m, m)
     return Rotation.from_matrix(np.swapaxes(m, -1, -2).reshape(-1, 3, 3))
 
 

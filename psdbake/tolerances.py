@@ -40,9 +40,9 @@ POWELL_MAX_CYCLES = 30
 #: bracket uses a grow limit of 110; 8 keeps a bad model from flinging a vertex).
 LINE_SEARCH_GROW_LIMIT = 8.0
 
-#: A Jacobian whose smallest singular value is below this fraction of its largest
-#: is treated as singular (e.g. a zero-scale joint): Powell then starts from the
-#: identity directions instead of the linearised guess.
+#: A Jacobian with |det J| below this fraction of |J|_F^3 is treated as singular (e.g. a
+#: zero-scale joint): Powell then starts from the identity directions instead of the
+#: linearised guess. (For a rotation the ratio is 3^-1.5 ~ 0.19.)
 JACOBIAN_RCOND = 1e-6
 
 #: Two example poses closer than this (radians, Euclidean in pose coordinates)

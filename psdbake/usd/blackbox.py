@@ -94,6 +94,10 @@ class SkinningBlackBox:
         self._xforms = skel_query.ComputeSkinningTransforms(tc)
         if self._xforms is None or len(self._xforms) != len(skel_query.GetJointOrder()):
             raise InputError(f"{where(scene.label, mesh)}: UsdSkel cannot compute skinning transforms at time {time:g}")
+        if not np.all(np.isfinite(np.array(self._xforms, dtype=np.float64))):
+            skel = str(skel_query.GetSkeleton().GetPrim().GetPath())
+            raise InputError(f"{where(scene.label, skel)}: joint transforms at time {time:g} are not finite "
+                             "(NaN or inf in the animation)")
         self._blend = _BlendShapes(scene, mesh, tc)
         skel_to_world = _matrix(UsdGeom.Xformable(skel_query.GetPrim()).ComputeLocalToWorldTransform(tc))
         mesh_to_world = _matrix(UsdGeom.Xformable(scene.prim(mesh)).ComputeLocalToWorldTransform(tc))
@@ -111,7 +115,10 @@ class SkinningBlackBox:
         if not self._query.ComputeSkinnedPoints(self._xforms, vt, self._tc):
             raise InputError(f"{where(self.label, self.mesh)}: UsdSkel failed to skin the points at time {self.time:g}")
         posed = np.asarray(vt, dtype=np.float64).reshape(-1, 3)
-        return posed @ self._linear + self._translate
+        # Element-wise rather than posed @ linear: a small (n,3)x(3,3) product goes to
+        # multithreaded BLAS, which fights UsdSkel's worker threads (measured 15x slower).
+        lin = self._linear
+        return posed[:, 0:1] * lin[0] + posed[:, 1:2] * lin[1] + posed[:, 2:3] * lin[2] + self._translate
 
     def __call__(self, points: Points) -> Points:
         self.evaluations += 1

@@ -59,6 +59,13 @@ def open_layer(path: str) -> Sdf.Layer:
         raise InputError(f"{path}: not a readable USD file ({_first_line(exc)})") from None
     if layer is None:
         raise InputError(f"{path}: not a readable USD file")
+    # USD's time-sample queries loop forever on an infinite time-code rate: refuse it here.
+    for key in ("timeCodesPerSecond", "framesPerSecond", "startTimeCode", "endTimeCode"):
+        if layer.pseudoRoot.HasInfo(key):
+            value = float(layer.pseudoRoot.GetInfo(key))
+            positive = key.endswith("PerSecond")
+            if not np.isfinite(value) or (positive and value <= 0):
+                raise InputError(f"{path}: layer metadata {key} = {value!r} is not a {'positive ' if positive else ''}number")
     return layer
 
 
@@ -194,7 +201,14 @@ class Scene:
     def joint_local_transforms(self, mesh: str, time: float) -> NDArray[np.float64]:
         """Skeleton-order local joint transforms at time (UsdSkel's own computation)."""
         _, skel_query = self.query(mesh)
-        return _matrices(skel_query.ComputeJointLocalTransforms(Usd.TimeCode(time)))
+        local = _matrices(skel_query.ComputeJointLocalTransforms(Usd.TimeCode(time)) or [])
+        if len(local) != len(skel_query.GetJointOrder()):
+            skel = str(skel_query.GetSkeleton().GetPrim().GetPath())
+            raise InputError(
+                f"{where(self.label, skel)}: UsdSkel cannot pose the skeleton at time {time:g} "
+                "(restTransforms missing or the wrong size for joints the animation does not cover)"
+            )
+        return local
 
     def bind_local_transforms(self, mesh: str) -> NDArray[np.float64]:
         """Local transforms of the bind pose (where skinning is the identity).
@@ -397,13 +411,22 @@ def validate_skinning(scene: Scene, mesh: str) -> list[str]:
     off = np.abs(sums - 1.0) > 1e-3
     if off.any():
         notes.append(f"{label}: jointWeights of {int(off.sum())} point(s) do not sum to 1 (UsdSkel uses them as they are)")
-    bind = skel_query.GetSkeleton().GetBindTransformsAttr().Get()
+    skel = skel_query.GetSkeleton()
     skel_joints = skel_query.GetJointOrder()
-    if bind is None or len(bind) != len(skel_joints):
-        raise InputError(
-            f"{where(scene.label, str(skel_query.GetSkeleton().GetPrim().GetPath()), 'bindTransforms')}: "
-            f"{0 if bind is None else len(bind)} matrices for {len(skel_joints)} joints"
-        )
+    for name, attr in (("bindTransforms", skel.GetBindTransformsAttr()), ("restTransforms", skel.GetRestTransformsAttr())):
+        value = attr.Get()
+        if value is None and name == "restTransforms":
+            continue
+        where_attr = where(scene.label, str(skel.GetPrim().GetPath()), name)
+        if value is None or len(value) != len(skel_joints):
+            raise InputError(f"{where_attr}: {0 if value is None else len(value)} matrices for {len(skel_joints)} joints")
+        mats = _matrices(value)
+        finite = np.nan_to_num(mats)
+        singular = (np.abs(np.linalg.det(finite[:, :3, :3])) < 1e-12) | (np.abs(np.linalg.det(finite)) < 1e-12)
+        bad = ~np.all(np.isfinite(mats), axis=(1, 2)) | singular
+        if bad.any():
+            raise InputError(f"{where_attr}: joint {str(skel_joints[int(np.argmax(bad))])!r} has a NaN, infinite, "
+                             "zero-scale or singular matrix")
     return notes
 
 

@@ -18,7 +18,7 @@ from numpy.typing import NDArray
 from pxr import Gf, Sdf, Tf, Usd, UsdGeom, Vt
 
 from .. import atomic
-from ..errors import OutputError
+from ..errors import InputError, OutputError
 
 FORMATS = (".usda", ".usdc", ".usd")
 #: Version of the psd: attribute schema written by this psdbake.
@@ -46,9 +46,12 @@ def asset_metadata(asset: str) -> dict:
     if not default:
         roots = [p for p in stage.GetPseudoRoot().GetChildren() if p.IsDefined()]
         default = roots[0] if roots else None
+    meters = float(UsdGeom.GetStageMetersPerUnit(stage))
+    if not (np.isfinite(meters) and meters > 0):
+        raise InputError(f"{asset}: metersPerUnit {meters!r} is not a positive number")
     return {
         "upAxis": str(UsdGeom.GetStageUpAxis(stage)),
-        "metersPerUnit": float(UsdGeom.GetStageMetersPerUnit(stage)),
+        "metersPerUnit": meters,
         "defaultPrim": default.GetName() if default else None,
     }
 
