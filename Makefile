@@ -47,6 +47,7 @@ fidelity: $(STAMP)
 
 bench: $(STAMP)
 	$(BIN)/python -m benchmarks.run
+	$(BIN)/python -m benchmarks.jobs
 
 fuzz: $(STAMP)
 	$(BIN)/python -m tests.fuzz --cases $${CASES:-20000} --seed $${SEED:-0}

@@ -678,6 +678,13 @@ def points_cache_layer(result: WeightsResult, deformers: Sequence[str] = (), *, 
     )
 
 
+def describe(path: str) -> dict:
+    """What a USD file holds (``psdbake inspect``): JSON-ready, sorted."""
+    from .usd.describe import describe as _describe
+
+    return _describe(path)
+
+
 def export_layer(layer, path: str, inputs: Sequence[str]) -> str:
     """Export an in-memory layer atomically (temp file + rename); inputs are never overwritten."""
     return usdwrite.export_atomic(layer, path, inputs)

@@ -324,6 +324,37 @@ def compare_cmd(asset, examples, anim, report_dir, vertex, mesh, frames, views, 
         ui.say(line)
 
 
+@cli.command("inspect")
+@click.argument("file", type=str)
+@click.option("--json", "as_json", is_flag=True, help="Print the summary as JSON.")
+def inspect_cmd(file, as_json) -> None:
+    """What FILE holds: skeletons, skinned meshes, animations, examples and psd: correctives."""
+    info = api.describe(file)
+    if as_json:
+        click.echo(json.dumps(info, indent=2, sort_keys=True))
+        return
+    click.echo(f"{file}")
+    for root in info["skel_roots"]:
+        click.echo(f"  SkelRoot <{root}>")
+    for skel in info["skeletons"]:
+        click.echo(f"  Skeleton <{skel['path']}>: {skel['joints']} joints, animation {skel['animation'] or '-'}")
+    for m in info["meshes"]:
+        shapes = f", blend shapes: {', '.join(m['blend_shapes'])}" if m["blend_shapes"] else ""
+        click.echo(f"  skinned <{m['path']}>: {m['points']} points, {m['influences']} influences, "
+                   f"{m['skinning_method'] or 'classicLinear'}{shapes}")
+    for a in info["animations"]:
+        span = f"{a['first']:g}..{a['last']:g}" if a["samples"] else "static"
+        click.echo(f"  SkelAnimation <{a['path']}>: {a['joints']} joints, {a['samples']} samples ({span})")
+    for e in info["examples"]:
+        click.echo(f"  examples of <{e['mesh']}> at time codes {', '.join(f'{t:g}' for t in e['time_codes'])}")
+    for c in info["correctives"]:
+        click.echo(f"  correctives on <{c['mesh']}> (psd: v{c['version']}): {len(c['shapes'])} shapes from "
+                   f"{c['examples']} examples; drivers {', '.join(d.split('/')[-1] for d in c['drivers'])}; "
+                   f"{c['pose_space']}, {c['kernel']}, sigma {c['sigma']:.4g}, degree {c['degree']}")
+        for name, count in sorted(c["offsets"].items()):
+            click.echo(f"    BlendShape {name}: {count} points")
+
+
 @cli.command("stack")
 @click.argument("output", type=str)
 @click.argument("layers", nargs=-1, required=True, type=str)

@@ -194,3 +194,17 @@ def test_clamp_and_normalize_are_explicit_stored_options(run, tmp_path):
         w[name] = np.array([layer.QueryTimeSample(path, t) for t in layer.ListTimeSamplesForPath(path)])
     assert w["plain"].min() < 0.0  # cardinal Gaussian weights do go negative: nothing hides it by default
     assert w["clamped"].min() >= 0.0 and w["clamped"].sum(axis=1).max() <= 1.0 + 1e-6
+
+
+def test_inspect_reports_what_a_file_holds(run, tmp_path):
+    corr = tmp_path / "c.usda"
+    assert run("fit", ASSET, EXAMPLES, "-o", corr, "-q")[0] == 0
+    code, out, _ = run("inspect", corr, "--json")
+    info = json.loads(out)
+    assert code == 0 and info["correctives"][0]["mesh"] == generate.MESH
+    assert info["correctives"][0]["drivers"] == ["Shoulder/Elbow", "Shoulder/Elbow/Wrist"]
+    assert sorted(info["correctives"][0]["offsets"]) == ["psd_00", "psd_01", "psd_02"]
+    code, out, _ = run("inspect", EXAMPLES)
+    assert code == 0 and "examples of </Arm/Geo/Tube> at time codes 1, 2, 3" in out
+    code, out, _ = run("inspect", ASSET, "--json")
+    assert json.loads(out)["meshes"][0]["influences"] == 4

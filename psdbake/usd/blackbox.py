@@ -40,8 +40,12 @@ class _BlendShapes:
         if not query.HasBlendShapes():
             return
         anim = skel_query.GetAnimQuery()
-        binding = UsdSkel.BindingAPI(scene.prim(mesh))
-        bs_query = UsdSkel.BlendShapeQuery(binding)
+        # The shapes themselves do not change with time: build them once per scene and mesh.
+        cache = scene.__dict__.setdefault("_blend_shape_cache", {})
+        if mesh not in cache:
+            bs_query = UsdSkel.BlendShapeQuery(UsdSkel.BindingAPI(scene.prim(mesh)))
+            cache[mesh] = (bs_query, bs_query.ComputeBlendShapePointIndices(), bs_query.ComputeSubShapePointOffsets())
+        bs_query, point_indices, sub_offsets = cache[mesh]
         if not anim or bs_query.GetNumBlendShapes() == 0:
             return
         weights = anim.ComputeBlendShapeWeights(time)
@@ -52,13 +56,7 @@ class _BlendShapes:
         sub_weights, bs_indices, sub_indices = bs_query.ComputeSubShapeWeights(weights)
         if not any(float(w) != 0.0 for w in sub_weights):
             return
-        self.args = (
-            sub_weights,
-            bs_indices,
-            sub_indices,
-            bs_query.ComputeBlendShapePointIndices(),
-            bs_query.ComputeSubShapePointOffsets(),
-        )
+        self.args = (sub_weights, bs_indices, sub_indices, point_indices, sub_offsets)
         self.query = bs_query
         self.active = True
 

@@ -58,7 +58,7 @@ def describe(path: str) -> dict:
                 "degree": get("degree"), "shapes": shapes, "examples": len(get("exampleTimes") or []),
                 "offsets": {
                     c.GetName(): len(UsdSkel.BlendShape(c).GetPointIndicesAttr().Get() or [])
-                    for c in prim.GetChildren() if c.IsA(UsdSkel.BlendShape) and c.GetName().startswith("psd_")
+                    for c in prim.GetAllChildren() if c.IsA(UsdSkel.BlendShape) and c.GetName().startswith("psd_")
                 },
             })
     return out
