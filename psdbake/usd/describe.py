@@ -43,11 +43,6 @@ def describe(path: str) -> dict:
                 "skinning_method": binding.GetSkinningMethodAttr().Get() if binding.GetSkinningMethodAttr() else None,
                 "blend_shapes": [str(c) for c in binding.GetBlendShapesAttr().Get() or []],
             })
-        attr = prim.GetAttribute("points")
-        if attr and prim.IsA(UsdGeom.PointBased):
-            times = list(layer.ListTimeSamplesForPath(Sdf.Path(ppath).AppendProperty("points")))
-            if times:
-                out["examples"].append({"mesh": ppath, "time_codes": [float(t) for t in times]})
         version = prim.GetAttribute("psd:version")
         if version and version.HasAuthoredValue():
             get = lambda n, p=prim: p.GetAttribute(f"psd:{n}").Get()  # noqa: E731
@@ -61,4 +56,15 @@ def describe(path: str) -> dict:
                     for c in prim.GetAllChildren() if c.IsA(UsdSkel.BlendShape) and c.GetName().startswith("psd_")
                 },
             })
+    # examples: points time samples this file itself authors (typed or not)
+    found: list[tuple[str, list[float]]] = []
+
+    def visit(spec_path: Sdf.Path) -> None:
+        if spec_path.IsPropertyPath() and spec_path.name == "points":
+            times = layer.ListTimeSamplesForPath(spec_path)
+            if times:
+                found.append((str(spec_path.GetPrimPath()), [float(t) for t in times]))
+
+    layer.Traverse(Sdf.Path.absoluteRootPath, visit)
+    out["examples"] = [{"mesh": m, "time_codes": t} for m, t in sorted(found)]
     return out
