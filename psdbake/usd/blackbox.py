@@ -27,6 +27,7 @@ from ..errors import DeformerError, InputError, where
 from .read import Scene
 
 Points = NDArray[np.float64]  # (n, 3)
+FLOAT32_MAX = float(np.finfo(np.float32).max)
 PointFn = Callable[[Points], Points]
 DeformerFactory = Callable[[Usd.Stage, str, float], PointFn]
 
@@ -99,6 +100,11 @@ class SkinningBlackBox:
         self._blend = _BlendShapes(scene, mesh, tc)
         skel_to_world = _matrix(UsdGeom.Xformable(skel_query.GetPrim()).ComputeLocalToWorldTransform(tc))
         mesh_to_world = _matrix(UsdGeom.Xformable(scene.prim(mesh)).ComputeLocalToWorldTransform(tc))
+        for prim_path, m in ((str(skel_query.GetPrim().GetPath()), skel_to_world), (mesh, mesh_to_world)):
+            det = np.linalg.det(m[:3, :3]) if np.all(np.isfinite(m)) else np.nan
+            if not (np.isfinite(det) and abs(det) > 1e-12 * max(np.abs(m[:3, :3]).max(), 1e-300) ** 3):
+                raise InputError(f"{where(scene.label, prim_path)}: its world transform at time {time:g} is singular "
+                                 "or not finite (a zero, NaN or infinite xformOp)")
         to_local = skel_to_world @ np.linalg.inv(mesh_to_world)
         self._linear, self._translate = to_local[:3, :3], to_local[3, :3]
         self._deformers: list[tuple[str, PointFn]] = [
@@ -113,10 +119,17 @@ class SkinningBlackBox:
         if not self._query.ComputeSkinnedPoints(self._xforms, vt, self._tc):
             raise InputError(f"{where(self.label, self.mesh)}: UsdSkel failed to skin the points at time {self.time:g}")
         posed = np.asarray(vt, dtype=np.float64).reshape(-1, 3)
+        if not np.all(np.isfinite(posed)):
+            raise InputError(f"{where(self.label, self.mesh)}: UsdSkel skinning gives NaN or inf at time {self.time:g} "
+                             "(extreme transforms or points)")
         # Element-wise rather than posed @ linear: a small (n,3)x(3,3) product goes to
         # multithreaded BLAS, which fights UsdSkel's worker threads (measured 15x slower).
         lin = self._linear
-        return posed[:, 0:1] * lin[0] + posed[:, 1:2] * lin[1] + posed[:, 2:3] * lin[2] + self._translate
+        local = posed[:, 0:1] * lin[0] + posed[:, 1:2] * lin[1] + posed[:, 2:3] * lin[2] + self._translate
+        if not np.all(np.isfinite(local)) or np.abs(local).max(initial=0.0) > FLOAT32_MAX:
+            raise InputError(f"{where(self.label, self.mesh)}: posed points at time {self.time:g} overflow float32 "
+                             "(extreme transforms)")
+        return local
 
     def __call__(self, points: Points) -> Points:
         self.evaluations += 1
