@@ -206,16 +206,14 @@ def _invert(task: _InverseTask) -> InverseResult:
         raise InputError(f"{where(task.source, task.mesh, 'points')}: example at time {task.time:g}: {exc}") from None
 
 
-#: Below this many example points in total, worker start-up costs more than it saves.
-PARALLEL_MIN_POINTS = 1_000_000
-
-
 def _auto_jobs(tasks: Sequence[_InverseTask], jobs: int | None) -> int:
-    if jobs is not None:
-        return max(1, min(int(jobs), len(tasks)))
-    if len(tasks) < 2 or sum(t.points for t in tasks) < PARALLEL_MIN_POINTS:
+    """Worker processes. Default 1: UsdSkel already skins on every core, and on the 2-core
+    machines measured (benchmarks/jobs.py, 20 examples x 100k points) two workers were
+    0.56x as fast as one. ``--jobs N`` is there for machines where examples outnumber
+    what UsdSkel's threads can use."""
+    if jobs is None:
         return 1
-    return max(1, min(os.cpu_count() or 1, len(tasks)))
+    return max(1, min(int(jobs), len(tasks)))
 
 
 def _solve_all(tasks: Sequence[_InverseTask], jobs: int | None, progress: Progress | None) -> list[InverseResult]:

@@ -151,7 +151,7 @@ def pose_cmd(asset, poses, output, deformers, quiet, verbose, as_json) -> None:
 @click.option("--report", type=str, help="Write a JSON report here.")
 @click.option("--strict", is_flag=True, help="Fail (exit 7, nothing written) if any vertex misses tolerance.")
 @click.option("--jobs", "-j", type=click.IntRange(min=1), default=None,
-              help="Worker processes for the examples. Default: all cores once the fit is big enough to gain from them. "
+              help="Worker processes for the examples (default 1: UsdSkel already skins on every core). "
                    "The output is byte-identical whatever N is.")
 @deformer_option
 @_common
