@@ -658,21 +658,10 @@ def points_cache_layer(result: WeightsResult, deformers: Sequence[str] = (), *, 
     scene = Scene([wl, result.anim, result.correctives, result.asset], label=result.correctives)
     times = sorted({float(t) for a in result.animations for t in a.times})
     meshes = scene.skinned_meshes()
-    total = len(meshes) * len(times)
-
-    def samples():
-        done = 0
-        for info in meshes:
-            rest = scene.rest_points(info.path)
-            for t in times:
-                yield info.path, t, SkinningBlackBox(scene, info.path, t, chain)(rest)
-                done += 1
-                if progress:
-                    progress(done, total, info.path)
-
     return usdwrite.points_layer(
         f"psdbake {__version__} eval: points cache (no UsdSkel needed)",
-        {m.skel_root for m in meshes}, samples(), times, result.fps, usdwrite.asset_metadata(result.asset),
+        {m.skel_root for m in meshes}, _posed_points(scene, scene, meshes, times, chain, progress), times, result.fps,
+        usdwrite.asset_metadata(result.asset),
     )
 
 
@@ -681,6 +670,18 @@ def describe(path: str) -> dict:
     from .usd.describe import describe as _describe
 
     return _describe(path)
+
+
+def _posed_points(rest_scene: Scene, scene: Scene, meshes, times, chain, progress: Progress | None):
+    """(mesh, time, points) for every mesh and time: the black box applied to the rest points."""
+    total, done = len(meshes) * len(times), 0
+    for info in meshes:
+        rest = rest_scene.rest_points(info.path)
+        for t in times:
+            yield info.path, t, SkinningBlackBox(scene, info.path, t, chain)(rest)
+            done += 1
+            if progress:
+                progress(done, total, info.path)
 
 
 def export_layer(layer, path: str, inputs: Sequence[str]) -> str:
@@ -730,20 +731,9 @@ def pose(asset: str, poses: str, deformers: Sequence[str] = (), *, progress: Pro
         seen.add(info.skeleton)
         path, joints, channels, anim_samples = animation_components(scene, info.path, times)
         animations.append((info.skeleton, path, joints, channels, anim_samples))
-    total = len(meshes) * len(times)
-
-    def samples():
-        done = 0
-        for info in meshes:
-            rest = asset_scene.rest_points(info.path)
-            for t in times:
-                yield info.path, t, SkinningBlackBox(scene, info.path, t, chain)(rest)
-                done += 1
-                if progress:
-                    progress(done, total, info.path)
-
     layer = usdwrite.examples_layer(
-        f"psdbake {__version__} pose: skinned examples to sculpt on", animations, samples(), times, fps,
+        f"psdbake {__version__} pose: skinned examples to sculpt on", animations,
+        _posed_points(asset_scene, scene, meshes, times, chain, progress), times, fps,
         usdwrite.asset_metadata(asset),
     )
     return PoseResult(asset, poses, tuple(times), tuple(m.path for m in meshes), layer)
