@@ -163,7 +163,7 @@ def _gather_examples(
     found: dict[str, list] = {m: [] for m in meshes}
     for path in example_files:
         layer = open_layer(path)
-        scene = Scene([path, asset_scene.files[0]], label=path)
+        scene = _scene((path, asset_scene.files[0]))  # the same stage the serial solves use
         stray = stray_point_prims(layer, {m.path for m in scene.skinned_meshes()})
         if stray:
             raise InputError(
@@ -220,23 +220,20 @@ def _solve_all(tasks: Sequence[_InverseTask], jobs: int | None, progress: Progre
     """Every example's inverse, in task order, serially or on a process pool."""
     n = _auto_jobs(tasks, jobs)
     results: list[InverseResult | None] = [None] * len(tasks)
-    try:
-        if n == 1:
-            for i, task in enumerate(tasks):
-                results[i] = _invert(task)
+    if n == 1:
+        for i, task in enumerate(tasks):
+            results[i] = _invert(task)
+            if progress:
+                progress(i + 1, len(tasks), f"{task.mesh} {os.path.basename(task.source)}@{task.time:g}")
+    else:
+        ctx = multiprocessing.get_context("spawn")  # USD is multithreaded: never fork it
+        with concurrent.futures.ProcessPoolExecutor(max_workers=n, mp_context=ctx) as pool:
+            futures = {pool.submit(_invert, task): i for i, task in enumerate(tasks)}
+            for done, future in enumerate(concurrent.futures.as_completed(futures), start=1):
+                results[futures[future]] = future.result()
                 if progress:
-                    progress(i + 1, len(tasks), f"{task.mesh} {os.path.basename(task.source)}@{task.time:g}")
-        else:
-            ctx = multiprocessing.get_context("spawn")  # USD is multithreaded: never fork it
-            with concurrent.futures.ProcessPoolExecutor(max_workers=n, mp_context=ctx) as pool:
-                futures = {pool.submit(_invert, task): i for i, task in enumerate(tasks)}
-                for done, future in enumerate(concurrent.futures.as_completed(futures), start=1):
-                    results[futures[future]] = future.result()
-                    if progress:
-                        task = tasks[futures[future]]
-                        progress(done, len(tasks), f"{task.mesh} {os.path.basename(task.source)}@{task.time:g}")
-    finally:
-        _scene.cache_clear()
+                    task = tasks[futures[future]]
+                    progress(done, len(tasks), f"{task.mesh} {os.path.basename(task.source)}@{task.time:g}")
     return [r for r in results if r is not None]
 
 
@@ -255,8 +252,7 @@ def open_asset(asset: str, notes: list[str] | None = None) -> Scene:
 def _check_pose(scene: Scene, mesh: str, local: NDArray[np.float64], t: float, joints: Sequence[str]) -> None:
     """A joint whose local transform has a zero-scale axis has no rotation: no pose, and
     skinning through it cannot be inverted."""
-    norms = np.linalg.norm(local[:, :3, :3], axis=2)
-    bad = np.nonzero(np.any(norms < 1e-12, axis=1) | ~np.all(np.isfinite(local), axis=(1, 2)))[0]
+    bad = np.nonzero(posespace.undefined_rotations(local))[0]
     if len(bad):
         raise FitError(
             f"{where(scene.label, mesh)}: joint {joints[bad[0]]!r} has zero scale (or NaN) at time {t:g}: "
@@ -278,8 +274,8 @@ def fit(
 ) -> FitResult:
     """Fit rest-space correctives and their RBF drivers from sculpted examples.
 
-    jobs: worker processes for the per-example inverses (None: all cores when the fit is
-    big enough to pay for starting them, see ``_auto_jobs``). The output does not depend on it.
+    jobs: worker processes for the per-example inverses (None: 1, see ``_auto_jobs``). The
+    output does not depend on it.
     """
     started = _time.perf_counter()
     if not example_files:
@@ -287,11 +283,21 @@ def fit(
     notes: list[str] = []
     load_deformers(settings.deformers)  # fail fast on a bad spec; each solve loads its own chain
     asset_scene = open_asset(asset, notes)
-    all_meshes = [m.path for m in asset_scene.skinned_meshes()]
+    infos = asset_scene.skinned_meshes()
+    all_meshes = [m.path for m in infos]
     for wanted in settings.meshes:
         if wanted not in all_meshes:
             raise InputError(f"{where(asset, wanted)}: --mesh is not a skinned mesh of the asset")
     meshes = [m for m in all_meshes if not settings.meshes or m in settings.meshes]
+    try:
+        return _fit_examples(asset, asset_scene, infos, meshes, example_files, settings, jobs, progress, notes, started)
+    finally:
+        _scene.cache_clear()  # the example stages die with the fit
+
+
+def _fit_examples(asset, asset_scene, infos, meshes, example_files, settings, jobs, progress, notes, started
+                  ) -> FitResult:
+    """fit() once the asset is open: gather and validate the examples, solve, fit the RBFs."""
     found = _gather_examples(asset_scene, example_files, meshes)
     work = [(m, ex) for m in meshes for ex in found[m]]
     if not work:
@@ -301,8 +307,9 @@ def fit(
         )
     # Validate every example (cheap) before solving any (expensive).
     tasks: list[_InverseTask] = []
+    checked: set[tuple[int, str]] = set()
     per_mesh: dict[str, list[Example]] = {}
-    for mesh_info in asset_scene.skinned_meshes():
+    for mesh_info in infos:
         mesh = mesh_info.path
         if mesh not in meshes or not found[mesh]:
             continue
@@ -321,7 +328,9 @@ def fit(
                     f"{where(source, mesh_info.skeleton)}: no SkelAnimation bound (skel:animationSource), "
                     f"so the example at time {t:g} has no pose"
                 )
-            validate_animation(scene, mesh)
+            if (id(scene), mesh) not in checked:
+                validate_animation(scene, mesh)
+                checked.add((id(scene), mesh))
             local = scene.joint_local_transforms(mesh, t)
             _check_pose(scene, mesh, local, t, mesh_info.joints)
             pose_x = posespace.relative_rotations(bind_local, local).as_quat().reshape(-1, 4)
@@ -331,7 +340,7 @@ def fit(
     inverses = _solve_all(tasks, jobs, progress)
     fits = []
     k = 0
-    for mesh_info in asset_scene.skinned_meshes():
+    for mesh_info in infos:
         if mesh_info.path not in per_mesh:
             continue
         examples = per_mesh[mesh_info.path]
@@ -534,8 +543,7 @@ def rbf_from_driver_data(data: usdwrite.DriverData) -> rbf.CardinalRbf:
 
 def check_driver_transforms(local: NDArray[np.float64], times, drivers: Sequence[str], label: str) -> None:
     """Driver transforms (f, d, 4, 4) must be finite with no zero-scale axis: else no pose."""
-    norms = np.linalg.norm(np.nan_to_num(local[..., :3, :3], nan=0.0, posinf=0.0, neginf=0.0), axis=-1)
-    bad = ~np.all(np.isfinite(local), axis=(-2, -1)) | np.any(norms < 1e-12, axis=-1)
+    bad = posespace.undefined_rotations(local)
     if bad.any():
         f, d = (int(i[0]) for i in np.nonzero(bad))
         raise InputError(
@@ -572,6 +580,7 @@ def evaluate(
     scene = Scene([anim, correctives, asset], label=correctives)
     scene.require_skinned()
     per_anim: dict[str, list] = {}
+    anim_scene = Scene([anim, asset], label=anim)
     for info in scene.skinned_meshes():
         data = read_driver_data(scene, info.path)
         if data is None:
@@ -586,7 +595,7 @@ def evaluate(
         anim_prim = scene.animation_prim(info.path)
         if anim_prim is None:
             raise InputError(f"{where(anim, info.skeleton)}: no SkelAnimation bound (skel:animationSource)")
-        validate_animation(Scene([anim, asset], label=anim), info.path)
+        validate_animation(anim_scene, info.path)
         per_anim.setdefault(anim_prim, []).append((info, data))
     if not per_anim:
         raise InputError(f"{correctives}: no psd: driver data on any skinned mesh of {asset}")

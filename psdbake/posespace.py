@@ -41,6 +41,13 @@ POSE_SPACES = ("rotationVector", "swingTwist", "quaternion")
 WIDTH = {"rotationVector": 3, "swingTwist": 4, "quaternion": 9}
 
 
+def undefined_rotations(matrices: Matrices) -> NDArray[np.bool_]:
+    """Which transforms (..., 4, 4) have no rotation: a NaN/inf entry or a zero-scale axis."""
+    m = np.asarray(matrices, dtype=np.float64)
+    norms = np.linalg.norm(np.nan_to_num(m[..., :3, :3], nan=0.0, posinf=0.0, neginf=0.0), axis=-1)
+    return ~np.all(np.isfinite(m), axis=(-2, -1)) | np.any(norms < 1e-12, axis=-1)
+
+
 def rotations(matrices: Matrices) -> Rotation:
     """Rotation part of row-vector transforms, as column-convention scipy rotations."""
     m = np.asarray(matrices, dtype=np.float64)[..., :3, :3]

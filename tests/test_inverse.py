@@ -3,11 +3,14 @@ Powell per vertex, a non-linear deformer, and the evaluation budget."""
 
 from __future__ import annotations
 
+import os
+
 import numpy as np
 import pytest
-from conftest import CESIUM, CESIUM_EXAMPLES, fixture, generate, sculpt
+from conftest import CESIUM, CESIUM_EXAMPLES, ROOT, fixture, generate, sculpt
 
 from benchmarks import references
+from psdbake.deformers import load_deformers
 from psdbake.inverse import invert_example
 from psdbake.usd.blackbox import SkinningBlackBox
 from psdbake.usd.read import Scene
@@ -65,15 +68,8 @@ def test_evaluation_budget_on_lbs_and_dqs():
             assert res.evaluations == box.evaluations
 
 
-def _swirl_factory(stage, mesh, time):
-    """A non-linear, position-dependent deformer with no closed-form inverse."""
-    def fn(points):
-        x, y, z = points.T
-        ang = 0.35 * np.sin(0.8 * x)
-        c, s = np.cos(ang), np.sin(ang)
-        return np.stack([x + 0.05 * np.sin(2.0 * y), c * y - s * z, s * y + c * z], axis=1)
-
-    return fn
+# A non-linear, position-dependent deformer with no closed-form inverse (also used by test_cli).
+SWIRL = os.path.join(ROOT, "tests", "data", "swirl_deformer.py") + ":factory"
 
 
 def test_nonlinear_deformer_chain_is_inverted_to_tolerance():
@@ -81,7 +77,7 @@ def test_nonlinear_deformer_chain_is_inverted_to_tolerance():
     poses = fixture("arm_poses.usda")
     scene = Scene([poses, asset])
     rest = scene.rest_points(generate.MESH)
-    box = SkinningBlackBox(scene, generate.MESH, 1.0, [("swirl", _swirl_factory)])
+    box = SkinningBlackBox(scene, generate.MESH, 1.0, load_deformers([SWIRL]))
     rng = np.random.default_rng(0)
     truth = np.zeros_like(rest)
     moved = rng.random(len(rest)) < 0.4
