@@ -32,11 +32,11 @@ demo: $(STAMP)
 	@echo "View: usdview $(OUT)/shot.usda   (compare: usdview fixtures/arm_lbs.usda with fixtures/arm_anim.usda)"
 
 test: $(STAMP)
-	$(BIN)/ruff check psdbake tests benchmarks fixtures/generate.py
+	$(BIN)/ruff check psdbake tests benchmarks fixtures/generate.py fixtures/character.py
 	$(BIN)/python -m pytest -q
 
 lint: $(STAMP)
-	$(BIN)/ruff check psdbake tests benchmarks fixtures/generate.py
+	$(BIN)/ruff check psdbake tests benchmarks fixtures/generate.py fixtures/character.py
 
 fidelity: $(STAMP)
 	$(BIN)/python -m benchmarks.fidelity

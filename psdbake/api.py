@@ -24,7 +24,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
-from . import posespace, rbf
+from . import atomic, posespace, rbf
 from . import tolerances as tol
 from .deformers import Factory, load_deformers
 from .errors import FitError, InputError, PsdWarning, where
@@ -32,11 +32,14 @@ from .inverse import InverseResult, SculptOutOfRangeError, invert_example
 from .usd import write as usdwrite
 from .usd.blackbox import SkinningBlackBox
 from .usd.read import (
+    DEFAULT_GROUP,
     Scene,
     animation_components,
     existing_blend_shapes,
     open_layer,
-    read_driver_data,
+    psd_prims,
+    read_corrective_shapes,
+    read_driver_groups,
     stray_point_prims,
     usd_diagnostics,
     validate_animation,
@@ -46,6 +49,7 @@ from .usd.read import (
 Progress = Callable[[int, int, str], None]  # (done, total, what)
 
 __all__ = [  # noqa: RUF022 - grouped: results, then functions
+    "DEFAULT_GROUP",
     "load_deformers",
     "usd_diagnostics",
     "Example",
@@ -56,6 +60,7 @@ __all__ = [  # noqa: RUF022 - grouped: results, then functions
     "evaluate",
     "fit",
     "pose",
+    "read_correctives",
     "write_correctives",
     "write_weights",
 ]
@@ -78,6 +83,7 @@ class FitSettings:
     rtol: float = tol.INVERSE_RTOL
     meshes: tuple[str, ...] = ()  # empty: every mesh with examples
     deformers: tuple[str, ...] = ()
+    group: str = DEFAULT_GROUP  # correctives group: its own examples, drivers, kernel and sigma
 
     def __post_init__(self) -> None:
         def positive(name: str, value: float | None, allow_zero: bool = False) -> None:
@@ -90,6 +96,10 @@ class FitSettings:
         positive("sigma", self.sigma)
         positive("smoothing", self.smoothing, allow_zero=True)
         positive("tolerance", self.rtol)
+        if not re.fullmatch(r"[A-Za-z_][A-Za-z0-9_]*", self.group) or self.group in ("version", "groups"):
+            raise InputError(
+                f"--group {self.group!r}: must be an identifier (letters, digits, _; not 'version' or 'groups')"
+            )
         if self.twist_axis is not None and not (
             np.all(np.isfinite(self.twist_axis)) and np.linalg.norm(self.twist_axis) > 0
         ):
@@ -120,6 +130,8 @@ class MeshFit:
     driver_data: usdwrite.DriverData
     existing_channels: tuple[str, ...]
     existing_targets: tuple[str, ...]
+    group: str = DEFAULT_GROUP
+    joints: tuple[str, ...] = ()  # skeleton order, as the example poses
 
 
 @dataclass(frozen=True)
@@ -386,7 +398,7 @@ def _fit_rbf(asset, asset_scene, mesh_info, examples, inverses, bind_local, sett
         labels.append("bind")
     base = mesh_info.path.split("/")[-1]
     root_rel = os.path.relpath(mesh, mesh_info.skel_root) if mesh != mesh_info.skel_root else base
-    prefix = "psd_" + _safe_token(root_rel)
+    prefix = f"psd_{settings.group}_{_safe_token(root_rel)}"
     channels = []
     for k, (example, inverse) in enumerate(zip(examples, inverses, strict=True)):
         if len(inverse.indices) == 0:
@@ -456,30 +468,122 @@ def _fit_rbf(asset, asset_scene, mesh_info, examples, inverses, bind_local, sett
         driver_data=data,
         existing_channels=tuple(existing),
         existing_targets=tuple(targets),
+        group=settings.group,
+        joints=tuple(joints),
     )
 
 
-def correctives_layer(result: FitResult):
-    """CORRECTIVES as an in-memory layer: BlendShapes, bindings and psd: driver data."""
+def _shapes_of(m: MeshFit) -> list[usdwrite.BlendShapeData]:
+    """The corrective BlendShapes of one fitted mesh (examples equal to plain skinning have none)."""
+    return [
+        usdwrite.BlendShapeData(name=f"psd_{m.group}_{k:02d}", channel=ch, indices=inv.indices, offsets=inv.offsets)
+        for k, (ch, inv) in enumerate(zip(m.channels, m.inverses, strict=True))
+        if ch
+    ]
+
+
+_Groups = dict[str, dict[str, tuple[usdwrite.DriverData, list[usdwrite.BlendShapeData]]]]  # mesh -> group -> data
+
+
+def read_correctives(asset: str, correctives: str) -> _Groups:
+    """Every group of an existing CORRECTIVES layer over asset: its driver data and BlendShapes."""
+    owners = psd_prims(open_layer(correctives))
+    scene = Scene([correctives, asset], label=correctives)
+    skinned = {m.path: m for m in scene.skinned_meshes()}
+    if not owners:
+        raise InputError(f"{correctives}: holds no psd: correctives (not a CORRECTIVES layer written by psdbake fit)")
+    out: _Groups = {}
+    for mesh in owners:
+        if mesh not in skinned:
+            raise InputError(f"{where(correctives, mesh)}: has correctives but is not a skinned mesh of {asset}")
+        for group, data in read_driver_groups(scene, mesh):
+            shapes = read_corrective_shapes(scene, mesh, data.shapes)
+            for shape in shapes:
+                if len(shape.indices) and (shape.indices.min() < 0 or shape.indices.max() >= skinned[mesh].point_count):
+                    raise InputError(
+                        f"{where(correctives, mesh + '/' + shape.name, 'pointIndices')}: indices outside the "
+                        f"{skinned[mesh].point_count} points of the asset's mesh"
+                    )
+            out.setdefault(mesh, {})[group] = (data, shapes)
+    return out
+
+
+def _cross_talk(result: FitResult, others: _Groups) -> list[str]:
+    """Groups are fitted independently, so another group's correctives must be (nearly) off
+    at this group's examples: its weight times its largest offset, relative to the mesh's
+    diagonal, must stay under the fit tolerance, or that sculpt is not reproduced."""
+    notes = []
+    for m in result.meshes:
+        infos = dict(others.get(m.mesh, {}))
+        infos.pop(m.group, None)
+        for group, (data, shapes) in sorted(infos.items()):
+            reach = np.array([np.abs(s.offsets).max() if len(s.offsets) else 0.0 for s in shapes])
+            idx = [m.joints.index(d) for d in data.drivers if d in m.joints]
+            if len(idx) != len(data.drivers):
+                continue  # eval refuses such a layer with its own message
+            for ex, inv in zip(m.examples, m.inverses, strict=True):
+                w = weights_of_rotations(data, Rotation.from_quat(ex.pose[idx]), 1)[0]
+                spill = float(np.max(np.abs(w) * reach)) / (inv.diagonal or 1.0)
+                if spill > result.settings.rtol:
+                    notes.append(
+                        f"{where(result.asset, m.mesh)}: group {group!r} moves points by {spill:.2g} of the diagonal "
+                        f"at example {ex.label} of group {m.group!r}: the two groups' drivers overlap, so that sculpt "
+                        "is not reproduced exactly"
+                    )
+    return notes
+
+
+def correctives_layer(result: FitResult, update: str | None = None):
+    """CORRECTIVES as an in-memory layer: BlendShapes, bindings and psd: driver data.
+
+    update: an existing CORRECTIVES layer whose other groups are carried over unchanged;
+    this fit's group replaces its namesake on the fitted meshes (on every mesh when the
+    fit was not restricted with ``--mesh``). Groups are written sorted by name, so the
+    layer does not depend on the order the groups were fitted in.
+    """
     from . import __version__
 
+    groups: _Groups = read_correctives(result.asset, update) if update else {}
+    for note in _cross_talk(result, groups):
+        warnings.warn(note, PsdWarning, stacklevel=2)
+    group = result.settings.group
+    fitted = {m.mesh for m in result.meshes}
+    for mesh, per_group in groups.items():
+        if not result.settings.meshes or mesh in fitted:
+            per_group.pop(group, None)
+    for m in result.meshes:
+        groups.setdefault(m.mesh, {})[group] = (m.driver_data, _shapes_of(m))
+    asset_scene = Scene([result.asset])
     layer = usdwrite.new_layer(
         f"psdbake {__version__} fit: rest-space correctives (inverse PSD)", metadata=usdwrite.asset_metadata(result.asset)
     )
-    for m in sorted(result.meshes, key=lambda m: m.mesh):
-        shapes = [
-            usdwrite.BlendShapeData(name=f"psd_{k:02d}", channel=ch, indices=inv.indices, offsets=inv.offsets)
-            for k, (ch, inv) in enumerate(zip(m.channels, m.inverses, strict=True))
-            if ch
-        ]
-        usdwrite.author_blend_shapes(layer, m.mesh, shapes, m.existing_channels, m.existing_targets)
-        usdwrite.author_driver_data(layer, m.mesh, m.driver_data)
+    for mesh in sorted(groups):
+        names = sorted(groups[mesh])
+        if not names:
+            continue
+        existing, targets = existing_blend_shapes(asset_scene, mesh)
+        ours = {s.channel for g in names for s in groups[mesh][g][1]}
+        keep = [(c, t) for c, t in zip(existing, targets, strict=True) if c not in ours]
+        shapes = [s for g in names for s in groups[mesh][g][1]]
+        usdwrite.author_blend_shapes(layer, mesh, shapes, [c for c, _ in keep], [t for _, t in keep])
+        usdwrite.author_driver_data(layer, mesh, [(g, groups[mesh][g][0]) for g in names])
     return layer
 
 
-def write_correctives(result: FitResult, path: str) -> str:
-    """Export CORRECTIVES atomically; inputs are never overwritten."""
-    return usdwrite.export_atomic(correctives_layer(result), path, [result.asset, *result.example_files])
+def write_correctives(result: FitResult, path: str, *, update: bool = False) -> str:
+    """Export CORRECTIVES atomically; inputs are never overwritten.
+
+    update: when path exists, keep its other groups (``fit --group``); the read, merge and
+    rename happen under a lock, so concurrent group fits into one layer all land.
+    """
+    inputs = [result.asset, *result.example_files]
+    if not update:
+        return usdwrite.export_atomic(correctives_layer(result), path, inputs)
+    atomic.check_output(path, inputs, usdwrite.FORMATS)
+    with atomic.updating(path):
+        base = path if os.path.exists(path) else None
+        layer = correctives_layer(result, update=base)
+        return usdwrite.export_atomic(layer, path, inputs)
 
 
 # --- eval --------------------------------------------------------------------------------
@@ -556,6 +660,11 @@ def driver_weights(data: usdwrite.DriverData, local: NDArray[np.float64]) -> NDA
     pose coordinates, cardinal RBF, then the stored clamp/normalise options."""
     f = len(local)
     delta = posespace.relative_from_quaternions(np.tile(data.bind_rotations, (f, 1)), local.reshape(-1, 4, 4))
+    return weights_of_rotations(data, delta, f)
+
+
+def weights_of_rotations(data: usdwrite.DriverData, delta: Rotation, f: int) -> NDArray[np.float64]:
+    """Weights (f, s) for the drivers' rotations away from their bind pose (f * d rotations)."""
     width = posespace.WIDTH[data.pose_space]
     x = posespace.features(delta, data.pose_space, data.twist_axis).reshape(f, width * len(data.drivers))
     w = rbf_from_driver_data(data).weights(x)
@@ -582,21 +691,14 @@ def evaluate(
     per_anim: dict[str, list] = {}
     anim_scene = Scene([anim, asset], label=anim)
     for info in scene.skinned_meshes():
-        data = read_driver_data(scene, info.path)
-        if data is None:
+        groups = read_driver_groups(scene, info.path)
+        if not groups:
             continue
-        if data.pose_space not in posespace.POSE_SPACES:
-            raise InputError(f"{where(correctives, info.path, 'psd:poseSpace')}: unknown pose space {data.pose_space!r}")
-        missing = [d for d in data.drivers if d not in info.joints]
-        if missing:
-            raise InputError(
-                f"{where(correctives, info.path, 'psd:drivers')}: joint {missing[0]!r} is not in skeleton <{info.skeleton}>"
-            )
         anim_prim = scene.animation_prim(info.path)
         if anim_prim is None:
             raise InputError(f"{where(anim, info.skeleton)}: no SkelAnimation bound (skel:animationSource)")
         validate_animation(anim_scene, info.path)
-        per_anim.setdefault(anim_prim, []).append((info, data))
+        per_anim.setdefault(anim_prim, []).append((info, groups))
     if not per_anim:
         raise InputError(f"{correctives}: no psd: driver data on any skinned mesh of {asset}")
     results = []
@@ -606,14 +708,15 @@ def evaluate(
         times = frames_of(scene, first, frames, label=anim)
         existing_channels, existing_weights = _existing_channels(scene, first, times)
         psd_channels, columns = [], []
-        for info, data in entries:
-            idx = [info.joints.index(d) for d in data.drivers]
-            locals_ = np.stack([scene.joint_local_transforms(info.path, float(t))[idx] for t in times])
-            check_driver_transforms(locals_, times, data.drivers, where(anim, anim_prim))
+        for info, groups in entries:
+            local = np.stack([scene.joint_local_transforms(info.path, float(t)) for t in times])
+            for _, data in groups:
+                idx = [info.joints.index(d) for d in data.drivers]
+                check_driver_transforms(local[:, idx], times, data.drivers, where(anim, anim_prim))
+                columns.append(driver_weights(data, local[:, idx]))
+                psd_channels += list(data.shapes)
             if progress:
                 progress(len(times), len(times), info.path)
-            columns.append(driver_weights(data, locals_))
-            psd_channels += list(data.shapes)
         ours = np.concatenate(columns, axis=1)
         keep = [i for i, c in enumerate(existing_channels) if c not in set(psd_channels)]
         channels = tuple([existing_channels[i] for i in keep] + psd_channels)

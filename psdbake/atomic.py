@@ -66,3 +66,20 @@ def write_text(path: str, text: str, inputs: Iterable[str] = ()) -> str:
     with replacing(path, inputs) as tmp, open(tmp, "w", encoding="utf-8") as fh:
         fh.write(text)
     return path
+
+
+@contextlib.contextmanager
+def updating(path: str) -> Iterator[None]:
+    """Serialise read-modify-write updates of path (``fit --group`` into one CORRECTIVES
+    layer from several processes): an exclusive ``flock`` on path's folder, held while
+    the old file is read and the new one renamed over it. Without it, two concurrent
+    updates would each keep only their own group."""
+    import fcntl
+
+    folder = os.path.dirname(os.path.realpath(path)) or "."
+    fd = os.open(folder, os.O_RDONLY)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX)
+        yield
+    finally:
+        os.close(fd)  # closing releases the lock

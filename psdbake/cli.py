@@ -148,6 +148,9 @@ def pose_cmd(asset, poses, output, deformers, quiet, verbose, as_json) -> None:
 @click.option("--tolerance", type=float, default=tol.INVERSE_RTOL, show_default=True,
               help="Inverse residual tolerance, fraction of the mesh's bounding-box diagonal.")
 @click.option("--mesh", "meshes", multiple=True, metavar="PATH", help="Only fit this mesh (repeatable).")
+@click.option("--group", default=None, metavar="NAME",
+              help="Fit one correctives group (its own examples, drivers, kernel and sigma) and write or update it "
+                   "inside OUTPUT, keeping OUTPUT's other groups. Without it, OUTPUT is replaced by one group 'main'.")
 @click.option("--report", type=str, help="Write a JSON report here.")
 @click.option("--strict", is_flag=True, help="Fail (exit 7, nothing written) if any vertex misses tolerance.")
 @click.option("--jobs", "-j", type=click.IntRange(min=1), default=None,
@@ -156,7 +159,7 @@ def pose_cmd(asset, poses, output, deformers, quiet, verbose, as_json) -> None:
 @deformer_option
 @_common
 def fit_cmd(asset, examples, output, drivers, kernel, sigma, degree, smoothing, no_rest_example, pose_space,
-            twist_axis, clamp_weights, normalize_weights, tolerance, meshes, report, strict, jobs, deformers,
+            twist_axis, clamp_weights, normalize_weights, tolerance, meshes, group, report, strict, jobs, deformers,
             quiet, verbose, as_json) -> None:
     """Fit rest-space corrective BlendShapes and their RBF drivers from sculpted EXAMPLES."""
     ui = _Ui(quiet, verbose, as_json)
@@ -164,17 +167,20 @@ def fit_cmd(asset, examples, output, drivers, kernel, sigma, degree, smoothing, 
         drivers=tuple(drivers), kernel=kernel, sigma=sigma, degree=degree, smoothing=smoothing,
         rest_example=not no_rest_example, pose_space=pose_space, twist_axis=twist_axis,
         clamp_weights=clamp_weights, normalize_weights=normalize_weights, rtol=tolerance,
-        meshes=tuple(meshes), deformers=tuple(deformers),
+        meshes=tuple(meshes), deformers=tuple(deformers), group=group or api.DEFAULT_GROUP,
     )
     atomic.check_output(output, [asset, *examples], (".usda", ".usdc", ".usd"))
     if report:
         atomic.check_output(report, [asset, *examples, output])
-    with _collect_warnings(ui), ui.progress("fitting examples") as progress:
-        result = api.fit(asset, examples, settings, jobs=jobs, progress=progress)
-    payload = fit_report(result, output)
-    if strict and result.missed:
-        raise StrictError(f"{output}: not written: {result.missed} vertices missed the tolerance (--strict)")
-    api.write_correctives(result, output)
+    if group and os.path.exists(output):
+        api.read_correctives(asset, output)  # refuse a bad layer to update before the long fit
+    with _collect_warnings(ui):
+        with ui.progress("fitting examples") as progress:
+            result = api.fit(asset, examples, settings, jobs=jobs, progress=progress)
+        payload = fit_report(result, output)
+        if strict and result.missed:
+            raise StrictError(f"{output}: not written: {result.missed} vertices missed the tolerance (--strict)")
+        api.write_correctives(result, output, update=bool(group))
     if report:
         _write_json(report, payload, [asset, *examples, output])
     if as_json:
@@ -199,7 +205,7 @@ def fit_report(result: api.FitResult, output: str) -> dict:
             })
         d = m.driver_data
         meshes.append({
-            "mesh": m.mesh, "skeleton": m.skeleton, "points": m.point_count, "drivers": list(m.drivers),
+            "mesh": m.mesh, "group": m.group, "skeleton": m.skeleton, "points": m.point_count, "drivers": list(m.drivers),
             "kernel": d.kernel, "sigma": d.sigma, "degree": d.degree, "examples": examples,
         })
     return {
@@ -216,7 +222,8 @@ def _render_fit(ui: _Ui, result: api.FitResult, output: str) -> None:
     for m in result.meshes:
         d = m.driver_data
         drivers = ", ".join(j.split("/")[-1] for j in m.drivers)
-        ui.say(f"  <{m.mesh}>  drivers: {drivers}  kernel: {d.kernel}  sigma: {d.sigma:.4g} rad  degree: {d.degree}")
+        ui.say(f"  <{m.mesh}>  group: {m.group}  drivers: {drivers}  kernel: {d.kernel}  sigma: {d.sigma:.4g} rad  "
+               f"degree: {d.degree}")
         ui.say(f"    {'example':<28} {'solved':>7} {'evals':>6} {'max/diag':>10} {'rms/diag':>10} {'missed':>7} {'seconds':>8}")
         for ex, inv in zip(m.examples, m.inverses, strict=True):
             diag = inv.diagonal or 1.0
@@ -348,7 +355,7 @@ def inspect_cmd(file, as_json) -> None:
     for e in info["examples"]:
         click.echo(f"  examples of <{e['mesh']}> at time codes {', '.join(f'{t:g}' for t in e['time_codes'])}")
     for c in info["correctives"]:
-        click.echo(f"  correctives on <{c['mesh']}> (psd: v{c['version']}): {len(c['shapes'])} shapes from "
+        click.echo(f"  correctives on <{c['mesh']}> group {c['group']} (psd: v{c['version']}): {len(c['shapes'])} shapes from "
                    f"{c['examples']} examples; drivers {', '.join(d.split('/')[-1] for d in c['drivers'])}; "
                    f"{c['pose_space']}, {c['kernel']}, sigma {c['sigma']:.4g}, degree {c['degree']}")
         for name, count in sorted(c["offsets"].items()):

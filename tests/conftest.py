@@ -63,3 +63,19 @@ def sculpt(path: str, mesh: str, time: float) -> np.ndarray:
 
 def diagonal(points: np.ndarray) -> float:
     return float(np.linalg.norm(points.max(axis=0) - points.min(axis=0)))
+
+
+_KEEP: list = []  # anonymous layers live as long as the session
+
+
+def pose_only(examples: str) -> str:
+    """An EXAMPLES layer without its sculpted points: the pose alone, usable as ANIM
+    (else its points samples would be skinned again)."""
+    layer = Sdf.Layer.CreateAnonymous(".usda")
+    layer.TransferContent(Sdf.Layer.FindOrOpen(examples))
+    points: list[Sdf.Path] = []
+    layer.Traverse(Sdf.Path.absoluteRootPath, lambda p: points.append(p) if p.IsPropertyPath() and p.name == "points" else None)
+    for path in points:
+        layer.GetPrimAtPath(path.GetPrimPath()).RemoveProperty(layer.GetPropertyAtPath(path))
+    _KEEP.append(layer)
+    return layer.identifier

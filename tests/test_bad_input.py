@@ -276,8 +276,9 @@ def test_bad_animation(command, name, prim, says, cli, tmp_path):
     ("psd_version_99.usda", f"<{MESH}.psd:version>", r"\b99\b.*(upgrade|not supported)"),
     ("psd_missing.usda", None, r"no psd: driver data"),
     ("psd_unknown_kernel.usda", f"<{MESH}", r"banana"),
-    ("psd_unknown_driver.usda", f"<{MESH}.psd:drivers>", r"Knee"),
-    ("psd_coefficients_truncated.usda", f"<{MESH}.psd:coefficients>", r"expected .* got 11"),
+    ("psd_groups_missing.usda", f"<{MESH}.psd:groups>", r"missing"),
+    ("psd_unknown_driver.usda", f"<{MESH}.psd:main:drivers>", r"Knee"),
+    ("psd_coefficients_truncated.usda", f"<{MESH}.psd:main:coefficients>", r"expected .* got 11"),
 ])
 def test_bad_correctives(name, prim, says, cli, tmp_path):
     out = tmp_path / "weights.usda"

@@ -178,7 +178,7 @@ def test_pose_spaces_are_stored_and_reproduced_by_eval(run, tmp_path, space):
     path = Sdf.Path(generate.ANIM).AppendProperty("blendShapeWeights")
     for k, t in enumerate((1.0, 2.0, 3.0)):
         np.testing.assert_allclose(layer.QueryTimeSample(path, t), np.eye(3)[k], atol=1e-6)  # float32 storage
-    assert Usd.Stage.Open(str(corr)).GetPrimAtPath(generate.MESH).GetAttribute("psd:poseSpace").Get() == space[1]
+    assert Usd.Stage.Open(str(corr)).GetPrimAtPath(generate.MESH).GetAttribute("psd:main:poseSpace").Get() == space[1]
 
 
 def test_clamp_and_normalize_are_explicit_stored_options(run, tmp_path):
@@ -203,7 +203,8 @@ def test_inspect_reports_what_a_file_holds(run, tmp_path):
     info = json.loads(out)
     assert code == 0 and info["correctives"][0]["mesh"] == generate.MESH
     assert info["correctives"][0]["drivers"] == ["Shoulder/Elbow", "Shoulder/Elbow/Wrist"]
-    assert sorted(info["correctives"][0]["offsets"]) == ["psd_00", "psd_01", "psd_02"]
+    assert info["correctives"][0]["group"] == "main"
+    assert sorted(info["correctives"][0]["offsets"]) == ["psd_main_00", "psd_main_01", "psd_main_02"]
     code, out, _ = run("inspect", EXAMPLES)
     assert code == 0 and "examples of </Arm/Geo/Tube> at time codes 1, 2, 3" in out
     code, out, _ = run("inspect", ASSET, "--json")

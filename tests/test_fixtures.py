@@ -11,7 +11,7 @@ def test_generator_reproduces_committed_fixtures(tmp_path):
     os.makedirs(tmp_path / "cesiumman")
     os.symlink(os.path.join(FIXTURES, "cesiumman", generate.CESIUM), tmp_path / "cesiumman" / generate.CESIUM)
     written = generate.generate(str(tmp_path))
-    assert len(written) == 12
+    assert len(written) == 18
     for path in written:
         rel = os.path.relpath(path, tmp_path)
         with open(path, "rb") as new, open(os.path.join(FIXTURES, rel), "rb") as old:

@@ -43,19 +43,7 @@ def describe(path: str) -> dict:
                 "skinning_method": binding.GetSkinningMethodAttr().Get() if binding.GetSkinningMethodAttr() else None,
                 "blend_shapes": [str(c) for c in binding.GetBlendShapesAttr().Get() or []],
             })
-        version = prim.GetAttribute("psd:version")
-        if version and version.HasAuthoredValue():
-            get = lambda n, p=prim: p.GetAttribute(f"psd:{n}").Get()  # noqa: E731
-            shapes = [str(s) for s in get("shapes") or []]
-            out["correctives"].append({
-                "mesh": ppath, "version": version.Get(), "drivers": [str(d) for d in get("drivers") or []],
-                "pose_space": get("poseSpace"), "kernel": get("kernel"), "sigma": get("sigma"),
-                "degree": get("degree"), "shapes": shapes, "examples": len(get("exampleTimes") or []),
-                "offsets": {
-                    c.GetName(): len(UsdSkel.BlendShape(c).GetPointIndicesAttr().Get() or [])
-                    for c in prim.GetAllChildren() if c.IsA(UsdSkel.BlendShape) and c.GetName().startswith("psd_")
-                },
-            })
+        out["correctives"] += _correctives(prim)
     # examples: points time samples this file itself authors (typed or not)
     found: list[tuple[str, list[float]]] = []
 
@@ -67,4 +55,39 @@ def describe(path: str) -> dict:
 
     layer.Traverse(Sdf.Path.absoluteRootPath, visit)
     out["examples"] = [{"mesh": m, "time_codes": t} for m, t in sorted(found)]
+    return out
+
+
+def _correctives(prim: Usd.Prim) -> list[dict]:
+    """One entry per correctives group on prim (psd: v1 holds one flat group, 'main')."""
+    version = prim.GetAttribute("psd:version")
+    if not (version and version.HasAuthoredValue()):
+        return []
+    if version.Get() == 1:
+        groups = [("main", "psd:")]
+    else:
+        names = prim.GetAttribute("psd:groups").Get() if prim.GetAttribute("psd:groups") else None
+        groups = [(str(g), f"psd:{g}:") for g in names or []]
+    binding = UsdSkel.BindingAPI(prim)
+    channels = [str(c) for c in binding.GetBlendShapesAttr().Get() or []]
+    rel = binding.GetBlendShapeTargetsRel()
+    targets = dict(zip(channels, rel.GetTargets() if rel else [], strict=False))
+    out = []
+    for group, prefix in groups:
+        def get(name: str, prefix: str = prefix):
+            attr = prim.GetAttribute(prefix + name)
+            return attr.Get() if attr else None
+
+        shapes = [str(s) for s in get("shapes") or []]
+        offsets = {}
+        for channel in shapes:
+            target = prim.GetStage().GetPrimAtPath(targets[channel]) if channel in targets else None
+            if target and target.IsA(UsdSkel.BlendShape):
+                offsets[target.GetName()] = len(UsdSkel.BlendShape(target).GetPointIndicesAttr().Get() or [])
+        out.append({
+            "mesh": str(prim.GetPath()), "group": group, "version": version.Get(),
+            "drivers": [str(d) for d in get("drivers") or []], "pose_space": get("poseSpace"),
+            "kernel": get("kernel"), "sigma": get("sigma"), "degree": get("degree"), "shapes": shapes,
+            "examples": len(get("exampleTimes") or []), "offsets": offsets,
+        })
     return out

@@ -247,35 +247,51 @@ class Scene:
             ) from None
 
 
-#: psd: schema versions this psdbake reads.
-READABLE_PSD_VERSIONS = (1,)
+#: psd: schema versions this psdbake reads (1: one flat group, read as group "main").
+READABLE_PSD_VERSIONS = (1, 2)
+#: The group a v1 layer's flat psd: data belongs to, and fit's group when none is named.
+DEFAULT_GROUP = "main"
 
 
-def read_driver_data(scene: Scene, mesh: str):
-    """The psd: driver data authored on mesh, validated; None if it has none."""
-    from .write import DriverData
-
+def read_driver_groups(scene: Scene, mesh: str) -> list[tuple[str, object]]:
+    """Every correctives group's psd: driver data on mesh, validated, sorted by group
+    name: [(group, DriverData)]; empty if the mesh has none."""
     prim = scene.prim(mesh)
     version_attr = prim.GetAttribute("psd:version")
     if not version_attr or not version_attr.HasAuthoredValue():
-        return None
+        return []
+    version = version_attr.Get()
+    if version not in READABLE_PSD_VERSIONS:
+        raise InputError(
+            f"{where(scene.label, mesh, 'psd:version')}: version {version} is not supported by this psdbake "
+            f"(reads {', '.join(map(str, READABLE_PSD_VERSIONS))}); upgrade psdbake or re-fit"
+        )
+    if version == 1:
+        return [(DEFAULT_GROUP, _read_group(scene, mesh, "psd:"))]
+    groups_attr = prim.GetAttribute("psd:groups")
+    names = [str(g) for g in (groups_attr.Get() if groups_attr else None) or []]
+    if not names:
+        raise InputError(f"{where(scene.label, mesh, 'psd:groups')}: missing or empty (the CORRECTIVES layer is incomplete)")
+    if len(set(names)) != len(names):
+        raise InputError(f"{where(scene.label, mesh, 'psd:groups')}: a group is listed twice")
+    return [(name, _read_group(scene, mesh, f"psd:{name}:")) for name in sorted(names)]
+
+
+def _read_group(scene: Scene, mesh: str, prefix: str):
+    from ..posespace import WIDTH
+    from ..rbf import KERNELS
+    from .write import DriverData
+
+    prim = scene.prim(mesh)
     label = scene.label
 
     def get(name: str, required: bool = True):
-        attr = prim.GetAttribute(f"psd:{name}")
+        attr = prim.GetAttribute(prefix + name)
         value = attr.Get() if attr else None
         if value is None and required:
-            raise InputError(f"{where(label, mesh, 'psd:' + name)}: missing (the CORRECTIVES layer is incomplete)")
+            raise InputError(f"{where(label, mesh, prefix + name)}: missing (the CORRECTIVES layer is incomplete)")
         return value
 
-    from ..rbf import KERNELS
-
-    version = get("version")
-    if version not in READABLE_PSD_VERSIONS:
-        raise InputError(
-            f"{where(label, mesh, 'psd:version')}: version {version} is not supported by this psdbake "
-            f"(reads {', '.join(map(str, READABLE_PSD_VERSIONS))}); upgrade psdbake or re-fit"
-        )
     drivers = [str(d) for d in get("drivers")]
     dims = np.array(get("dimensions"), dtype=np.int64)
     dim = len(dims)
@@ -285,27 +301,32 @@ def read_driver_data(scene: Scene, mesh: str):
     coefficients = np.array(get("coefficients"), dtype=np.float64)
     quats = get("driverBindRotations")
     bind = np.array([[*q.GetImaginary(), q.GetReal()] for q in quats], dtype=np.float64).reshape(-1, 4)
-    from ..posespace import WIDTH
-
     space = str(get("poseSpace"))
     if space not in WIDTH:
-        raise InputError(f"{where(label, mesh, 'psd:poseSpace')}: unknown pose space {space!r}")
+        raise InputError(f"{where(label, mesh, prefix + 'poseSpace')}: unknown pose space {space!r}")
     bad_dims = dim == 0 or dims.min() < 0 or dims.max() >= WIDTH[space] * len(drivers)
     if bad_dims or centers.size % dim or powers.size % dim or len(bind) != len(drivers):
-        raise InputError(f"{where(label, mesh)}: psd: driver data sizes do not match {len(drivers)} drivers")
+        raise InputError(f"{where(label, mesh)}: {prefix} driver data sizes do not match {len(drivers)} drivers")
+    _, skel_query = scene.query(mesh)
+    joints = {str(j) for j in skel_query.GetJointOrder()}
+    missing = [d for d in drivers if d not in joints]
+    if missing:
+        skel = skel_query.GetSkeleton().GetPrim().GetPath()
+        raise InputError(f"{where(label, mesh, prefix + 'drivers')}: joint {missing[0]!r} is not in skeleton <{skel}>")
     if str(get("kernel")) not in KERNELS:
-        raise InputError(f"{where(label, mesh, 'psd:kernel')}: unknown kernel {get('kernel')!r}")
+        raise InputError(f"{where(label, mesh, prefix + 'kernel')}: unknown kernel {get('kernel')!r}")
     centers = centers.reshape(-1, dim)
     powers = powers.reshape(-1, dim)
     rows = len(centers) + len(powers)
     if not shapes or coefficients.size != rows * len(shapes):
         raise InputError(
-            f"{where(label, mesh, 'psd:coefficients')}: expected {rows} x {len(shapes)} values, got {coefficients.size}"
+            f"{where(label, mesh, prefix + 'coefficients')}: expected {rows} x {len(shapes)} values, "
+            f"got {coefficients.size}"
         )
     return DriverData(
         drivers=drivers,
         bind_rotations=bind,
-        pose_space=str(get("poseSpace")),
+        pose_space=space,
         twist_axis=tuple(float(v) for v in get("twistAxis")) if get("twistAxis", required=False) else None,
         clamp_weights=bool(get("clampWeights", required=False) or False),
         normalize_weights=bool(get("normalizeWeights", required=False) or False),
@@ -324,6 +345,42 @@ def read_driver_data(scene: Scene, mesh: str):
         example_times=[float(t) for t in get("exampleTimes")],
         example_sources=[str(s) for s in get("exampleSources")],
     )
+
+
+def read_corrective_shapes(scene: Scene, mesh: str, channels: Sequence[str]) -> list:
+    """The BlendShapes behind the given channels of mesh, as ``BlendShapeData`` (to carry
+    groups a fit does not touch into the updated CORRECTIVES layer unchanged)."""
+    from .write import BlendShapeData
+
+    names, targets = existing_blend_shapes(scene, mesh)
+    by_channel = dict(zip(names, targets, strict=True))
+    out = []
+    for channel in channels:
+        target = by_channel.get(channel)
+        prim = scene.prim(target) if target else None
+        if prim is None or not prim.IsA(UsdSkel.BlendShape):
+            raise InputError(f"{where(scene.label, mesh, 'skel:blendShapeTargets')}: no BlendShape for channel {channel!r}")
+        shape = UsdSkel.BlendShape(prim)
+        offsets = np.array(shape.GetOffsetsAttr().Get() or [], dtype=np.float64).reshape(-1, 3)
+        indices = np.array(shape.GetPointIndicesAttr().Get() or [], dtype=np.int64)
+        normals = shape.GetNormalOffsetsAttr().Get()
+        out.append(BlendShapeData(
+            name=prim.GetName(), channel=channel, indices=indices, offsets=offsets,
+            normal_offsets=np.array(normals, dtype=np.float64).reshape(-1, 3) if normals else None,
+        ))
+    return out
+
+
+def psd_prims(layer: Sdf.Layer) -> list[str]:
+    """Prims on which layer itself authors psd:version (a CORRECTIVES layer's meshes), sorted."""
+    found: list[str] = []
+
+    def visit(path: Sdf.Path) -> None:
+        if path.IsPropertyPath() and path.name == "psd:version":
+            found.append(str(path.GetPrimPath()))
+
+    layer.Traverse(Sdf.Path.absoluteRootPath, visit)
+    return sorted(found)
 
 
 def stray_point_prims(layer: Sdf.Layer, skinned: set[str]) -> list[str]:

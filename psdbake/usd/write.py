@@ -22,7 +22,7 @@ from ..errors import InputError, OutputError
 
 FORMATS = (".usda", ".usdc", ".usd")
 #: Version of the psd: attribute schema written by this psdbake.
-PSD_VERSION = 1
+PSD_VERSION = 2
 
 
 def export_atomic(layer: Sdf.Layer, path: str, inputs: Iterable[str] = ()) -> str:
@@ -140,6 +140,7 @@ class BlendShapeData:
     channel: str  # skel:blendShapes token (SkelAnimation channel)
     indices: NDArray[np.int64]
     offsets: NDArray[np.float64]  # (k, 3)
+    normal_offsets: NDArray[np.float64] | None = None  # (k, 3) when the shading normals change too
 
 
 def author_blend_shapes(
@@ -162,11 +163,15 @@ def author_blend_shapes(
         spec = define(layer, f"{mesh}/{shape.name}", "BlendShape")
         attribute(spec, "offsets", Sdf.ValueTypeNames.Vector3fArray, vec3f_array(shape.offsets), uniform=True)
         attribute(spec, "pointIndices", Sdf.ValueTypeNames.IntArray, int_array(shape.indices), uniform=True)
+        if shape.normal_offsets is not None:
+            attribute(spec, "normalOffsets", Sdf.ValueTypeNames.Vector3fArray, vec3f_array(shape.normal_offsets),
+                      uniform=True)
 
 
 @dataclass(frozen=True)
 class DriverData:
-    """The RBF driver data of one mesh, as stored in the psd: namespace (README: psd schema)."""
+    """The RBF driver data of one correctives group on one mesh, as stored in the psd:
+    namespace (README: psd schema)."""
 
     drivers: Sequence[str]  # joint paths, skeleton joint tokens
     bind_rotations: NDArray[np.float64]  # (d, 4) xyzw, each driver's bind local rotation
@@ -190,8 +195,9 @@ class DriverData:
     example_sources: Sequence[str]
 
 
-def author_driver_data(layer: Sdf.Layer, mesh: str, data: DriverData) -> None:
-    """psd: attributes on the mesh prim, every one uniform and custom."""
+def author_driver_data(layer: Sdf.Layer, mesh: str, groups: Sequence[tuple[str, DriverData]]) -> None:
+    """psd: attributes on the mesh prim, every one uniform and custom: ``psd:version``,
+    ``psd:groups`` (sorted names) and each group's data under ``psd:<group>:``."""
     spec = over(layer, mesh)
     t = Sdf.ValueTypeNames
 
@@ -199,27 +205,35 @@ def author_driver_data(layer: Sdf.Layer, mesh: str, data: DriverData) -> None:
         attribute(spec, f"psd:{name}", type_name, value, uniform=True, custom=True)
 
     put("version", t.Int, PSD_VERSION)
-    put("poseSpace", t.Token, data.pose_space)
+    ordered = sorted(groups, key=lambda g: g[0])
+    put("groups", t.TokenArray, Vt.TokenArray([name for name, _ in ordered]))
+    for name, data in ordered:
+        _author_group(put, f"{name}:", data)
+
+
+def _author_group(put, prefix: str, data: DriverData) -> None:
+    t = Sdf.ValueTypeNames
+    put(f"{prefix}poseSpace", t.Token, data.pose_space)
     if data.twist_axis is not None:
-        put("twistAxis", t.Double3, Gf.Vec3d(*map(float, data.twist_axis)))
-    put("clampWeights", t.Bool, bool(data.clamp_weights))
-    put("normalizeWeights", t.Bool, bool(data.normalize_weights))
-    put("drivers", t.TokenArray, Vt.TokenArray(list(data.drivers)))
-    put("driverBindRotations", t.QuatdArray, quatd_array(data.bind_rotations))
-    put("kernel", t.Token, data.kernel)
-    put("sigma", t.Double, float(data.sigma))
-    put("degree", t.Int, int(data.degree))
-    put("smoothing", t.Double, float(data.smoothing))
-    put("centers", t.DoubleArray, double_array(data.centers))
-    put("centerLabels", t.StringArray, Vt.StringArray(list(data.center_labels)))
-    put("shapes", t.TokenArray, Vt.TokenArray(list(data.shapes)))
-    put("coefficients", t.DoubleArray, double_array(data.coefficients))
-    put("polyPowers", t.IntArray, int_array(data.powers))
-    put("dimensions", t.IntArray, int_array(data.dims))
-    put("polyShift", t.DoubleArray, double_array(data.shift))
-    put("polyScale", t.DoubleArray, double_array(data.scale))
-    put("exampleTimes", t.DoubleArray, double_array(np.asarray(data.example_times, dtype=np.float64)))
-    put("exampleSources", t.StringArray, Vt.StringArray(list(data.example_sources)))
+        put(f"{prefix}twistAxis", t.Double3, Gf.Vec3d(*map(float, data.twist_axis)))
+    put(f"{prefix}clampWeights", t.Bool, bool(data.clamp_weights))
+    put(f"{prefix}normalizeWeights", t.Bool, bool(data.normalize_weights))
+    put(f"{prefix}drivers", t.TokenArray, Vt.TokenArray(list(data.drivers)))
+    put(f"{prefix}driverBindRotations", t.QuatdArray, quatd_array(data.bind_rotations))
+    put(f"{prefix}kernel", t.Token, data.kernel)
+    put(f"{prefix}sigma", t.Double, float(data.sigma))
+    put(f"{prefix}degree", t.Int, int(data.degree))
+    put(f"{prefix}smoothing", t.Double, float(data.smoothing))
+    put(f"{prefix}centers", t.DoubleArray, double_array(data.centers))
+    put(f"{prefix}centerLabels", t.StringArray, Vt.StringArray(list(data.center_labels)))
+    put(f"{prefix}shapes", t.TokenArray, Vt.TokenArray(list(data.shapes)))
+    put(f"{prefix}coefficients", t.DoubleArray, double_array(data.coefficients))
+    put(f"{prefix}polyPowers", t.IntArray, int_array(data.powers))
+    put(f"{prefix}dimensions", t.IntArray, int_array(data.dims))
+    put(f"{prefix}polyShift", t.DoubleArray, double_array(data.shift))
+    put(f"{prefix}polyScale", t.DoubleArray, double_array(data.scale))
+    put(f"{prefix}exampleTimes", t.DoubleArray, double_array(np.asarray(data.example_times, dtype=np.float64)))
+    put(f"{prefix}exampleSources", t.StringArray, Vt.StringArray(list(data.example_sources)))
 
 
 def weights_layer(doc: str, animations, fps: float | None, metadata: dict | None = None) -> Sdf.Layer:
