@@ -11,6 +11,7 @@ prints. ``write_*`` export layers atomically.
 from __future__ import annotations
 
 import concurrent.futures
+import dataclasses
 import functools
 import multiprocessing
 import os
@@ -29,8 +30,10 @@ from . import tolerances as tol
 from .deformers import Factory, load_deformers
 from .errors import FitError, InputError, PsdWarning, where
 from .inverse import InverseResult, SculptOutOfRangeError, invert_example
+from .normals import CorrectiveNormals, PosedNormals, corrective_normals
 from .usd import write as usdwrite
 from .usd.blackbox import SkinningBlackBox
+from .usd.normalbox import NormalBlackBox, read_mesh_shading
 from .usd.read import (
     DEFAULT_GROUP,
     Scene,
@@ -132,6 +135,7 @@ class MeshFit:
     existing_targets: tuple[str, ...]
     group: str = DEFAULT_GROUP
     joints: tuple[str, ...] = ()  # skeleton order, as the example poses
+    normals: tuple[CorrectiveNormals | None, ...] = ()  # per example, when the mesh authors normals
 
 
 @dataclass(frozen=True)
@@ -206,16 +210,31 @@ def _scene(files: tuple[str, ...]) -> Scene:
     return Scene(list(files), label=files[0])
 
 
-def _invert(task: _InverseTask) -> InverseResult:
+def _invert(task: _InverseTask) -> tuple[InverseResult, CorrectiveNormals | None]:
     """Solve one example: the same code whether it runs here or in a worker process."""
     scene = _scene((task.source, task.asset))
     rest = _scene((task.asset,)).rest_points(task.mesh)
     sculpt = scene.point_sample(open_layer(task.source), task.mesh, task.time)
     box = SkinningBlackBox(scene, task.mesh, task.time, load_deformers(task.deformers))
     try:
-        return invert_example(box, rest, sculpt, rtol=task.rtol)
+        inverse = invert_example(box, rest, sculpt, rtol=task.rtol)
     except SculptOutOfRangeError as exc:
         raise InputError(f"{where(task.source, task.mesh, 'points')}: example at time {task.time:g}: {exc}") from None
+    return inverse, _normal_offsets(task, scene, box, rest, sculpt, inverse)
+
+
+def _normal_offsets(task: _InverseTask, scene: Scene, box: SkinningBlackBox, rest, sculpt, inverse: InverseResult
+                    ) -> CorrectiveNormals | None:
+    """BlendShape normalOffsets so shading follows the sculpt, for meshes that author
+    per-point ``normals`` (else None: renderers derive normals from the posed points,
+    which already carry the correction). Inverts UsdSkel's normal skinning at the
+    example's pose, as the points are inverted (``psdbake.normals.corrective_normals``)."""
+    shading = read_mesh_shading(_scene((task.asset,)).prim(task.mesh), task.asset)
+    if shading.normals is None or not len(inverse.indices):
+        return None
+    posed = PosedNormals(box(rest), sculpt, NormalBlackBox(scene, task.mesh, task.time).normal_maps())
+    return corrective_normals(rest, shading.topology, inverse.indices, inverse.offsets, shading.normals,
+                              shading.interpolation, posed)
 
 
 def _auto_jobs(tasks: Sequence[_InverseTask], jobs: int | None) -> int:
@@ -228,10 +247,11 @@ def _auto_jobs(tasks: Sequence[_InverseTask], jobs: int | None) -> int:
     return max(1, min(int(jobs), len(tasks)))
 
 
-def _solve_all(tasks: Sequence[_InverseTask], jobs: int | None, progress: Progress | None) -> list[InverseResult]:
+def _solve_all(tasks: Sequence[_InverseTask], jobs: int | None, progress: Progress | None
+               ) -> list[tuple[InverseResult, CorrectiveNormals | None]]:
     """Every example's inverse, in task order, serially or on a process pool."""
     n = _auto_jobs(tasks, jobs)
-    results: list[InverseResult | None] = [None] * len(tasks)
+    results: list[tuple[InverseResult, CorrectiveNormals | None] | None] = [None] * len(tasks)
     if n == 1:
         for i, task in enumerate(tasks):
             results[i] = _invert(task)
@@ -312,6 +332,8 @@ def _fit_examples(asset, asset_scene, infos, meshes, example_files, settings, jo
     """fit() once the asset is open: gather and validate the examples, solve, fit the RBFs."""
     found = _gather_examples(asset_scene, example_files, meshes)
     work = [(m, ex) for m in meshes for ex in found[m]]
+    for mesh in sorted({m for m, _ in work}):
+        asset_scene.require_not_instanced(mesh)  # before any worker starts
     if not work:
         raise InputError(
             f"{', '.join(example_files)}: no examples: no points time samples on the skinned meshes "
@@ -349,17 +371,23 @@ def _fit_examples(asset, asset_scene, infos, meshes, example_files, settings, jo
             label = f"{os.path.basename(source)}@{t:g}"
             per_mesh.setdefault(mesh, []).append(Example(label=label, source=source, time=t, pose=pose_x))
             tasks.append(_InverseTask(asset, source, mesh, t, settings.deformers, settings.rtol, len(rest)))
-    inverses = _solve_all(tasks, jobs, progress)
+    solved = _solve_all(tasks, jobs, progress)
     fits = []
     k = 0
     for mesh_info in infos:
         if mesh_info.path not in per_mesh:
             continue
         examples = per_mesh[mesh_info.path]
-        mine = inverses[k : k + len(examples)]
+        mine = solved[k : k + len(examples)]
         k += len(examples)
         bind_local = asset_scene.bind_local_transforms(mesh_info.path)
-        fits.append(_fit_rbf(asset, asset_scene, mesh_info, examples, mine, bind_local, settings, notes))
+        fitted = _fit_rbf(asset, asset_scene, mesh_info, examples, [s[0] for s in mine], bind_local, settings, notes)
+        fits.append(dataclasses.replace(fitted, normals=tuple(s[1] for s in mine)))
+        why_not = read_mesh_shading(asset_scene.prim(mesh_info.path), asset).why_not
+        if why_not and not why_not.startswith(("no authored normals", "not a Mesh")):
+            msg = f"{where(asset, mesh_info.path)}: no normalOffsets written: {why_not}"
+            notes.append(msg)
+            warnings.warn(msg, PsdWarning, stacklevel=2)
     return FitResult(
         asset=asset,
         example_files=tuple(example_files),
@@ -475,11 +503,18 @@ def _fit_rbf(asset, asset_scene, mesh_info, examples, inverses, bind_local, sett
 
 def _shapes_of(m: MeshFit) -> list[usdwrite.BlendShapeData]:
     """The corrective BlendShapes of one fitted mesh (examples equal to plain skinning have none)."""
-    return [
-        usdwrite.BlendShapeData(name=f"psd_{m.group}_{k:02d}", channel=ch, indices=inv.indices, offsets=inv.offsets)
-        for k, (ch, inv) in enumerate(zip(m.channels, m.inverses, strict=True))
-        if ch
-    ]
+    out = []
+    for k, (ch, inv) in enumerate(zip(m.channels, m.inverses, strict=True)):
+        if not ch:
+            continue
+        name = f"psd_{m.group}_{k:02d}"
+        cn = m.normals[k] if m.normals else None
+        if cn is None:
+            out.append(usdwrite.BlendShapeData(name=name, channel=ch, indices=inv.indices, offsets=inv.offsets))
+        else:  # pointIndices grown to the sculpt's 1-ring: normals change there too
+            out.append(usdwrite.BlendShapeData(name=name, channel=ch, indices=cn.indices, offsets=cn.offsets,
+                                               normal_offsets=cn.normal_offsets))
+    return out
 
 
 _Groups = dict[str, dict[str, tuple[usdwrite.DriverData, list[usdwrite.BlendShapeData]]]]  # mesh -> group -> data
@@ -772,7 +807,7 @@ def points_cache_layer(result: WeightsResult, deformers: Sequence[str] = (), *, 
     meshes = scene.skinned_meshes()
     return usdwrite.points_layer(
         f"psdbake {__version__} eval: points cache (no UsdSkel needed)",
-        {m.skel_root for m in meshes}, _posed_points(scene, scene, meshes, times, chain, progress), times, result.fps,
+        scene.skel_roots, _posed_points(scene, scene, meshes, times, chain, progress), times, result.fps,
         usdwrite.asset_metadata(result.asset),
     )
 

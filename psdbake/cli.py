@@ -5,7 +5,8 @@ maps errors to exit codes in one place (``main``). No numerics and no USD here.
 
 Exit codes: 0 success, 1 unexpected failure, 2 usage error, 3 bad input,
 4 ill-posed fit, 5 deformer failure, 6 output not writable, 7 ``--strict`` and some
-vertices missed tolerance, 130 interrupted.
+vertices missed tolerance, 130 interrupted. ``batch`` exits with its first failed
+job's code (1 if that job died otherwise).
 """
 
 from __future__ import annotations
@@ -224,11 +225,13 @@ def _render_fit(ui: _Ui, result: api.FitResult, output: str) -> None:
         drivers = ", ".join(j.split("/")[-1] for j in m.drivers)
         ui.say(f"  <{m.mesh}>  group: {m.group}  drivers: {drivers}  kernel: {d.kernel}  sigma: {d.sigma:.4g} rad  "
                f"degree: {d.degree}")
-        ui.say(f"    {'example':<28} {'solved':>7} {'evals':>6} {'max/diag':>10} {'rms/diag':>10} {'missed':>7} {'seconds':>8}")
+        width = max(28, *(len(ex.label) for ex in m.examples))
+        ui.say(f"    {'example':<{width}} {'solved':>7} {'evals':>6} {'max/diag':>10} {'rms/diag':>10} {'missed':>7} "
+               f"{'seconds':>8}")
         for ex, inv in zip(m.examples, m.inverses, strict=True):
             diag = inv.diagonal or 1.0
             ui.say(
-                f"    {ex.label:<28} {len(inv.indices):>7} {inv.evaluations:>6} {inv.max_residual / diag:>10.2e} "
+                f"    {ex.label:<{width}} {len(inv.indices):>7} {inv.evaluations:>6} {inv.max_residual / diag:>10.2e} "
                 f"{inv.rms_residual / diag:>10.2e} {len(inv.missed):>7} {inv.seconds:>8.3f}"
             )
     if result.missed:
@@ -245,11 +248,20 @@ def _render_fit(ui: _Ui, result: api.FitResult, output: str) -> None:
               help="Whole frames START..END (inclusive). Default: the animation's authored samples.")
 @click.option("--points-cache", type=str,
               help="Also write final posed points per frame (no UsdSkel needed).")
+@click.option("--chunk-size", type=int, default=None, metavar="N",
+              help="Farm: one layer per N frames beside -o (and --points-cache), and -o a manifest stitching "
+                   "them with USD value clips.")
+@click.option("--chunk", type=int, default=None, metavar="K",
+              help="Farm: with --chunk-size, write only chunk K (1-based) and the manifest.")
 @deformer_option
 @_common
-def eval_cmd(asset, correctives, anim, output, frames, points_cache, deformers, quiet, verbose, as_json) -> None:
+def eval_cmd(asset, correctives, anim, output, frames, points_cache, chunk_size, chunk, deformers, quiet, verbose,
+             as_json) -> None:
     """Compute the correctives' weights over ANIM and write them as a WEIGHTS layer."""
     ui = _Ui(quiet, verbose, as_json)
+    if chunk_size is not None or chunk is not None:
+        _eval_chunked(ui, asset, correctives, anim, output, frames, points_cache, chunk_size, chunk, deformers)
+        return
     with _collect_warnings(ui):
         with ui.progress("weights") as progress:
             atomic.check_output(output, [asset, correctives, anim], (".usda", ".usdc", ".usd"))
@@ -278,6 +290,47 @@ def eval_cmd(asset, correctives, anim, output, frames, points_cache, deformers, 
     for a in result.animations:
         ui.say(f"  <{a.animation}>  {a.psd_channels} corrective channel(s), frames {a.times[0]:g}..{a.times[-1]:g}")
     ui.say(f"wrote {output}" + (f" and {points_cache}" if points_cache else ""))
+
+
+def _eval_chunked(ui: _Ui, asset, correctives, anim, output, frames, points_cache, chunk_size, chunk,
+                  deformers) -> None:
+    """eval --chunk-size N [--chunk K]: chunk layers plus the value-clip manifest(s) (psdbake.chunks)."""
+    from . import chunks
+
+    if chunk_size is None:
+        raise chunks.ChunkUsageError("--chunk needs --chunk-size (every farm task must cut the shot the same way)")
+    if chunk_size < 1:
+        raise chunks.ChunkUsageError(f"--chunk-size {chunk_size}: must be at least 1 frame")
+    inputs = [asset, correctives, anim]
+    atomic.check_output(output, inputs, chunks.FORMATS)
+    if points_cache:
+        atomic.check_output(points_cache, [*inputs, output], chunks.FORMATS)
+    with _collect_warnings(ui):
+        api.load_deformers(deformers)
+        with ui.progress("weights") as progress:
+            ev = chunks.evaluate_chunks(asset, correctives, anim, chunk_size, frames=api.parse_frames(frames),
+                                        chunk=chunk, progress=progress)
+        with ui.progress("points cache") as progress:
+            written = chunks.write_chunks(ev, output, points_cache=points_cache, deformers=deformers, progress=progress)
+    summary = {
+        "output": written.manifest, "clip_manifest": written.clip_manifest, "points_cache": written.points_cache,
+        "points_cache_clip_manifest": written.points_clip_manifest, "chunk_size": ev.plan.size,
+        "chunk_count": written.chunk_count, "first": ev.plan.first, "last": ev.plan.last,
+        "chunks": [{"chunk": f.chunk, "first": f.first, "last": f.last, "frames": f.frames, "weights": f.weights,
+                    "points_cache": f.points_cache} for f in written.chunks],
+        "animations": [{"animation": path, "channels": list(channels)} for path, channels in ev.animations],
+    }
+    if ui.as_json:
+        click.echo(json.dumps(summary, sort_keys=True))
+    frames_n = sum(f.frames for f in written.chunks)
+    ui.say(f"psdbake eval: {len(written.chunks)} of {written.chunk_count} chunk(s) of {ev.plan.size} frame(s), "
+           f"{frames_n} frame(s) on {len(ev.animations)} animation(s)")
+    for f in written.chunks:
+        ui.say(f"  chunk {f.chunk}: frames {f.first:g}..{f.last:g}: wrote {f.weights}"
+               + (f" and {f.points_cache}" if f.points_cache else ""))
+    ui.say(f"wrote the manifest {written.manifest} (+ {written.clip_manifest})"
+           + (f" and {written.points_cache} (+ {written.points_clip_manifest})" if written.points_cache else "")
+           + ": open it once every chunk is written")
 
 
 @cli.command("compare")
@@ -370,6 +423,61 @@ def stack_cmd(output, layers) -> None:
     so any UsdSkel viewer shows the corrected character."""
     api.write_stack(output, layers)
     click.echo(f"wrote {output}")
+
+
+@cli.command("batch")
+@click.argument("jobs_file", metavar="JOBS.toml", type=str)
+@click.option("--workers", "-w", type=click.IntRange(min=1), default=None,
+              help="Jobs at once on the local pool (default: one per core; a job's start-up is single-threaded).")
+@click.option("--scheduler", metavar="tcp://HOST:PORT",
+              help="Run on this Dask cluster instead (pip install 'psdbake[dask]'); workers need the same paths.")
+@click.option("--retries", type=click.IntRange(min=0), default=2, show_default=True,
+              help="Reruns of a job whose process is killed by a signal (a psdbake exit code is final).")
+@click.option("--dry-run", is_flag=True, help="Check the jobs file and print the commands in order; run nothing.")
+@_common
+def batch_cmd(jobs_file, workers, scheduler, retries, dry_run, quiet, verbose, as_json) -> None:
+    """Run the pose/fit/eval/stack jobs of JOBS.toml, in parallel where their files allow.
+
+    A job reading a file other jobs write runs after them; jobs writing one file run in file
+    order. One line per finished job on stderr; the exit code is the first failed job's.
+    """
+    from . import batch
+
+    ui = _Ui(quiet, verbose, as_json)
+    jobs = batch.load_jobs(jobs_file)
+    if dry_run:
+        if as_json:
+            click.echo(json.dumps([{"job": t.label, "command": t.command_line, "needs": list(t.needs),
+                                    "after": list(t.after), "key": t.key} for t in jobs.tasks], sort_keys=True))
+        labels = {t.key: t.label for t in jobs.tasks}
+        for t in jobs.tasks:
+            waits = ", ".join(labels[k] for k in (*t.needs, *t.after))
+            ui.say(f"{t.label:<24} {t.command_line}" + (f"   (after {waits})" if waits else ""))
+        return
+
+    def done(r: batch.JobResult, n: int, total: int) -> None:
+        if r.status in ("failed", "lost"):
+            code = f"exit {r.exit_code}" if r.exit_code is not None else r.status
+            click.echo(f"psdbake: error: {jobs_file} {r.label} failed ({code}): {r.error}", err=True)
+        elif not quiet:
+            extra = f" ({r.error})" if r.status == "skipped" else f" {r.seconds:.2f} s" + (f" on {r.worker}" if verbose else "")
+            click.echo(f"psdbake batch: [{n}/{total}] {r.status:<7} {r.label}{extra}", err=True)
+        if not quiet:
+            for w in r.warnings:
+                click.echo(f"psdbake: warning: {jobs_file} {r.label}: {w}", err=True)
+
+    result = batch.run(jobs, scheduler=scheduler, workers=workers, signal_retries=retries, on_done=done)
+    if as_json:
+        click.echo(json.dumps(result.summary(), sort_keys=True))
+    where = f"on {scheduler} ({result.workers} workers)" if scheduler else f"on {result.workers} local worker(s)"
+    ui.say(f"psdbake batch: {len(result.results)} job(s) {where}: {result.count('ok')} ok, {result.count('failed')} failed, "
+           f"{result.count('skipped')} skipped" + (f", {result.count('lost')} lost" if result.count("lost") else "")
+           + f" in {result.seconds:.2f} s")
+    if result.exit_code:
+        bad = [r.label for r in result.results if r.status in ("failed", "lost")]
+        skipped = result.count("skipped")
+        raise batch.BatchError(f"{jobs_file}: {len(bad)} job(s) failed: {', '.join(bad)}"
+                                + (f"; {skipped} skipped" if skipped else ""), result.exit_code)
 
 
 def _terminate(signum, frame) -> None:

@@ -79,3 +79,27 @@ def pose_only(examples: str) -> str:
         layer.GetPrimAtPath(path.GetPrimPath()).RemoveProperty(layer.GetPropertyAtPath(path))
     _KEEP.append(layer)
     return layer.identifier
+
+
+def baked_normal_errors(layers: list[str], mesh: str, time: float, sculpt_points: np.ndarray | None = None) -> np.ndarray:
+    """Per-vertex angle (radians) between the normals UsdSkel.BakeSkinning gives the stack
+    ``layers`` (strongest first; the asset must author vertex ``normals``) at time and the
+    area-weighted normals (psdbake.normals) of sculpt_points, or of the baked points
+    themselves when None: skinning's own normal error, since skinned normals are not
+    exactly the normals of the skinned mesh."""
+    from psdbake.normals import angle_between, vertex_normals
+    from psdbake.usd.normalbox import read_mesh_shading
+
+    root = Sdf.Layer.CreateAnonymous(".usda")
+    for path in layers:
+        root.subLayerPaths.append(path)
+    stage = Usd.Stage.Open(root)
+    stage.SetEditTarget(Usd.EditTarget(root))
+    shading = read_mesh_shading(stage.GetPrimAtPath(mesh))
+    assert shading.normals is not None, shading.why_not
+    for p in [p for p in stage.Traverse() if p.IsA(UsdSkel.Root)]:
+        assert UsdSkel.BakeSkinning(UsdSkel.Root(p), Gf.Interval(time, time))
+    geom = UsdGeom.Mesh(stage.GetPrimAtPath(mesh))
+    baked = np.array(geom.GetNormalsAttr().Get(time), dtype=np.float64)
+    points = np.array(geom.GetPointsAttr().Get(time), dtype=np.float64) if sculpt_points is None else sculpt_points
+    return angle_between(baked, vertex_normals(points, shading.topology))

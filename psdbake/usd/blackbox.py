@@ -73,7 +73,9 @@ def _matrix(m) -> NDArray[np.float64]:
 class SkinningBlackBox:
     """Callable SKINNING_t for one mesh: (n, 3) float64 rest -> (n, 3) float64 posed.
 
-    ``evaluations`` counts calls.
+    ``evaluations`` counts calls. A mesh inside an instance is refused: everything built on
+    its black box (pose's examples, fit's correctives, the points cache) is authored at the
+    mesh's path, and USD composition ignores opinions over an instance proxy.
     """
 
     def __init__(
@@ -83,6 +85,7 @@ class SkinningBlackBox:
         time: float,
         deformers: Sequence[tuple[str, DeformerFactory]] = (),
     ) -> None:
+        scene.require_not_instanced(mesh)
         self._scene = scene  # UsdSkel queries die with their stage: keep it alive
         self.mesh = mesh
         self.time = float(time)

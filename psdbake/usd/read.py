@@ -118,38 +118,102 @@ class Scene:
         self.label = label or str(self.files[0])
         self.stage = compose(self.files)
         self.cache = UsdSkel.Cache()
-        self._targets: dict[str, tuple[UsdSkel.SkinningQuery, UsdSkel.SkeletonQuery, str]] = {}
+        # mesh -> (skinning query, skeleton query, owning SkelRoot, bound Skeleton's path)
+        self._targets: dict[str, tuple[UsdSkel.SkinningQuery, UsdSkel.SkeletonQuery, str, str]] = {}
         predicate = Usd.TraverseInstanceProxies()
         roots = [p for p in self.stage.Traverse(predicate) if p.IsA(UsdSkel.Root)]
+        # Nested SkelRoots: sorted paths put a SkelRoot before the ones inside it, and the
+        # cache keeps the first binding it populates for a prim. So, as in UsdSkel's own
+        # BakeSkinning of a stage and UsdSkelImaging, the outermost SkelRoot owns everything
+        # its traversal reaches, with the bindings inherited from above any inner SkelRoot;
+        # an inner root only adds prims the outer traversal cannot reach.
         for prim in sorted(roots, key=lambda p: str(p.GetPath())):
             root = UsdSkel.Root(prim)
             self.cache.Populate(root, predicate)
             for binding in self.cache.ComputeSkelBindings(root, predicate):
                 skel_query = self.cache.GetSkelQuery(binding.GetSkeleton())
+                # the binding's own path: inside an instance, skel_query's is the prototype's
+                skel_path = str(binding.GetSkeleton().GetPrim().GetPath())
                 for query in binding.GetSkinningTargets():
                     target = query.GetPrim()
                     if not target.IsA(UsdGeom.PointBased):
                         continue
-                    self._targets.setdefault(str(target.GetPath()), (query, skel_query, str(prim.GetPath())))
+                    self._targets.setdefault(str(target.GetPath()), (query, skel_query, str(prim.GetPath()), skel_path))
+        above: set[str] = set()
+        for path in self._targets:
+            parent = self.stage.GetPrimAtPath(path).GetParent()
+            while parent and not parent.IsPseudoRoot():
+                if parent.IsA(UsdSkel.Root):
+                    above.add(str(parent.GetPath()))
+                parent = parent.GetParent()
+        #: Every SkelRoot above a skinned prim, nested ones included: the prims a points
+        #: cache must retype to Xform so that no UsdSkel skins its points a second time.
+        self.skel_roots: list[str] = sorted(above)
 
     # -- what is here ---------------------------------------------------------------
     def skinned_meshes(self) -> list[SkinnedMesh]:
-        """Every skinned point-based prim, sorted by path."""
+        """Every skinned point-based prim, sorted by path.
+
+        Refuses what UsdSkel would get silently wrong or psdbake could not write back: a
+        mesh ``skel:joints`` entry that is not a joint of the skeleton (UsdSkel leaves the
+        points bound to it unskinned), and an animation inside an instance (weights
+        authored over an instance proxy are ignored by composition)."""
         out = []
         for path in sorted(self._targets):
-            _, skel_query, root = self._targets[path]
+            query, skel_query, root, skeleton = self._targets[path]
             if not skel_query:
                 raise InputError(f"{where(self.label, path)}: bound skeleton is invalid")
+            joints = tuple(str(j) for j in skel_query.GetJointOrder())
+            unknown = [str(j) for j in (query.GetJointOrder() or []) if str(j) not in set(joints)]
+            if unknown:
+                raise InputError(
+                    f"{where(self.label, path, 'skel:joints')}: joint {unknown[0]!r} is not in skeleton <{skeleton}> "
+                    "(UsdSkel would leave the points bound to it unskinned)"
+                )
+            anim = skel_query.GetAnimQuery()
+            if anim and (anim.GetPrim().IsInPrototype() or anim.GetPrim().IsInstanceProxy()):
+                source = UsdSkel.BindingAPI(self.prim(skeleton)).GetInheritedAnimationSource()
+                anim_path = source.GetPath() if source else anim.GetPrim().GetPath()
+                instance, asset = self.instance_of(str(anim_path)) or (str(anim_path), "its asset")
+                raise InputError(
+                    f"{where(self.label, path)}: its SkelAnimation <{anim_path}> is inside instance <{instance}> of "
+                    f"{asset}: USD ignores blend-shape weights authored over an instance; bind a SkelAnimation outside "
+                    f"the instance (skel:animationSource on <{instance}>) or run psdbake on the asset itself"
+                )
             out.append(
                 SkinnedMesh(
                     path=path,
-                    skeleton=str(skel_query.GetSkeleton().GetPrim().GetPath()),
+                    skeleton=skeleton,
                     skel_root=root,
-                    joints=tuple(str(j) for j in skel_query.GetJointOrder()),
+                    joints=joints,
                     point_count=len(self.rest_points(path)),
                 )
             )
         return out
+
+    def instance_of(self, path: str) -> tuple[str, str] | None:
+        """(instance root, '@asset@</prim>' it instances) when path is inside an instance,
+        else None: where psdbake's output for path would have to go instead."""
+        prim = self.stage.GetPrimAtPath(path)
+        if not prim or not prim.IsInstanceProxy():
+            return None
+        while prim and not prim.IsInstance():
+            prim = prim.GetParent()
+        arcs = list(prim.GetPrimIndex().rootNode.children)
+        if not arcs:
+            return str(prim.GetPath()), "its prototype"
+        return str(prim.GetPath()), f"@{arcs[0].layerStack.identifier.rootLayer.identifier}@<{arcs[0].path}>"
+
+    def require_not_instanced(self, mesh: str) -> None:
+        """Refuse a mesh inside an instance: USD ignores opinions authored over instance
+        proxies, so psdbake's output for it would be silently lost."""
+        inside = self.instance_of(mesh)
+        if inside:
+            raise InputError(
+                f"{where(self.label, mesh)}: is inside instance <{inside[0]}> of {inside[1]}: USD ignores opinions "
+                "authored over an instance, so psdbake's output for this mesh would be lost; run psdbake on that "
+                f"asset itself, or set instanceable = false on <{inside[0]}>"
+            )
 
     def require_skinned(self) -> None:
         """Raise InputError when the stage has no SkelRoot or no skinned mesh."""
@@ -166,7 +230,7 @@ class Scene:
     def query(self, mesh: str) -> tuple[UsdSkel.SkinningQuery, UsdSkel.SkeletonQuery]:
         if mesh not in self._targets:
             raise InputError(f"{where(self.label, mesh)}: not a skinned mesh in this stage")
-        query, skel_query, _ = self._targets[mesh]
+        query, skel_query, _, _ = self._targets[mesh]
         return query, skel_query
 
     def prim(self, path: str) -> Usd.Prim:
