@@ -794,6 +794,8 @@ def write_weights(result: WeightsResult, path: str) -> str:
 def points_cache_layer(result: WeightsResult, deformers: Sequence[str] = (), *, progress: Progress | None = None):
     """Final posed points per frame (correctives, existing shapes, skinning, deformers),
     as a layer that needs no UsdSkel: the SkelRoots become Xforms, like BakeSkinning.
+    The asset's authored shading normals are blocked (they are rest normals), so renderers
+    derive normals from the cached points.
 
     The points come from UsdSkel evaluating the stack ASSET + CORRECTIVES + ANIM + WEIGHTS
     (the correctives are ordinary blend shapes there), then the deformer chain.
@@ -809,6 +811,8 @@ def points_cache_layer(result: WeightsResult, deformers: Sequence[str] = (), *, 
         f"psdbake {__version__} eval: points cache (no UsdSkel needed)",
         scene.skel_roots, _posed_points(scene, scene, meshes, times, chain, progress), times, result.fps,
         usdwrite.asset_metadata(result.asset),
+        blocked=[(m.path, name) for m in meshes for name in ("normals", "primvars:normals")
+                 if scene.prim(m.path).GetAttribute(name).HasAuthoredValue()],
     )
 
 

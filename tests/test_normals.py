@@ -388,3 +388,20 @@ def test_baked_stack_shades_the_sculpt_as_plain_skinning_shades_its_own_mesh(rig
         assert deviation < 1e-4, f"t={t}: {deviation:.2e} rad"
         assert np.abs(without - own)[region].max() > max(0.1, 1000 * deviation)
         assert np.abs(with_offsets - without)[outside].max() < 1e-6
+
+
+def test_points_cache_blocks_the_rest_normals(run, tmp_path):
+    """The cache's points are posed; the asset's authored normals are rest normals, so the
+    cache blocks them and renderers derive normals from the cached points."""
+    asset = _asset_with_normals(tmp_path)
+    corr, weights, cache = (str(tmp_path / f) for f in ("c.usda", "w.usda", "cache.usda"))
+    assert run("fit", asset, fixture("arm_lbs_examples.usda"), "-o", corr, "-q")[0] == 0
+    assert run("eval", asset, corr, "--anim", fixture("arm_anim.usda"), "--frames", "1:3", "-o", weights,
+               "--points-cache", cache, "-q")[0] == 0
+    root = Sdf.Layer.CreateAnonymous(".usda")
+    root.subLayerPaths.append(cache)
+    root.subLayerPaths.append(asset)
+    stage = Usd.Stage.Open(root)
+    normals = stage.GetPrimAtPath(MESH).GetAttribute("normals")
+    assert Usd.Stage.Open(asset).GetPrimAtPath(MESH).GetAttribute("normals").Get() is not None
+    assert normals.Get(2.0) is None and normals.Get() is None

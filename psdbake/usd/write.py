@@ -255,15 +255,19 @@ def weights_layer(doc: str, animations, fps: float | None, metadata: dict | None
 
 
 def points_layer(doc: str, skel_roots: Sequence[str], samples, times: Sequence[float], fps: float | None,
-                 metadata: dict | None = None) -> Sdf.Layer:
+                 metadata: dict | None = None, blocked: Iterable[tuple[str, str]] = ()) -> Sdf.Layer:
     """A points cache: SkelRoots become Xforms (no UsdSkel needed), points + extent per time.
 
     samples: iterable of (mesh path, time, points (n, 3)).
+    blocked: (mesh, attribute) shading normals of the asset to block: at rest they would
+        shade the posed points wrongly; blocked, renderers derive normals from the points.
     """
     layer = new_layer(doc, times, fps, metadata)
     t_ = Sdf.ValueTypeNames
     for root in sorted(skel_roots):
         define(layer, root, "Xform")
+    for mesh, name in sorted(blocked):
+        attribute(over(layer, mesh), name, t_.Normal3fArray).default = Sdf.ValueBlock()
     for mesh, t, pts in samples:
         spec = over(layer, mesh)
         points = attribute(spec, "points", t_.Point3fArray)
