@@ -21,6 +21,7 @@ _EXPORTS = {
         "parse_frames", "points_cache_layer", "pose", "weights_layer", "write_correctives", "write_points_cache",
         "write_pose", "write_weights",
     ),
+    "batch": ("Batch", "BatchResult", "JobResult", "load_jobs", "run_batch"),
     "chunks": ("ChunkedWeights", "ChunkPlan", "evaluate_chunks", "plan_chunks", "write_chunks"),
     "errors": ("DeformerError", "FitError", "InputError", "OutputError", "PsdError", "PsdWarning", "StrictError"),
     "inverse": ("InverseResult", "invert_example"),
@@ -64,6 +65,7 @@ if TYPE_CHECKING:  # for type checkers and IDEs: the same names, eagerly
         write_pose,
         write_weights,
     )
+    from .batch import Batch, BatchResult, JobResult, load_jobs, run_batch  # noqa: F401
     from .chunks import ChunkedWeights, ChunkPlan, evaluate_chunks, plan_chunks, write_chunks  # noqa: F401
     from .errors import DeformerError, FitError, InputError, OutputError, PsdError, PsdWarning, StrictError  # noqa: F401
     from .inverse import InverseResult, invert_example  # noqa: F401

@@ -466,7 +466,7 @@ def batch_cmd(jobs_file, workers, scheduler, retries, dry_run, quiet, verbose, a
             for w in r.warnings:
                 click.echo(f"psdbake: warning: {jobs_file} {r.label}: {w}", err=True)
 
-    result = batch.run(jobs, scheduler=scheduler, workers=workers, signal_retries=retries, on_done=done)
+    result = batch.run_batch(jobs, scheduler=scheduler, workers=workers, signal_retries=retries, on_done=done)
     if as_json:
         click.echo(json.dumps(result.summary(), sort_keys=True))
     where = f"on {scheduler} ({result.workers} workers)" if scheduler else f"on {result.workers} local worker(s)"

@@ -1,0 +1,35 @@
+"""One ``psdbake batch`` job: ``python -m psdbake._job PARENT_PID COMMAND ARGS...``.
+
+Exactly ``python -m psdbake COMMAND ARGS...``, except that the process dies with the one that
+started it (Linux ``PR_SET_PDEATHSIG``, delivered as SIGTERM, which psdbake unwinds, removing
+its temporary file). A batch worker killed mid-job must not leave the job running: the
+scheduler reruns it elsewhere, and an orphan would race its rerun on the same outputs.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import os
+import signal
+import sys
+
+_PR_SET_PDEATHSIG = 1  # <linux/prctl.h>
+
+
+def _die_with_parent(parent: int) -> None:
+    if sys.platform.startswith("linux"):
+        ctypes.CDLL(None, use_errno=True).prctl(_PR_SET_PDEATHSIG, int(signal.SIGTERM), 0, 0, 0)
+    if os.getppid() != parent:  # the parent died before prctl took effect
+        os._exit(143)
+
+
+def main() -> None:
+    _die_with_parent(int(sys.argv[1]))
+    sys.argv = ["psdbake", *sys.argv[2:]]
+    from ._entry import main as entry
+
+    entry()
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,446 @@
+"""psdbake batch: jobs file parsing, chunk expansion, ordering from files, and runs on the local
+pool and on a real dask.distributed LocalCluster (byte-identical outputs, a worker killed mid-job)."""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import shlex
+import signal
+import socket
+import sys
+import threading
+import time
+from pathlib import Path
+
+import pytest
+from conftest import fixture
+
+from psdbake import batch
+from psdbake.cli import cli
+
+ASSET, EXAMPLES = fixture("arm_lbs.usda"), fixture("arm_lbs_examples.usda")
+POSES, ANIM = fixture("arm_poses.usda"), fixture("arm_anim.usda")
+UNSCULPTED = fixture("bad", "examples_unsculpted.usda")
+
+# pose (independent) | two correctives groups fitted into one layer (read-modify-write, in file order)
+# -> eval cut into 3 chunk tasks (600 frames and a points cache: the slowest tasks) -> stack
+PIPELINE = f"""
+[defaults]
+asset = "{ASSET}"
+
+[[pose]]
+anim = "{POSES}"
+output = "out/to_sculpt.usda"
+
+[[fit]]
+examples = ["{EXAMPLES}"]
+group = "elbow"
+driver = ["Elbow"]
+output = "out/correctives.usda"
+
+[[fit]]
+examples = ["{EXAMPLES}"]
+group = "arm"
+output = "out/correctives.usda"
+
+[[eval]]
+correctives = "out/correctives.usda"
+anim = "{ANIM}"
+frames = "1:600"
+chunk_size = 200
+output = "out/weights.usda"
+points_cache = "out/cache.usda"
+
+[[stack]]
+output = "out/shot.usda"
+layers = ["{ASSET}", "out/correctives.usda", "{ANIM}", "out/weights.usda"]
+"""
+OUTPUTS = (
+    "to_sculpt.usda", "correctives.usda", "shot.usda",
+    *(f"{name}{part}.usda" for name in ("weights", "cache")
+      for part in ("", ".clipmanifest", ".f0001-0200", ".f0201-0400", ".f0401-0600")),
+)
+TASKS = 7  # pose, 2 fits, 3 eval chunks, stack
+
+
+def jobs_file(folder: Path, text: str) -> str:
+    folder.mkdir(parents=True, exist_ok=True)
+    path = folder / "jobs.toml"
+    path.write_text(text)
+    return str(path)
+
+
+def outputs(folder: Path) -> dict[str, bytes]:
+    return {name: (folder / "out" / name).read_bytes() for name in OUTPUTS}
+
+
+def no_temps(folder: Path) -> None:
+    left = [f for f in os.listdir(folder) if ".tmp" in f]
+    assert not left, f"temporary files left behind: {left}"
+
+
+# --- parse, expand, order ------------------------------------------------------------------------
+
+
+def test_keys_become_the_command_line_checked_by_click(tmp_path):
+    path = jobs_file(tmp_path, """
+[defaults]
+asset = "rig/asset.usda"
+kernel = "cubic"        # fit takes it, eval does not: not given to eval
+deformer = ["d.py:f"]
+
+[[fit]]
+examples = ["-odd name.usda", "b.usda"]
+output = "out/c.usda"
+driver = "Elbow"
+twist-axis = [1, 0, -1.5]
+pose_space = "swingTwist"
+no_rest_example = true
+clamp_weights = false
+degree = -1
+sigma = 0.25
+
+[[eval]]
+correctives = "out/c.usda"
+anim = "shot.usda"
+output = "out/w.usda"
+""")
+    jobs = batch.load_jobs(path)
+    fit, ev = jobs.tasks
+    assert fit.args == (
+        "--output=out/c.usda", "--driver=Elbow", "--kernel=cubic", "--sigma=0.25", "--degree=-1", "--no-rest-example",
+        "--pose-space=swingTwist", "--twist-axis", "1", "0", "-1.5", "--deformer=d.py:f",
+        "--", "rig/asset.usda", "-odd name.usda", "b.usda",  # a positional starting with '-' goes after '--'
+    )
+    assert ev.args == ("rig/asset.usda", "out/c.usda", "--anim=shot.usda", "--output=out/w.usda", "--deformer=d.py:f")
+    assert fit.cwd == ev.cwd == str(tmp_path)  # paths stay as written; jobs run in the jobs file's folder
+    assert fit.outputs == ("out/c.usda",) and fit.writes == (str(tmp_path / "out" / "c.usda"),)
+    assert ev.needs == (fit.key,) and fit.needs == ()
+    # click parses each command line to the values the TOML gave
+    ctx = cli.commands["fit"].make_context("fit", list(fit.args))
+    assert ctx.params["twist_axis"] == (1.0, 0.0, -1.5) and ctx.params["examples"] == ("-odd name.usda", "b.usda")
+    assert ctx.params["no_rest_example"] is True and ctx.params["degree"] == -1
+
+
+def test_order_comes_from_the_files(tmp_path):
+    path = jobs_file(tmp_path, """
+[[stack]]                  # listed first, reads what every other job writes
+output = "view.usda"
+layers = ["a.usda", "c.usda", "anim.usda", "w.usda"]
+
+[[eval]]
+asset = "a.usda"
+correctives = "c.usda"
+anim = "anim.usda"
+output = "w.usda"
+
+[[fit]]
+asset = "a.usda"
+examples = ["ex.usda"]
+output = "c.usda"
+
+[[fit]]                    # the same CORRECTIVES layer again: after the first, but not skipped if it fails
+asset = "a.usda"
+examples = ["ex2.usda"]
+output = "c.usda"
+
+[[pose]]                   # writes what the first fit reads
+asset = "a.usda"
+anim = "poses.usda"
+output = "ex.usda"
+
+[[pose]]                   # independent of everything
+asset = "a.usda"
+anim = "poses.usda"
+output = "other.usda"
+""")
+    tasks = batch.load_jobs(path).tasks
+    labels = [t.label for t in tasks]
+    assert labels == ["[[pose]] #1", "[[fit]] #1", "[[fit]] #2", "[[eval]] #1", "[[stack]] #1", "[[pose]] #2"]
+    key = {t.label: t.key for t in tasks}
+    by = {t.label: t for t in tasks}
+    assert by["[[fit]] #1"].needs == (key["[[pose]] #1"],)
+    assert by["[[fit]] #2"].needs == () and by["[[fit]] #2"].after == (key["[[fit]] #1"],)
+    assert by["[[eval]] #1"].needs == (key["[[fit]] #1"], key["[[fit]] #2"])  # every writer of c.usda
+    assert by["[[stack]] #1"].needs == (key["[[fit]] #1"], key["[[fit]] #2"], key["[[eval]] #1"])
+    assert by["[[pose]] #2"].needs == by["[[pose]] #2"].after == ()
+    assert len(set(key.values())) == len(tasks)
+    assert [t.key for t in batch.load_jobs(path).tasks] == [t.key for t in tasks]  # deterministic keys
+
+
+MANIFESTS = ("out/w.usda", "out/w.clipmanifest.usda", "out/p.usdc", "out/p.clipmanifest.usdc")
+
+
+def test_eval_chunks_are_cut_as_eval_cuts_them():
+    parts = batch.eval_chunks("out/w.usda", "out/p.usdc", "1:10", 4)
+    assert parts == [
+        (1, ("out/w.f0001-0004.usda", "out/p.f0001-0004.usdc", *MANIFESTS)),
+        (2, ("out/w.f0005-0008.usda", "out/p.f0005-0008.usdc", *MANIFESTS)),
+        (3, ("out/w.f0009-0010.usda", "out/p.f0009-0010.usdc", *MANIFESTS)),
+    ]
+    assert [k for k, _ in batch.eval_chunks("w.usda", None, "0.5:1000.5", 100)] == list(range(1, 11))
+    assert batch.eval_chunks("w.usda", None, "-5:4", 5)[0][1] == ("w.fm0005-m0001.usda", "w.usda", "w.clipmanifest.usda")
+    with pytest.raises(batch.PsdError, match="no whole frame"):
+        batch.eval_chunks("w.usda", None, "1.2:1.8", 10)
+
+
+def test_a_chunked_eval_is_one_task_per_chunk(tmp_path):
+    path = jobs_file(tmp_path, """
+[[eval]]
+asset = "a.usda"
+correctives = "c.usda"
+anim = "shot.usda"
+output = "w.usda"
+frames = "1:250"
+chunk_size = 100
+
+[[stack]]
+output = "view.usda"
+layers = ["a.usda", "c.usda", "shot.usda", "w.usda"]
+""")
+    tasks = batch.load_jobs(path).tasks
+    chunks = tasks[:3]
+    assert [t.label for t in chunks] == ["[[eval]] #1 chunk 1/3", "[[eval]] #1 chunk 2/3", "[[eval]] #1 chunk 3/3"]
+    for k, t in enumerate(chunks, start=1):
+        assert t.args[-3:] == ("--frames=1:250", "--chunk-size=100", f"--chunk={k}")
+        assert t.needs == t.after == ()  # the chunks run in parallel (each writes the same manifest)
+        ctx = cli.commands["eval"].make_context("eval", list(t.args))
+        assert ctx.params["chunk"] == k and ctx.params["chunk_size"] == 100
+    assert chunks[2].outputs == ("w.f0201-0250.usda", "w.usda", "w.clipmanifest.usda")
+    assert tasks[3].needs == tuple(t.key for t in chunks)  # the reader waits for every chunk
+    head = '[[eval]]\nasset = "a.usda"\ncorrectives = "c.usda"\nanim = "s.usda"\noutput = "w.usda"\n'
+    for extra, message in [("chunk_size = 10", "chunk_size needs frames"), ('frames = "1:5"\nchunk_size = 0', "at least 1")]:
+        with pytest.raises(batch.InputError, match=r"jobs.toml \[\[eval\]\] #1: .*" + message):
+            batch.load_jobs(jobs_file(tmp_path / "bad", head + extra))
+
+
+GOOD_FIT = '[[fit]]\nasset = "a.usda"\nexamples = ["e.usda"]\noutput = "out/c.usda"\n'
+
+
+@pytest.mark.parametrize("text, message", [
+    ("[[fitt]]\nasset = 'a'\n", r"jobs.toml: unknown table \[fitt\]"),
+    (GOOD_FIT + "[fit2]\n", r"unknown table \[fit2\]"),
+    ("[fit]\nasset = 'a.usda'\n", r"jobs.toml \[fit\]: jobs are an array of tables: write \[\[fit\]\]"),
+    (GOOD_FIT * 2 + "kernal = 'cubic'\n", r"jobs.toml \[\[fit\]\] #2: unknown key 'kernal' for psdbake fit"),
+    (GOOD_FIT + "quiet = true\n", r"\[\[fit\]\] #1: unknown key 'quiet' for psdbake fit \(psdbake batch sets it\)"),
+    (GOOD_FIT * 2 + '[[fit]]\nasset = "a.usda"\noutput = "o.usda"\n', r"\[\[fit\]\] #3: missing required key 'examples'"),
+    (GOOD_FIT + "sigma = 'wide'\n", r"\[\[fit\]\] #1: sigma must be a number, got 'wide'"),
+    (GOOD_FIT + "jobs = 1.5\n", r"\[\[fit\]\] #1: jobs must be an integer"),
+    (GOOD_FIT + "strict = 'yes'\n", r"\[\[fit\]\] #1: strict must be true or false"),
+    (GOOD_FIT + "twist_axis = [1, 0]\n", r"\[\[fit\]\] #1: twist_axis must be a list of 3 values"),
+    (GOOD_FIT + "kernel = 'gauss'\n", r"\[\[fit\]\] #1: Invalid value for '--kernel': 'gauss' is not one of"),
+    (GOOD_FIT + "jobs = 0\n", r"\[\[fit\]\] #1: Invalid value for '--jobs' / '-j': 0 is not in the range"),
+    ("[defaults]\nkernal = 'cubic'\n" + GOOD_FIT, r"jobs.toml \[defaults\]: unknown key 'kernal'"),
+    ("[[fit]]\nasset = \n", r"jobs.toml: not valid TOML: "),
+    (GOOD_FIT + '[[eval]]\nasset = "a.usda"\ncorrectives = "c.usda"\nanim = "s.usda"\noutput = "out/c.usda"\n',
+     r"\[\[eval\]\] #1: writes out/c.usda, as \[\[fit\]\] #1 does"),
+    ('[[pose]]\nasset = "a.usda"\nanim = "p.usda"\noutput = "out/x.usda"\n'  # x <- y <- x
+     '[[pose]]\nasset = "a.usda"\nanim = "out/x.usda"\noutput = "out/y.usda"\n'
+     '[[fit]]\nasset = "a.usda"\nexamples = ["out/y.usda"]\noutput = "out/p.usda"\n'
+     '[[eval]]\nasset = "a.usda"\ncorrectives = "out/p.usda"\nanim = "out/p.usda"\noutput = "p.usda"\n',
+     r"read each other's outputs in a cycle: \[\[eval\]\] #1, \[\[fit\]\] #1, \[\[pose\]\] #1, \[\[pose\]\] #2"),
+])
+def test_bad_jobs_file_is_one_line_exit_3_and_nothing_runs(run, tmp_path, text, message):
+    path = jobs_file(tmp_path, text)
+    code, out, err = run("batch", path)
+    assert code == 3 and out == "", err
+    assert err.count("\n") == 1 and err.startswith(f"psdbake: error: {tmp_path}/") and "Traceback" not in err
+    assert re.search(message, err), err
+    assert not (tmp_path / "out").exists()  # nothing ran, no folder made
+
+
+def test_missing_jobs_file(run, tmp_path):
+    code, _, err = run("batch", tmp_path / "nope.toml")
+    assert code == 3 and err.startswith("psdbake: error: ") and "nope.toml: cannot read" in err
+
+
+# --- local runs ----------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def local_run(tmp_path_factory) -> tuple[Path, dict]:
+    folder = tmp_path_factory.mktemp("batch") / "local"
+    path = jobs_file(folder, PIPELINE)
+    summary = batch.run_batch(batch.load_jobs(path), workers=2).summary()
+    return folder, summary
+
+
+def test_local_batch_equals_the_commands_run_directly(local_run, run, tmp_path, monkeypatch):
+    folder, summary = local_run
+    assert (summary["ok"], summary["failed"], summary["skipped"], summary["lost"]) == (TASKS, 0, 0, 0)
+    direct = tmp_path / "direct"  # the same depth as the batch folder: stack's relative paths agree
+    (direct / "out").mkdir(parents=True)
+    monkeypatch.chdir(direct)
+    for job in summary["jobs"]:  # exactly the command lines the batch ran, typed in its folder
+        code, _, err = run(*shlex.split(job["command"])[1:])
+        assert code == 0, err
+    assert outputs(direct) == outputs(folder)
+    no_temps(folder / "out")
+
+
+def test_failed_job_skips_its_dependents_and_names_itself(run, tmp_path):
+    path = jobs_file(tmp_path, f"""
+[defaults]
+asset = "{ASSET}"
+
+[[fit]]                     # nothing sculpted: psdbake fit exits 4
+asset = "{fixture("bad", "good_asset.usda")}"
+examples = ["{UNSCULPTED}"]
+output = "out/c.usda"
+
+[[eval]]
+correctives = "out/c.usda"
+anim = "{ANIM}"
+output = "out/w.usda"
+
+[[pose]]                    # independent: still runs
+anim = "{POSES}"
+output = "out/to_sculpt.usda"
+""")
+    code, out, err = run("batch", path, "--json")
+    assert code == 4, err
+    lines = err.strip().splitlines()
+    assert any(ln.startswith(f"psdbake: error: {path} [[fit]] #1 failed (exit 4): ")
+               and "no example differs from plain skinning" in ln for ln in lines), err
+    assert lines[-1] == f"psdbake: error: {path}: 1 job(s) failed: [[fit]] #1; 1 skipped"
+    summary = json.loads(out)
+    status = {j["job"]: (j["status"], j["exit_code"]) for j in summary["jobs"]}
+    assert status == {"[[fit]] #1": ("failed", 4), "[[eval]] #1": ("skipped", None), "[[pose]] #1": ("ok", 0)}
+    assert (tmp_path / "out" / "to_sculpt.usda").exists()
+    assert not (tmp_path / "out" / "c.usda").exists() and not (tmp_path / "out" / "w.usda").exists()
+
+
+def _children(pid: int) -> list[int]:
+    """Child processes of pid, started by any of its threads (jobs start from pool threads)."""
+    found = []
+    for tid in os.listdir(f"/proc/{pid}/task") if os.path.exists(f"/proc/{pid}/task") else ():
+        try:
+            with open(f"/proc/{pid}/task/{tid}/children") as fh:
+                found += [int(c) for c in fh.read().split()]
+        except FileNotFoundError:
+            continue
+    return found
+
+
+def _cmdline(pid: int) -> str:
+    try:
+        with open(f"/proc/{pid}/cmdline", "rb") as fh:
+            return fh.read().replace(b"\0", b" ").decode()
+    except FileNotFoundError:
+        return ""
+
+
+def _kill_first_job(parents, what: str, sig: int, found: dict, stop: threading.Event) -> None:
+    """Poll until a job process running `what` appears under one of `parents`; kill the parent
+    (or, when the parent is ourselves, the job) with sig; record both pids."""
+    while not stop.is_set():
+        for parent in parents():
+            for child in _children(parent):
+                line = _cmdline(child)
+                if "psdbake._job" in line and f" {what} " in line:
+                    found.update(parent=parent, job=child, chunk=int(re.search(r"--chunk=(\d+)", line).group(1)))
+                    os.kill(child if parent == os.getpid() else parent, sig)
+                    return
+        time.sleep(0.01)
+
+
+def _wait_gone(pid: int) -> None:
+    for _ in range(3000):  # a killed worker's job unwinds on SIGTERM; bounded so a survivor fails the test
+        if not os.path.exists(f"/proc/{pid}") or "psdbake._job" not in _cmdline(pid):
+            return
+        time.sleep(0.01)
+    raise AssertionError(f"job process {pid} outlived its killed worker")
+
+
+def test_local_job_killed_by_a_signal_is_rerun(local_run, tmp_path):
+    folder = tmp_path / "killed_local"
+    jobs = batch.load_jobs(jobs_file(folder, PIPELINE))
+    found, stop = {}, threading.Event()
+    killer = threading.Thread(target=_kill_first_job, args=(lambda: [os.getpid()], "eval", signal.SIGKILL, found, stop))
+    killer.start()
+    try:
+        result = batch.run_batch(jobs, workers=2)
+    finally:
+        stop.set()
+        killer.join()
+    assert found, "the eval job was never seen running"
+    assert [r.status for r in result.results] == ["ok"] * TASKS
+    assert [r.label for r in result.results if r.attempts > 1] == [f"[[eval]] #1 chunk {found['chunk']}/3"]  # run again
+    assert outputs(folder) == outputs(local_run[0])
+    no_temps(folder / "out")
+
+
+# --- Dask ----------------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def cluster():
+    distributed = pytest.importorskip("distributed")
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
+                                  dashboard_address=None) as c, distributed.Client(c, set_as_default=False) as client:
+        yield c, client
+
+
+def test_dask_cluster_gives_the_local_outputs_byte_for_byte(cluster, local_run, run, tmp_path):
+    c, client = cluster
+    path = jobs_file(tmp_path / "dask", PIPELINE)
+    code, out, err = run("batch", path, "--scheduler", c.scheduler_address, "--json")
+    assert code == 0, err
+    summary = json.loads(out)
+    assert summary["scheduler"] == c.scheduler_address and summary["workers"] == 2
+    assert [j["status"] for j in summary["jobs"]] == ["ok"] * TASKS
+    worker_pids = set(client.run(os.getpid).values())
+    assert {int(j["worker"].rsplit(":", 1)[1]) for j in summary["jobs"]} <= worker_pids  # ran on the cluster
+    assert outputs(tmp_path / "dask") == outputs(local_run[0])
+    no_temps(tmp_path / "dask" / "out")
+
+
+def test_dask_batch_survives_a_worker_killed_mid_job(cluster, local_run, tmp_path):
+    c, client = cluster
+    folder = tmp_path / "dask_killed"
+    jobs = batch.load_jobs(jobs_file(folder, PIPELINE))
+    pids = set(client.run(os.getpid).values())
+    found, stop = {}, threading.Event()
+    killer = threading.Thread(target=_kill_first_job, args=(lambda: sorted(pids), "eval", signal.SIGKILL, found, stop))
+    killer.start()
+    try:
+        result = batch.run_batch(jobs, scheduler=c.scheduler_address)
+    finally:
+        stop.set()
+        killer.join()
+    assert found, "the eval job was never seen running on a worker"
+    by = {r.label: r for r in result.results}
+    assert [r.status for r in result.results] == ["ok"] * TASKS, result.results
+    assert int(by[f"[[eval]] #1 chunk {found['chunk']}/3"].worker.rsplit(":", 1)[1]) != found["parent"]  # rerun elsewhere
+    _wait_gone(found["job"])  # the killed worker's job died with it (it would race its rerun)
+    assert outputs(folder) == outputs(local_run[0])
+    no_temps(folder / "out")
+    client.wait_for_workers(2, timeout=60)  # the nanny restarted the killed worker
+
+
+def test_scheduler_without_dask_is_a_usage_error(run, tmp_path, monkeypatch):
+    monkeypatch.setitem(sys.modules, "distributed", None)  # as if dask were not installed
+    path = jobs_file(tmp_path, GOOD_FIT)
+    code, _, err = run("batch", path, "--scheduler", "tcp://127.0.0.1:8786")
+    assert code == 2
+    assert err == "psdbake: error: --scheduler needs dask.distributed: pip install 'psdbake[dask]'\n"
+    code, _, err = run("batch", path, "--scheduler", "tcp://127.0.0.1:8786", "--workers", "2")
+    assert code == 2 and "--workers sizes the local pool" in err
+
+
+def test_bad_scheduler_address_is_one_line(run, tmp_path, monkeypatch):
+    pytest.importorskip("distributed")
+    from psdbake import batch_dask
+
+    path = jobs_file(tmp_path, GOOD_FIT)
+    code, _, err = run("batch", path, "--scheduler", "udp://127.0.0.1:8786")
+    assert code == 2 and err.startswith("psdbake: error: --scheduler udp://127.0.0.1:8786: unknown address scheme 'udp'")
+    with socket.socket() as s:  # a port nothing listens on
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    monkeypatch.setattr(batch_dask, "CONNECT_TIMEOUT", 1.0)
+    code, _, err = run("batch", path, "--scheduler", f"tcp://127.0.0.1:{port}")
+    assert code == 3 and err.startswith(f"psdbake: error: --scheduler tcp://127.0.0.1:{port}: cannot connect (")
+    assert err.count("\n") == 1 and not (tmp_path / "out").exists()  # nothing ran, no folder made
