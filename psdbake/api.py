@@ -737,21 +737,26 @@ def evaluate(
     if not per_anim:
         raise InputError(f"{correctives}: no psd: driver data on any skinned mesh of {asset}")
     results = []
+    planned = {a: frames_of(scene, per_anim[a][0][0].path, frames, label=anim) for a in sorted(per_anim)}
+    total, done = sum(len(planned[a]) * len(per_anim[a]) for a in planned), 0
     for anim_prim in sorted(per_anim):
         entries = per_anim[anim_prim]
         first = entries[0][0].path
-        times = frames_of(scene, first, frames, label=anim)
+        times = planned[anim_prim]
         existing_channels, existing_weights = _existing_channels(scene, first, times)
         psd_channels, columns = [], []
         for info, groups in entries:
-            local = np.stack([scene.joint_local_transforms(info.path, float(t)) for t in times])
+            local = np.empty((len(times), len(info.joints), 4, 4))
+            for f, t in enumerate(times):  # UsdSkel's pose per frame: the slow part, so progress per frame
+                local[f] = scene.joint_local_transforms(info.path, float(t))
+                done += 1
+                if progress:
+                    progress(done, total, info.path)
             for _, data in groups:
                 idx = [info.joints.index(d) for d in data.drivers]
                 check_driver_transforms(local[:, idx], times, data.drivers, where(anim, anim_prim))
                 columns.append(driver_weights(data, local[:, idx]))
                 psd_channels += list(data.shapes)
-            if progress:
-                progress(len(times), len(times), info.path)
         ours = np.concatenate(columns, axis=1)
         keep = [i for i, c in enumerate(existing_channels) if c not in set(psd_channels)]
         channels = tuple([existing_channels[i] for i in keep] + psd_channels)
