@@ -50,32 +50,9 @@ def _open_or_create(path: str) -> Sdf.Layer:
 
 
 def author_animation(layer: Sdf.Layer, anim: str, poses: dict[float, Pose], bind_on: str | None) -> None:
-    """A SkelAnimation at ``anim`` (ancestors stay ``over``) with the arm's joints that any
-    pose moves, bound with ``skel:animationSource`` on ``bind_on`` (a Skeleton, or an
-    ancestor such as an instance root: UsdSkel inherits the binding)."""
-    stage = Usd.Stage.Open(layer)
-    spec = Sdf.CreatePrimInLayer(layer, anim)
-    spec.specifier, spec.typeName = Sdf.SpecifierDef, "SkelAnimation"
-    animation = UsdSkel.Animation(stage.GetPrimAtPath(anim))
-    used = [j for j in generate.JOINTS if any(j.split("/")[-1] in p for p in poses.values())]
-    translations = dict(zip(generate.JOINTS, generate.local_bind_translations(), strict=True))
-    animation.CreateJointsAttr(used)
-    animation.CreateTranslationsAttr([translations[j] for j in used])
-    animation.CreateScalesAttr([Gf.Vec3h(1, 1, 1)] * len(used))
-    rotations = animation.CreateRotationsAttr()
-    for t, pose in sorted(poses.items()):
-        quats = []
-        for joint in used:
-            axis, degrees = pose.get(joint.split("/")[-1], ((1, 0, 0), 0.0))
-            q = Gf.Rotation(Gf.Vec3d(*axis), float(degrees)).GetQuat()
-            quats.append(Gf.Quatf(float(q.GetReal()), Gf.Vec3f(*map(float, q.GetImaginary()))))
-        rotations.Set(quats, Usd.TimeCode(t))
-    if bind_on:
-        binding = UsdSkel.BindingAPI.Apply(stage.OverridePrim(bind_on))
-        binding.CreateAnimationSourceRel().SetTargets([Sdf.Path(anim)])
-    times = sorted(poses)
-    layer.startTimeCode, layer.endTimeCode = times[0], times[-1]
-    layer.timeCodesPerSecond = layer.framesPerSecond = 24.0
+    """The arm's joints that any pose moves, at ``anim``, bound on ``bind_on`` (a Skeleton, or
+    an ancestor such as an instance root: UsdSkel inherits the binding)."""
+    generate.author_animation(layer, poses, anim=anim, bind_on=bind_on)
 
 
 def bulge(spec: generate.ArmSpec = SPEC, scale: float = 1.0) -> Callable[[float], np.ndarray]:
@@ -108,31 +85,11 @@ def bake(layers: list[str], time: float, meshes: list[str]) -> dict[str, np.ndar
 
 
 def bake_sculpts(layers: list[str], offsets: dict[str, Callable[[float], np.ndarray]]) -> dict:
-    """Ground truth: Pixar's skinning of (rest + offsets(t)) per mesh: mesh -> {t: points}."""
-    out: dict = {m: {} for m in offsets}
-    for t in TIMES:
-        stage = stage_of(layers)
-        for mesh, fn in offsets.items():
-            attr = UsdGeom.PointBased(stage.GetPrimAtPath(mesh)).GetPointsAttr()
-            rest = np.array(attr.Get(), dtype=np.float64)
-            attr.Set(Vt.Vec3fArray.FromNumpy((rest + fn(t)).astype(np.float32)))
-        assert UsdSkel.BakeSkinning(stage.Traverse(), Gf.Interval(t, t))
-        for mesh in offsets:
-            out[mesh][t] = np.array(UsdGeom.PointBased(stage.GetPrimAtPath(mesh)).GetPointsAttr().Get(t), dtype=np.float64)
-    return out
+    """Ground truth at TIMES: mesh -> {t: points} (generate.bake_mesh_sculpts)."""
+    return generate.bake_mesh_sculpts(layers, TIMES, offsets)
 
 
-def write_examples(path: str, anim: str, sculpts: dict) -> str:
-    """EXAMPLES: the poses layer's content plus each mesh's sculpts as points samples."""
-    layer = Sdf.Layer.CreateAnonymous(".usda")
-    layer.TransferContent(Sdf.Layer.FindOrOpen(anim))
-    for mesh, per_time in sorted(sculpts.items()):
-        spec = Sdf.CreatePrimInLayer(layer, mesh)
-        attr = Sdf.AttributeSpec(spec, "points", Sdf.ValueTypeNames.Point3fArray)
-        for t, pts in sorted(per_time.items()):
-            layer.SetTimeSample(attr.path, t, Vt.Vec3fArray.FromNumpy(pts.astype(np.float32)))
-    layer.Export(path)
-    return path
+write_examples = generate.write_mesh_examples
 
 
 def arm(folder: str) -> Built:
