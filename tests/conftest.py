@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+import hashlib
 import os
+import re
 import sys
+from collections.abc import Iterable
 
 import numpy as np
 import pytest
@@ -25,6 +28,83 @@ def fixture(*parts: str) -> str:
 
 CESIUM = fixture("cesiumman", "CesiumMan.usdz")
 CESIUM_EXAMPLES = fixture("cesiumman", "cesiumman_examples.usda")
+
+
+@pytest.fixture
+def cli(capfd):
+    """Run the CLI in-process: (exit code, stdout, stderr), USD's C++ output included
+    (``capfd``, not ``capsys``: USD prints from C++ straight to file descriptor 2)."""
+
+    def _run(*args) -> tuple[int, str, str]:
+        capfd.readouterr()
+        with pytest.raises(SystemExit) as exc:
+            main([str(a) for a in args])
+        out, err = capfd.readouterr()
+        return exc.value.code, out, err
+
+    return _run
+
+
+def no_leftovers(outputs: Iterable) -> None:
+    """No output and no temporary file beside where an output would have gone."""
+    for path in outputs:
+        assert not os.path.exists(path), f"{path} was written by a failed run"
+        folder = os.path.dirname(str(path))
+        if os.path.isdir(folder):
+            temps = [f for f in os.listdir(folder) if ".tmp" in f]
+            assert not temps, f"temporary files left in {folder}: {temps}"
+
+
+def digest(paths: Iterable) -> dict[str, str]:
+    """sha256 of each regular file (to show inputs are byte-identical after a run)."""
+    out = {}
+    for p in paths:
+        p = str(p)
+        if os.path.isfile(p):
+            with open(p, "rb") as fh:
+                out[p] = hashlib.sha256(fh.read()).hexdigest()
+    return out
+
+
+def refused(result, code: int, *, names=(), says: str = "", outputs=(), inputs: dict[str, str] | None = None) -> str:
+    """Assert the one-line refusal contract: exit code, exactly one ``psdbake: error:`` line
+    naming ``names`` and matching ``says``, no traceback, no C++ internals, no output or temp
+    file left; with ``inputs`` (a ``digest`` taken before the run), inputs byte-identical.
+    Returns the line."""
+    rc, out, err = result
+    assert "Traceback" not in out + err, err
+    lines = err.splitlines()
+    assert len(lines) == 1, f"stderr must be exactly one line, got {len(lines)}:\n{err}"
+    line = lines[0]
+    assert line.startswith("psdbake: error:"), line
+    assert "pxrInternal" not in line and ".cpp" not in line, f"USD's C++ internals leak into the message: {line}"
+    for name in names:
+        # a prim may be named with its attribute: </Prim.attr>
+        alternatives = (name, name[:-1] + ".") if name.startswith("</") and name.endswith(">") else (name,)
+        assert any(a in line for a in alternatives), f"{name!r} not named in: {line}"
+    if says:
+        assert re.search(says, line, re.IGNORECASE), f"/{says}/ not in: {line}"
+    assert rc == code, f"exit {rc}, expected {code}: {line}"
+    no_leftovers(outputs)
+    if inputs is not None:
+        assert digest(inputs) == inputs, f"an input was modified: {line}"
+    return line
+
+
+def warned(result, *, names=(), says: str = "", outputs=()) -> str:
+    """Assert success with a psdbake: warning: line; returns the warning."""
+    rc, out, err = result
+    assert "Traceback" not in out + err, err
+    assert rc == 0, err
+    found = [ln for ln in err.splitlines() if ln.startswith("psdbake: warning:")]
+    assert found, f"no psdbake: warning: line in stderr:\n{err}"
+    others = [ln for ln in err.splitlines() if not ln.startswith("psdbake: warning:")]
+    assert not others, f"stderr has lines that are not psdbake warnings:\n{err}"
+    hits = [w for w in found if all(n in w for n in names) and (not says or re.search(says, w, re.IGNORECASE))]
+    assert hits, f"no warning naming {names} and saying /{says}/:\n{err}"
+    for path in outputs:
+        assert os.path.exists(path)
+    return hits[0]
 
 
 @pytest.fixture

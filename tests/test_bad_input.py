@@ -21,9 +21,8 @@ import stat
 import sys
 
 import pytest
-from conftest import fixture
+from conftest import fixture, refused, warned
 
-from psdbake.cli import main
 
 BAD = fixture("bad")
 sys.path.insert(0, BAD)
@@ -39,65 +38,6 @@ EXIT_INPUT, EXIT_FIT, EXIT_DEFORMER, EXIT_OUTPUT = 3, 4, 5, 6
 
 def bad(name: str) -> str:
     return os.path.join(BAD, name)
-
-
-@pytest.fixture
-def cli(capfd):
-    """Run the CLI in-process: (exit code, stdout, stderr), C++ output included."""
-
-    def _run(*args) -> tuple[int, str, str]:
-        capfd.readouterr()
-        with pytest.raises(SystemExit) as exc:
-            main([str(a) for a in args])
-        out, err = capfd.readouterr()
-        return exc.value.code, out, err
-
-    return _run
-
-
-def _no_leftovers(outputs) -> None:
-    for path in outputs:
-        assert not os.path.exists(path), f"{path} was written by a failed run"
-        folder = os.path.dirname(str(path))
-        if os.path.isdir(folder):
-            temps = [f for f in os.listdir(folder) if ".tmp" in f]
-            assert not temps, f"temporary files left in {folder}: {temps}"
-
-
-def refused(result, code: int, *, names=(), says: str = "", outputs=()) -> str:
-    """Assert the one-line refusal contract; returns the line."""
-    rc, out, err = result
-    assert "Traceback" not in out + err, err
-    lines = err.splitlines()
-    assert len(lines) == 1, f"stderr must be exactly one line, got {len(lines)}:\n{err}"
-    line = lines[0]
-    assert line.startswith("psdbake: error:"), line
-    assert "pxrInternal" not in line and ".cpp" not in line, f"USD's C++ internals leak into the message: {line}"
-    for name in names:
-        # a prim may be named with its attribute: </Prim.attr>
-        alternatives = (name, name[:-1] + ".") if name.startswith("</") and name.endswith(">") else (name,)
-        assert any(a in line for a in alternatives), f"{name!r} not named in: {line}"
-    if says:
-        assert re.search(says, line, re.IGNORECASE), f"/{says}/ not in: {line}"
-    assert rc == code, f"exit {rc}, expected {code}: {line}"
-    _no_leftovers(outputs)
-    return line
-
-
-def warned(result, *, names=(), says: str = "", outputs=()) -> str:
-    """Assert success with a psdbake: warning: line; returns the warning."""
-    rc, out, err = result
-    assert "Traceback" not in out + err, err
-    assert rc == 0, err
-    found = [ln for ln in err.splitlines() if ln.startswith("psdbake: warning:")]
-    assert found, f"no psdbake: warning: line in stderr:\n{err}"
-    others = [ln for ln in err.splitlines() if not ln.startswith("psdbake: warning:")]
-    assert not others, f"stderr has lines that are not psdbake warnings:\n{err}"
-    hits = [w for w in found if all(n in w for n in names) and (not says or re.search(says, w, re.IGNORECASE))]
-    assert hits, f"no warning naming {names} and saying /{says}/:\n{err}"
-    for path in outputs:
-        assert os.path.exists(path)
-    return hits[0]
 
 
 # --- files that are missing, not files, or not USD ----------------------------------------
