@@ -23,7 +23,6 @@ import sys
 import pytest
 from conftest import fixture, refused, warned
 
-
 BAD = fixture("bad")
 sys.path.insert(0, BAD)
 import make_bad  # noqa: E402  (fixtures/bad/make_bad.py)
