@@ -50,7 +50,7 @@ bench: $(STAMP)
 	$(BIN)/python -m benchmarks.jobs
 
 fuzz: $(STAMP)
-	$(BIN)/python -m tests.fuzz --cases $${CASES:-20000} --seed $${SEED:-0}
+	$(BIN)/python -m tests.fuzz --mode $${MODE:-all} --cases $${CASES:-20000} --seed $${SEED:-0}
 
 fixtures: $(STAMP)
 	$(BIN)/python fixtures/generate.py

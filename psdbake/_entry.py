@@ -1,14 +1,23 @@
-"""The ``psdbake`` command's first code: quiet exits on Ctrl-C or SIGTERM while the heavy
-modules (USD, SciPy) load, then ``cli.main``, which handles signals with clean-up."""
+"""The ``psdbake`` command's first code: Ctrl-C or SIGTERM while the heavy modules (USD, SciPy)
+load exits at once with ``psdbake: interrupted`` and 130 (as later), then ``cli.main``, which
+handles signals with clean-up."""
 
 from __future__ import annotations
 
 import os
 import signal
 
+_INTERRUPTED = b"psdbake: interrupted\n"
+EXIT_INTERRUPTED = 130  # as cli.EXIT_INTERRUPTED, for SIGINT and SIGTERM alike
+
 
 def _quit(signum, frame) -> None:
-    os._exit(130 if signum == signal.SIGINT else 143)  # nothing written yet: nothing to clean
+    """Nothing is written yet, so nothing to clean: the one line and exit 130, with calls that
+    are safe at any point of an import (a raw write to fd 2, then _exit: no buffered I/O)."""
+    try:
+        os.write(2, _INTERRUPTED)
+    finally:
+        os._exit(EXIT_INTERRUPTED)
 
 
 def main() -> None:

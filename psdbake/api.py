@@ -27,24 +27,29 @@ from scipy.spatial.transform import Rotation
 
 from . import atomic, posespace, rbf
 from . import tolerances as tol
-from .deformers import Factory, load_deformers
+from .deformers import Factory, deformer_files, load_deformers
 from .errors import FitError, InputError, PsdWarning, where
 from .inverse import InverseResult, SculptOutOfRangeError, invert_example
 from .normals import CorrectiveNormals, PosedNormals, corrective_normals
 from .usd import write as usdwrite
-from .usd.blackbox import SkinningBlackBox
+from .usd.blackbox import FLOAT32_MAX, SkinningBlackBox
+from .usd.diagnostics import usd_diagnostics
 from .usd.normalbox import NormalBlackBox, read_mesh_shading
 from .usd.read import (
     DEFAULT_GROUP,
     Scene,
     animation_components,
+    check_corrective_indices,
+    check_examples_binding,
+    compose,
     existing_blend_shapes,
     open_layer,
     psd_prims,
     read_corrective_shapes,
     read_driver_groups,
+    require_finite_time_samples,
+    require_psd_prims_skinned,
     stray_point_prims,
-    usd_diagnostics,
     validate_animation,
     validate_skinning,
 )
@@ -258,15 +263,116 @@ def _solve_all(tasks: Sequence[_InverseTask], jobs: int | None, progress: Progre
             if progress:
                 progress(i + 1, len(tasks), f"{task.mesh} {os.path.basename(task.source)}@{task.time:g}")
     else:
+        from concurrent.futures.process import BrokenProcessPool
+
         ctx = multiprocessing.get_context("spawn")  # USD is multithreaded: never fork it
-        with concurrent.futures.ProcessPoolExecutor(max_workers=n, mp_context=ctx) as pool:
-            futures = {pool.submit(_invert, task): i for i, task in enumerate(tasks)}
+        running = ctx.RawArray("q", len(tasks))  # pid of the worker solving task i, 0 when none
+        pool = concurrent.futures.ProcessPoolExecutor(max_workers=n, mp_context=ctx, initializer=_worker_init,
+                                                      initargs=(running,))
+        workers: dict = {}
+        try:
+            with _ignoring_sigint():  # workers spawned now inherit SIG_IGN: Ctrl-C is the parent's to handle
+                futures = {pool.submit(_invert_tracked, i, task): i for i, task in enumerate(tasks)}
+            workers = dict(getattr(pool, "_processes", None) or {})  # spawned by the submits
             for done, future in enumerate(concurrent.futures.as_completed(futures), start=1):
-                results[futures[future]] = future.result()
+                try:
+                    results[futures[future]] = future.result()
+                except BrokenProcessPool:
+                    raise _worker_died(tasks, running, workers) from None
                 if progress:
                     task = tasks[futures[future]]
                     progress(done, len(tasks), f"{task.mesh} {os.path.basename(task.source)}@{task.time:g}")
+        except BaseException:
+            # Ctrl-C, SIGTERM (KeyboardInterrupt, see cli.main) or a failure: stop now, not after every
+            # queued example (a stuck deformer would never finish): cancel the queue, end the workers.
+            workers |= dict(getattr(pool, "_processes", None) or {})
+            pool.shutdown(wait=False, cancel_futures=True)
+            _end_workers(workers.values())
+            raise
+        pool.shutdown(wait=True)
     return [r for r in results if r is not None]
+
+
+_RUNNING = None  # in a worker: the shared array of which worker solves which task
+
+
+class _ignoring_sigint:  # noqa: N801 - used as a context manager, like contextlib's
+    """SIGINT blocked while worker processes are spawned: a blocked signal stays blocked in the
+    child (the mask survives fork and exec), so Ctrl-C, which reaches the whole process group,
+    never interrupts a worker still importing USD (a KeyboardInterrupt traceback of its own);
+    the parent ends the workers. A Ctrl-C in this short window is delivered on unblocking."""
+
+    def __enter__(self) -> None:
+        import signal
+
+        self._old = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+
+    def __exit__(self, *exc) -> None:
+        import signal
+
+        signal.pthread_sigmask(signal.SIG_SETMASK, self._old)
+
+
+def _worker_init(running) -> None:
+    """A fit worker: Ctrl-C is the parent's to handle (it ends the workers), so a worker
+    prints no KeyboardInterrupt traceback of its own."""
+    import signal
+
+    global _RUNNING
+    _RUNNING = running
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+def _invert_tracked(i: int, task: _InverseTask):
+    _RUNNING[i] = os.getpid()
+    try:
+        return _invert(task)
+    finally:
+        _RUNNING[i] = 0
+
+
+def _end_workers(processes) -> None:
+    """SIGTERM the worker processes (they write nothing, so nothing is left half-done), then
+    SIGKILL any that has not gone within a second (stuck in C code that ignores SIGTERM)."""
+    import contextlib
+
+    processes = list(processes)
+    for p in processes:
+        with contextlib.suppress(Exception):
+            p.terminate()
+    deadline = _time.monotonic() + 1.0
+    for p in processes:
+        with contextlib.suppress(Exception):
+            p.join(max(0.0, deadline - _time.monotonic()))
+            if p.is_alive():
+                p.kill()
+                p.join(1.0)
+
+
+def _worker_died(tasks: Sequence[_InverseTask], running, workers: dict) -> Exception:
+    """A worker process ended abruptly (a deformer calling os._exit, a segfault, the OOM killer):
+    name the example it was solving and the deformers, rather than BrokenProcessPool."""
+    import signal
+
+    from .errors import DeformerError, PsdError
+
+    deadline = _time.monotonic() + 2.0  # the pool terminates the other workers: wait for every exit code
+    while _time.monotonic() < deadline and any(p.exitcode is None for p in workers.values()):
+        _time.sleep(0.01)
+    dead = {pid: p.exitcode for pid, p in workers.items() if p.exitcode is not None and p.exitcode != -signal.SIGTERM}
+    busy = [i for i in range(len(tasks)) if running[i]]
+    culprits = [i for i in busy if running[i] in dead] or busy
+    how = ""
+    if culprits and running[culprits[0]] in dead:
+        code = dead[running[culprits[0]]]
+        how = f" (killed by {signal.Signals(-code).name})" if code < 0 else f" (exit {code})"
+    examples = " or ".join(f"{where(t.source, t.mesh)} example at time {t.time:g}" for t in (tasks[i] for i in culprits))
+    doing = f" while solving {examples}" if examples else ""
+    specs = tasks[0].deformers if tasks else ()
+    if specs:
+        return DeformerError(f"deformer {', '.join(repr(s) for s in specs)}: the worker process running it "
+                             f"died{how}{doing}")
+    return PsdError(f"a fit worker process died{how}{doing} (out of memory?)")
 
 
 def open_asset(asset: str, notes: list[str] | None = None) -> Scene:
@@ -330,6 +436,8 @@ def fit(
 def _fit_examples(asset, asset_scene, infos, meshes, example_files, settings, jobs, progress, notes, started
                   ) -> FitResult:
     """fit() once the asset is open: gather and validate the examples, solve, fit the RBFs."""
+    for path in example_files:  # the skinning fit inverts must be the one eval and UsdSkel apply
+        check_examples_binding(asset_scene, _scene((path, asset)), path)
     found = _gather_examples(asset_scene, example_files, meshes)
     work = [(m, ex) for m in meshes for ex in found[m]]
     for mesh in sorted({m for m, _ in work}):
@@ -350,6 +458,9 @@ def _fit_examples(asset, asset_scene, infos, meshes, example_files, settings, jo
         rest = asset_scene.rest_points(mesh)
         bind_local = asset_scene.bind_local_transforms(mesh)
         for scene, source, t, sculpt in found[mesh]:
+            if not np.isfinite(t):
+                raise InputError(f"{where(source, mesh, 'points')}: example at time code {t!r}: USD accepts a time "
+                                 "sample at inf, but an example needs a finite time code (its pose is there)")
             if sculpt.shape != rest.shape:
                 raise InputError(
                     f"{where(source, mesh, 'points')}: example at time {t:g} has {len(sculpt)} points, "
@@ -364,6 +475,7 @@ def _fit_examples(asset, asset_scene, infos, meshes, example_files, settings, jo
                 )
             if (id(scene), mesh) not in checked:
                 validate_animation(scene, mesh)
+                require_finite_time_samples(scene, scene.animation_prim(mesh), source)
                 checked.add((id(scene), mesh))
             local = scene.joint_local_transforms(mesh, t)
             _check_pose(scene, mesh, local, t, mesh_info.joints)
@@ -605,20 +717,32 @@ def correctives_layer(result: FitResult, update: str | None = None):
     return layer
 
 
-def write_correctives(result: FitResult, path: str, *, update: bool = False) -> str:
+def files_read(paths: Sequence[str], deformers: Sequence[str] = ()) -> list[str]:
+    """Every file a command reads: the given layers, every layer they reach (sublayers,
+    references, payloads, clips) and the ``--deformer`` source files. No output may be
+    one of them (``atomic.check_output``); layer files that are not regular files
+    (a FIFO would block USD) are refused here, before anything is composed."""
+    return sorted(set(usdwrite.files_read(paths)) | set(deformer_files(deformers)))
+
+
+def write_correctives(result: FitResult, path: str, *, update: bool = False,
+                      side_files: Sequence[tuple[str, str]] = ()) -> str:
     """Export CORRECTIVES atomically; inputs are never overwritten.
 
     update: when path exists, keep its other groups (``fit --group``); the read, merge and
     rename happen under a lock, so concurrent group fits into one layer all land.
+    side_files: (path, text) written in the same commit (``fit --report``): both land or neither.
     """
-    inputs = [result.asset, *result.example_files]
+    inputs = files_read([result.asset, *result.example_files], result.settings.deformers)
     if not update:
-        return usdwrite.export_atomic(correctives_layer(result), path, inputs)
+        usdwrite.export_all([(path, correctives_layer(result)), *side_files], inputs)
+        return path
     atomic.check_output(path, inputs, usdwrite.FORMATS)
     with atomic.updating(path):
         base = path if os.path.exists(path) else None
         layer = correctives_layer(result, update=base)
-        return usdwrite.export_atomic(layer, path, inputs)
+        usdwrite.export_all([(path, layer), *side_files], inputs)
+        return path
 
 
 # --- eval --------------------------------------------------------------------------------
@@ -645,24 +769,42 @@ class WeightsResult:
 
 
 def parse_frames(text: str | None) -> tuple[float, float] | None:
-    """'A:B' -> (A, B), inclusive whole frames."""
+    """'A:B' -> (A, B), inclusive whole frames; at most ``tol.MAX_FRAMES`` of them
+    (checked by arithmetic: nothing is allocated for a refused range)."""
     if text is None:
         return None
-    m = re.fullmatch(r"\s*(-?\d+(?:\.\d*)?)\s*:\s*(-?\d+(?:\.\d*)?)\s*", text)
+    m = re.fullmatch(r"\s*(-?\d{1,30}(?:\.\d{0,30})?)\s*:\s*(-?\d{1,30}(?:\.\d{0,30})?)\s*", text)
     if not m or float(m.group(1)) > float(m.group(2)):
-        raise InputError(f"--frames {text!r}: expected START:END with START <= END (e.g. 1:240)")
-    return float(m.group(1)), float(m.group(2))
+        shown = text if len(text) <= 60 else text[:57] + "..."
+        raise InputError(f"--frames {shown!r}: expected START:END with START <= END (e.g. 1:240)")
+    span = float(m.group(1)), float(m.group(2))
+    frame_count(span, text.strip())
+    return span
+
+
+def frame_count(frames: tuple[float, float], text: str | None = None) -> int:
+    """How many whole frames A..B holds, refusing a range past ``tol.MAX_FRAMES`` frames or
+    bounds past ``tol.MAX_FRAME_MAGNITUDE`` (and a range with none) before anything is allocated."""
+    start, end = (float(f) for f in frames)
+    shown = text if text is not None and len(text) <= 60 else f"{start:g}:{end:g}"
+    if not (np.isfinite(start) and np.isfinite(end)) or max(abs(start), abs(end)) > tol.MAX_FRAME_MAGNITUDE:
+        raise InputError(f"--frames {shown}: frame numbers must be finite and within "
+                         f"+-{tol.MAX_FRAME_MAGNITUDE:.0f} (2**53, where whole frames stop being distinct)")
+    count = int(np.floor(end) - np.ceil(start)) + 1
+    if count < 1:
+        raise InputError(f"--frames {shown}: no whole frame in that range")
+    if count > tol.MAX_FRAMES:
+        raise InputError(f"--frames {shown}: {count} frames, more than the limit of {tol.MAX_FRAMES} "
+                         "(a typo? evaluate a long range in parts)")
+    return count
 
 
 def frames_of(scene: Scene, mesh: str, frames: tuple[float, float] | None, label: str | None = None
               ) -> NDArray[np.float64]:
     """Whole frames A..B when given, else the animation's authored time samples."""
     if frames is not None:
-        start, end = frames
-        whole = np.arange(np.ceil(start), np.floor(end) + 1.0)
-        if not len(whole):
-            raise InputError(f"--frames {start:g}:{end:g}: no whole frame in that range")
-        return whole
+        count = frame_count(frames)  # refuses a huge range before allocating it
+        return np.ceil(float(frames[0])) + np.arange(count, dtype=np.float64)
     times = scene.animation_times(mesh)
     if not times:
         anim = scene.animation_prim(mesh) or mesh
@@ -723,16 +865,20 @@ def evaluate(
     open_asset(asset)
     scene = Scene([anim, correctives, asset], label=correctives)
     scene.require_skinned()
+    require_psd_prims_skinned(scene, correctives, asset)
     per_anim: dict[str, list] = {}
     anim_scene = Scene([anim, asset], label=anim)
     for info in scene.skinned_meshes():
         groups = read_driver_groups(scene, info.path)
         if not groups:
             continue
+        for _, data in groups:
+            check_corrective_indices(scene, info.path, data.shapes, info.point_count)
         anim_prim = scene.animation_prim(info.path)
         if anim_prim is None:
             raise InputError(f"{where(anim, info.skeleton)}: no SkelAnimation bound (skel:animationSource)")
         validate_animation(anim_scene, info.path)
+        require_finite_time_samples(scene, anim_prim, anim)
         per_anim.setdefault(anim_prim, []).append((info, groups))
     if not per_anim:
         raise InputError(f"{correctives}: no psd: driver data on any skinned mesh of {asset}")
@@ -752,10 +898,19 @@ def evaluate(
                 done += 1
                 if progress:
                     progress(done, total, info.path)
-            for _, data in groups:
+            for group, data in groups:
                 idx = [info.joints.index(d) for d in data.drivers]
                 check_driver_transforms(local[:, idx], times, data.drivers, where(anim, anim_prim))
-                columns.append(driver_weights(data, local[:, idx]))
+                w = driver_weights(data, local[:, idx])
+                bad = ~(np.abs(w) <= FLOAT32_MAX)  # NaN fails the comparison
+                if bad.any():  # finite psd: values can still overflow: refuse rather than write inf
+                    f, s = (int(i[0]) for i in np.nonzero(bad))
+                    raise InputError(
+                        f"{where(correctives, info.path)}: group {group!r} gives channel {data.shapes[s]} the weight "
+                        f"{float(w[f, s]):.3g} at time {float(times[f]):g}: beyond float32's range (the psd: values "
+                        "are corrupt or absurdly large)"
+                    )
+                columns.append(w)
                 psd_channels += list(data.shapes)
         ours = np.concatenate(columns, axis=1)
         keep = [i for i, c in enumerate(existing_channels) if c not in set(psd_channels)]
@@ -792,8 +947,13 @@ def weights_layer(result: WeightsResult):
     )
 
 
-def write_weights(result: WeightsResult, path: str) -> str:
-    return usdwrite.export_atomic(weights_layer(result), path, [result.asset, result.correctives, result.anim])
+def write_weights(result: WeightsResult, path: str, *, points_cache: tuple[str, object] | None = None,
+                  deformers: Sequence[str] = ()) -> str:
+    """Export WEIGHTS (and, given as (path, layer), the points cache in the same commit:
+    both land or neither)."""
+    outputs = [(path, weights_layer(result)), *([points_cache] if points_cache else [])]
+    usdwrite.export_all(outputs, files_read([result.asset, result.correctives, result.anim], deformers))
+    return path
 
 
 def points_cache_layer(result: WeightsResult, deformers: Sequence[str] = (), *, progress: Progress | None = None):
@@ -840,14 +1000,10 @@ def _posed_points(rest_scene: Scene, scene: Scene, meshes, times, chain, progres
                 progress(done, total, info.path)
 
 
-def export_layer(layer, path: str, inputs: Sequence[str]) -> str:
-    """Export an in-memory layer atomically (temp file + rename); inputs are never overwritten."""
-    return usdwrite.export_atomic(layer, path, inputs)
-
-
 def write_points_cache(result: WeightsResult, path: str, deformers: Sequence[str] = (), *, progress=None) -> str:
     return usdwrite.export_atomic(
-        points_cache_layer(result, deformers, progress=progress), path, [result.asset, result.correctives, result.anim]
+        points_cache_layer(result, deformers, progress=progress), path,
+        files_read([result.asset, result.correctives, result.anim], deformers),
     )
 
 
@@ -860,6 +1016,7 @@ class PoseResult:
     times: tuple[float, ...]
     meshes: tuple[str, ...]
     layer: object  # Sdf.Layer
+    deformers: tuple[str, ...] = ()
 
 
 def pose(asset: str, poses: str, deformers: Sequence[str] = (), *, progress: Progress | None = None) -> PoseResult:
@@ -892,15 +1049,14 @@ def pose(asset: str, poses: str, deformers: Sequence[str] = (), *, progress: Pro
         _posed_points(asset_scene, scene, meshes, times, chain, progress), times, fps,
         usdwrite.asset_metadata(asset),
     )
-    return PoseResult(asset, poses, tuple(times), tuple(m.path for m in meshes), layer)
+    return PoseResult(asset, poses, tuple(times), tuple(m.path for m in meshes), layer, tuple(deformers))
 
 
 def write_pose(result: PoseResult, path: str) -> str:
-    return usdwrite.export_atomic(result.layer, path, [result.asset, result.poses])
+    return usdwrite.export_atomic(result.layer, path, files_read([result.asset, result.poses], result.deformers))
 
 
 def write_stack(path: str, layers: Sequence[str]) -> str:
     """A viewable stack: sublayers ``layers`` (weakest first: ASSET, CORRECTIVES, ANIM, WEIGHTS)."""
-    for layer in layers:
-        open_layer(layer)
-    return usdwrite.export_atomic(usdwrite.stack_layer(path, layers), path, layers)
+    compose(list(reversed(layers)))  # refuse what no viewer could compose (cycles, unreadable sublayers)
+    return usdwrite.export_atomic(usdwrite.stack_layer(path, layers), path, files_read(layers))

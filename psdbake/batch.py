@@ -29,6 +29,7 @@ import os
 import shlex
 import signal
 import socket
+import stat
 import subprocess
 import sys
 import threading
@@ -235,7 +236,7 @@ def eval_chunks(output: str, points_cache: str | None, frames: str, chunk_size: 
 
     span = api.parse_frames(frames)
     assert span is not None
-    plan = ch.plan_chunks(ch.whole_frames(span), chunk_size, span)
+    plan = ch.plan_frames(span, chunk_size)  # by arithmetic: bounded (MAX_FRAMES, MAX_CHUNKS), no frame list
     manifests = [output, ch.clip_manifest_path(output)]
     if points_cache:
         manifests += [points_cache, ch.clip_manifest_path(points_cache)]
@@ -246,14 +247,42 @@ def eval_chunks(output: str, points_cache: str | None, frames: str, chunk_size: 
     ]
 
 
+#: Largest jobs file read. A job is a few hundred bytes, so 1 MiB is thousands of jobs (more
+#: than a farm queue takes from one file); the cap keeps a wrong path (a huge log, a disk image)
+#: from being read into memory whole.
+MAX_JOBS_FILE_BYTES = 1 << 20
+
+
 def _read_toml(path: str) -> dict[str, Any]:
+    """The jobs file, if it is a regular file of at most MAX_JOBS_FILE_BYTES: a FIFO, a socket
+    or a device (``/dev/zero``, ``/dev/urandom``) would block or never end."""
     try:
-        with open(path, "rb") as fh:
-            return tomllib.load(fh)
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | getattr(os, "O_CLOEXEC", 0))  # a FIFO must not block the open
+    except OSError as exc:
+        raise InputError(f"{path}: cannot read ({exc.strerror or exc})") from None
+    try:
+        info = os.fstat(fd)
+        if not stat.S_ISREG(info.st_mode):
+            kind = "a folder" if stat.S_ISDIR(info.st_mode) else "a FIFO" if stat.S_ISFIFO(info.st_mode) else \
+                "a device" if stat.S_ISCHR(info.st_mode) or stat.S_ISBLK(info.st_mode) else "not a regular file"
+            raise InputError(f"{path}: a jobs file must be a regular file, this is {kind}")
+        if info.st_size > MAX_JOBS_FILE_BYTES:
+            raise InputError(f"{path}: {info.st_size} bytes, more than a jobs file may hold "
+                             f"({MAX_JOBS_FILE_BYTES} bytes): is this the jobs file?")
+        os.set_blocking(fd, True)
+        with os.fdopen(fd, "rb") as fh:
+            fd = -1
+            data = fh.read(MAX_JOBS_FILE_BYTES + 1)  # the file may grow after the fstat
+        if len(data) > MAX_JOBS_FILE_BYTES:
+            raise InputError(f"{path}: more than a jobs file may hold ({MAX_JOBS_FILE_BYTES} bytes)")
+        return tomllib.loads(data.decode("utf-8"))
     except OSError as exc:
         raise InputError(f"{path}: cannot read ({exc.strerror or exc})") from None
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         raise InputError(f"{path}: not valid TOML: {exc}") from None
+    finally:
+        if fd >= 0:
+            os.close(fd)
 
 
 def _norm(table: Mapping[str, Any]) -> dict[str, Any]:
@@ -278,6 +307,8 @@ def load_jobs(path: str) -> Batch:
             raise InputError(f"{path} [defaults]: unknown key {key!r}")
 
     jobs: list[tuple[str, str, tuple[str, ...], list[tuple[str, str, list[str], tuple[str, ...]]]]] = []
+    kept: list[tuple[str, str]] = [(os.path.abspath(path), "the jobs file itself")]  # read, never written by a job
+    written: list[tuple[str, str]] = []
     for name in doc:  # tables in order of first appearance, jobs in file order
         if name == "defaults":
             continue
@@ -298,6 +329,12 @@ def load_jobs(path: str) -> Batch:
                      if schema[key].name in _READS | _WRITES}
             reads = tuple(p for k, ps in paths.items() if schema[k].name in _READS for p in ps)
             writes = tuple(p for k, ps in paths.items() if schema[k].name in _WRITES for p in ps)
+            for k in values:
+                if schema[k].name == "deformers":
+                    specs = _values(schema[k], values[k], where, k)
+                    kept += [(spec.rpartition(":")[0], f"a --deformer file of {where}") for spec in specs
+                             if spec.rpartition(":")[0].endswith(".py")]
+            written += [(p, where) for p in writes]
             label = f"[[{name}]] #{n}"
             subtasks = [(label, f"{name}-{n}", args, writes)]
             if "chunk_size" in values and "chunk" in schema and "chunk" not in values:
@@ -311,7 +348,28 @@ def load_jobs(path: str) -> Batch:
                 subtasks = [(f"{label} chunk {k}/{len(parts)}", f"{name}-{n}-chunk{k}", [*args, f"--chunk={k}"], files)
                             for k, files in parts]
             jobs.append((label, name, reads, subtasks))
+    _refuse_overwrites(folder, kept, written)
     return Batch(path, folder, _order(path, folder, jobs))
+
+
+def _same_file(a: str, b: str) -> bool:
+    """Same path once links are resolved, or the same file under two names (a hard link)."""
+    if os.path.realpath(a) == os.path.realpath(b):
+        return True
+    try:
+        return os.path.samefile(a, b)
+    except OSError:
+        return False
+
+
+def _refuse_overwrites(folder: str, kept: Sequence[tuple[str, str]], written: Sequence[tuple[str, str]]) -> None:
+    """No job may write a file the batch reads but never produces: the jobs file itself (a job's
+    ``report = "jobs.toml"``) or a ``--deformer`` source file. Refused at load, before any job runs."""
+    for out, where in written:
+        target = os.path.join(folder, out)
+        for src, what in kept:
+            if _same_file(target, os.path.join(folder, src)):
+                raise InputError(f"{where}: output {out} is {what}: a job may not overwrite it")
 
 
 def _order(path: str, folder: str, jobs: Sequence[tuple]) -> tuple[Task, ...]:

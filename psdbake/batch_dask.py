@@ -13,34 +13,113 @@ Workers need psdbake installed and the jobs file's folder at the same path (shar
 
 from __future__ import annotations
 
+import asyncio
+import contextlib
+import os
 import time
 
 from .batch import Batch, BatchResult, BatchUsageError, JobResult, OnDone, make_output_folders, run_job
 from .errors import InputError
 
-CONNECT_TIMEOUT = 10.0  # seconds: a scheduler answers in milliseconds, a busy one in well under this
+#: Seconds to connect to the scheduler and get its handshake: a scheduler answers in
+#: milliseconds, a busy one in well under this; something that accepts the connection but never
+#: answers (not a Dask scheduler, a hung one) is refused after it. PSDBAKE_SCHEDULER_TIMEOUT
+#: (seconds) overrides it.
+CONNECT_TIMEOUT = 10.0
+
+ACCEPTED = "tcp://HOST:PORT (or HOST:PORT)"
+
+
+def connect_timeout() -> float:
+    text = os.environ.get("PSDBAKE_SCHEDULER_TIMEOUT")
+    if not text:
+        return CONNECT_TIMEOUT
+    try:
+        value = float(text)
+    except ValueError:
+        value = float("nan")
+    if not 0 < value < 86400:
+        raise BatchUsageError(f"PSDBAKE_SCHEDULER_TIMEOUT={text!r}: expected seconds, more than 0")
+    return value
+
+
+def check_address(address: str) -> None:
+    """Only plain TCP addresses of a Dask scheduler: an http(s) dashboard URL, TLS (needs
+    certificates psdbake does not take), ucx, ws or inproc are refused here, before a
+    Client is made (a Client half-built from one hangs on clean-up)."""
+    from distributed.comm import parse_address, parse_host_port
+
+    try:
+        scheme, location = parse_address(address, strict=False)
+    except (ValueError, TypeError):
+        scheme, location = "", ""
+    if scheme != "tcp" or not location:
+        from distributed.comm.registry import backends
+
+        what = f"address scheme '{scheme}'" if scheme else "address"
+        kind = "unsupported" if scheme in backends else "unknown"
+        raise BatchUsageError(f"--scheduler {address}: {kind} {what}: psdbake batch connects to a Dask scheduler at "
+                              f"{ACCEPTED} (no http, https, tls, ws, ucx or inproc)")
+    try:
+        host, port = parse_host_port(location)
+    except (ValueError, TypeError):
+        host, port = "", 0
+    if not host or not isinstance(port, int) or not 0 < port < 65536:
+        raise BatchUsageError(f"--scheduler {address}: expected {ACCEPTED} with a port 1..65535")
+
+
+def _probe(address: str, timeout: float) -> None:
+    """Connect and read the scheduler's handshake within timeout seconds (distributed's own
+    connect waits for the handshake without a limit), then hang up."""
+    from distributed.comm import connect
+
+    async def attempt() -> None:
+        comm = await asyncio.wait_for(connect(address, timeout=timeout), timeout)
+        with contextlib.suppress(Exception):
+            await asyncio.wait_for(comm.close(), 1.0)
+
+    try:
+        asyncio.run(attempt())
+    except TimeoutError:  # asyncio.TimeoutError is TimeoutError since 3.11
+        raise InputError(f"--scheduler {address}: no answer within {timeout:g} s "
+                         "(not a Dask scheduler, or a hung one)") from None
+    except (OSError, ValueError) as exc:
+        raise InputError(f"--scheduler {address}: cannot connect ({_first_line(exc)})") from None
+
+
+def _first_line(exc: BaseException) -> str:
+    return (str(exc).strip().splitlines() or [type(exc).__name__])[0]
 
 
 def run_dask(batch: Batch, address: str, *, signal_retries: int = 2, on_done: OnDone | None = None) -> BatchResult:
     """Run the batch on the cluster whose scheduler listens at address."""
     try:
         from distributed import Client, as_completed
-        from distributed.comm import parse_address
-        from distributed.comm.registry import get_backend
     except ImportError:
         raise BatchUsageError("--scheduler needs dask.distributed: pip install 'psdbake[dask]'") from None
     started = time.perf_counter()
-    try:  # a malformed address is refused here: a Client half-built from one hangs on clean-up
-        scheme, location = parse_address(address)
-        get_backend(scheme)
-        if ":" not in location:
-            raise ValueError("expected tcp://HOST:PORT")
-    except ValueError as exc:
-        raise BatchUsageError(f"--scheduler {address}: {exc}") from None
+    check_address(address)
+    timeout = connect_timeout()
+    _probe(address, timeout)
+
+    class _Client(Client):
+        """A Client that, when its constructor fails, is not closed again from ``__del__``
+        (that waits twice the timeout and prints a traceback long after psdbake's error line)."""
+
+        def __del__(self) -> None:
+            if getattr(self, "_psdbake_failed", False):
+                return
+            with contextlib.suppress(Exception):
+                super().__del__()
+
+    client = _Client.__new__(_Client)
     try:
-        client = Client(address, timeout=CONNECT_TIMEOUT, set_as_default=False)
-    except (OSError, TimeoutError, ValueError) as exc:
-        raise InputError(f"--scheduler {address}: cannot connect ({str(exc).strip().splitlines()[0]})") from None
+        client.__init__(address, timeout=timeout, set_as_default=False)
+    except Exception as exc:
+        client._psdbake_failed = True
+        with contextlib.suppress(Exception):
+            client.status = "closed"
+        raise InputError(f"--scheduler {address}: cannot connect ({_first_line(exc)})") from None
     with client:
         make_output_folders(batch)
         workers = len(client.scheduler_info(n_workers=-1).get("workers", {}))

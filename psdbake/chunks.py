@@ -25,7 +25,7 @@ from numpy.typing import NDArray
 from pxr import Sdf
 
 from . import api, atomic
-from .errors import InputError, OutputError, PsdError, where
+from .errors import InputError, PsdError, where
 from .usd import clips
 from .usd import write as usdwrite
 
@@ -38,60 +38,126 @@ class ChunkUsageError(PsdError):
     exit_code = 2
 
 
+#: Most chunks one plan may cut: each chunk is a file and a farm task, and the manifest lists
+#: every chunk in its value clips, so 10,000 (a 1,000,000-frame range in chunks of 100) is
+#: already more than any farm queue or manifest should hold; a larger plan is a typo.
+MAX_CHUNKS = 10_000
+
+
 @dataclass(frozen=True)
 class Chunk:
     """One chunk of the shot: consecutive frames (or authored time codes)."""
 
     index: int  # 1-based, as --chunk
-    times: NDArray[np.float64]
+    first: float
+    last: float
+    count: int  # time codes in the chunk
+    samples: NDArray[np.float64] | None = None  # the authored time codes; None: the whole frames first..last
 
     @property
-    def first(self) -> float:
-        return float(self.times[0])
+    def times(self) -> NDArray[np.float64]:
+        if self.samples is not None:
+            return self.samples
+        return self.first + np.arange(self.count, dtype=np.float64)
 
-    @property
-    def last(self) -> float:
-        return float(self.times[-1])
+
+class _Chunks(Sequence):
+    """A plan's chunks, each made when asked for (a chunk's frames follow from its index)."""
+
+    def __init__(self, plan: ChunkPlan) -> None:
+        self._plan = plan
+
+    def __len__(self) -> int:
+        return self._plan.chunk_count
+
+    def __getitem__(self, i):  # type: ignore[override]
+        if isinstance(i, slice):
+            return [self[k] for k in range(*i.indices(len(self)))]
+        n = len(self)
+        if i < 0:
+            i += n
+        if not 0 <= i < n:
+            raise IndexError(i)
+        return self._plan._make(i)
 
 
 @dataclass(frozen=True)
 class ChunkPlan:
-    """How a shot is cut: the same in every farm task, whatever chunk it computes."""
+    """How a shot is cut: the same in every farm task, whatever chunk it computes.
+
+    Lazy: a plan over whole frames holds the first frame and the count only, and makes each
+    chunk's frames from its index, so chunk K of a long range allocates chunk K alone."""
 
     size: int
-    chunks: tuple[Chunk, ...]
+    count: int  # time codes in the shot
     frames: tuple[float, float] | None  # --frames, or None for the authored samples
+    start: float = 0.0  # the first whole frame (with frames)
+    samples: NDArray[np.float64] | None = None  # the authored time codes (without frames)
+
+    @property
+    def chunk_count(self) -> int:
+        return -(-self.count // self.size)
+
+    @property
+    def chunks(self) -> Sequence[Chunk]:
+        return _Chunks(self)
+
+    def _time(self, i: int) -> float:
+        return float(self.samples[i]) if self.samples is not None else self.start + i
+
+    def _make(self, i: int) -> Chunk:
+        lo, hi = i * self.size, min(self.count, (i + 1) * self.size)
+        samples = self.samples[lo:hi] if self.samples is not None else None
+        return Chunk(i + 1, self._time(lo), self._time(hi - 1), hi - lo, samples)
 
     @property
     def first(self) -> float:
-        return self.chunks[0].first
+        return self._time(0)
 
     @property
     def last(self) -> float:
-        return self.chunks[-1].last
+        return self._time(self.count - 1)
 
     @property
     def width(self) -> int:
         """Digits of the frame numbers in chunk file names (at least 4), so they sort."""
-        ends = [t for c in self.chunks for t in (c.first, c.last)]
-        return max(4, *(len(str(int(abs(t)))) for t in ends))
+        if self.samples is not None:
+            biggest = float(np.max(np.abs(self.samples)))
+        else:
+            biggest = max(abs(self.first), abs(self.last))
+        return max(4, len(str(int(biggest))))
 
     def chunk(self, index: int) -> Chunk:
-        if not 1 <= index <= len(self.chunks):
+        if not 1 <= index <= self.chunk_count:
             raise ChunkUsageError(
-                f"--chunk {index}: out of range: {sum(len(c.times) for c in self.chunks)} frame(s) in chunks of "
-                f"{self.size} make {len(self.chunks)} chunk(s), numbered 1..{len(self.chunks)}"
+                f"--chunk {index}: out of range: {self.count} frame(s) in chunks of "
+                f"{self.size} make {self.chunk_count} chunk(s), numbered 1..{self.chunk_count}"
             )
-        return self.chunks[index - 1]
+        return self._make(index - 1)
 
 
 def whole_frames(frames: tuple[float, float]) -> NDArray[np.float64]:
-    """Whole frames A..B inclusive: the rule of ``api.frames_of`` for ``--frames``."""
-    start, end = frames
-    whole = np.arange(np.ceil(start), np.floor(end) + 1.0)
-    if not len(whole):
-        raise InputError(f"--frames {start:g}:{end:g}: no whole frame in that range")
-    return whole
+    """Whole frames A..B inclusive: the rule of ``api.frames_of`` for ``--frames`` (at most
+    ``tolerances.MAX_FRAMES``, refused before anything is allocated)."""
+    count = api.frame_count(frames)
+    return np.ceil(float(frames[0])) + np.arange(count, dtype=np.float64)
+
+
+def _check_size(size: int, count: int) -> int:
+    if int(size) < 1:
+        raise ChunkUsageError(f"--chunk-size {size}: must be at least 1 frame")
+    size = int(size)
+    chunks = -(-count // size)
+    if chunks > MAX_CHUNKS:
+        raise ChunkUsageError(f"--chunk-size {size}: {count} frame(s) would make {chunks} chunks, more than the "
+                              f"limit of {MAX_CHUNKS} (files and farm tasks): give a larger --chunk-size")
+    return size
+
+
+def plan_frames(frames: tuple[float, float], size: int) -> ChunkPlan:
+    """The plan of ``--frames A:B --chunk-size N``, by arithmetic: no frame list is made."""
+    count = api.frame_count(frames)
+    return ChunkPlan(_check_size(size, count), count, frames, start=float(np.ceil(float(frames[0]))))
 
 
 def plan_chunks(times: Sequence[float] | NDArray[np.float64], size: int,
@@ -104,9 +170,7 @@ def plan_chunks(times: Sequence[float] | NDArray[np.float64], size: int,
         raise InputError("no frames to cut into chunks")
     if not np.all(np.isfinite(times)):
         raise InputError(f"time code {times[~np.isfinite(times)][0]!r} is not a finite number: cannot cut it into chunks")
-    size = int(size)
-    chunks = tuple(Chunk(i + 1, times[s : s + size]) for i, s in enumerate(range(0, len(times), size)))
-    return ChunkPlan(size, chunks, frames)
+    return ChunkPlan(_check_size(size, len(times)), len(times), frames, samples=times)
 
 
 def frame_label(t: float, width: int) -> str:
@@ -190,7 +254,7 @@ def evaluate_chunks(
     cut; the expensive points cache is still per chunk.
     """
     if frames is not None:
-        plan = plan_chunks(whole_frames(frames), size, frames)
+        plan = plan_frames(frames, size)
         wanted = [plan.chunk(chunk)] if chunk is not None else list(plan.chunks)
         results = []
         for c in wanted:
@@ -247,15 +311,6 @@ class WrittenChunks:
     chunk_count: int
 
 
-def _check_outputs(paths: Sequence[str], inputs: Sequence[str]) -> None:
-    seen: dict[str, str] = {}
-    for path in paths:
-        real = atomic.check_output(path, inputs, FORMATS)
-        if real in seen:
-            raise OutputError(f"{path}: written twice by this run (also as {seen[real]})")
-        seen[real] = path
-
-
 def write_chunks(
     ev: ChunkedWeights,
     output: str,
@@ -264,9 +319,10 @@ def write_chunks(
     deformers: Sequence[str] = (),
     progress: api.Progress | None = None,
 ) -> WrittenChunks:
-    """Write the computed chunks, then the manifests, each atomically. All checks and all
-    computing (points caches included) happen before the first file is written."""
-    inputs = [ev.asset, ev.correctives, ev.anim]
+    """Write the computed chunks and the manifests in one commit (``usdwrite.export_all``):
+    all checks and all computing (points caches included) happen before the first file is
+    written, and a failure leaves every old file in place."""
+    inputs = api.files_read([ev.asset, ev.correctives, ev.anim], deformers)
     files = []
     for c, _ in ev.results:
         cache = chunk_path(points_cache, ev.plan, c) if points_cache else None
@@ -274,7 +330,7 @@ def write_chunks(
     targets = [output, clip_manifest_path(output), *(f.weights for f in files)]
     if points_cache:
         targets += [points_cache, clip_manifest_path(points_cache), *(f.points_cache for f in files if f.points_cache)]
-    _check_outputs(targets, inputs)
+    atomic.check_outputs([(t, FORMATS) for t in targets], inputs)
     layers = []
     for (_, result), f in zip(ev.results, files, strict=True):
         layers.append((f.weights, api.weights_layer(result)))
@@ -287,8 +343,7 @@ def write_chunks(
         cache_manifest, cache_clip_manifest = manifest_layers(layers[1][1], ev.plan, points_cache,
                                                               "points cache (no UsdSkel needed)")
         layers += [(clip_manifest_path(points_cache), cache_clip_manifest), (points_cache, cache_manifest)]
-    for path, layer in layers:
-        usdwrite.export_atomic(layer, path, inputs)
+    usdwrite.export_all(layers, inputs)
     return WrittenChunks(
         manifest=output, clip_manifest=clip_manifest_path(output), points_cache=points_cache,
         points_clip_manifest=clip_manifest_path(points_cache) if points_cache else None,

@@ -74,9 +74,13 @@ def _collect_warnings(ui: _Ui) -> Iterator[list[str]]:
                 click.echo(f"psdbake: warning: {w.message}", err=True)
 
 
-def _write_json(path: str, payload: dict, inputs: Sequence[str]) -> None:
-    """Small JSON side files are written atomically too."""
-    atomic.write_text(path, json.dumps(payload, indent=2, sort_keys=True) + "\n", inputs)
+def _json_text(payload: dict) -> str:
+    """A JSON side file (``--report``), committed with the command's other outputs."""
+    return json.dumps(payload, indent=2, sort_keys=True) + "\n"
+
+
+LAYER_FORMATS = (".usda", ".usdc", ".usd")
+REPORT_FORMATS = (".json",)
 
 
 common = [
@@ -117,6 +121,7 @@ def cli() -> None:
 def pose_cmd(asset, poses, output, deformers, quiet, verbose, as_json) -> None:
     """Write the skinned character at every time code of POSES, for artists to sculpt."""
     ui = _Ui(quiet, verbose, as_json)
+    atomic.check_outputs([(output, LAYER_FORMATS)], api.files_read([asset, poses], deformers))
     with _collect_warnings(ui), ui.progress("posing") as progress:
         result = api.pose(asset, poses, deformers, progress=progress)
         api.write_pose(result, output)
@@ -170,9 +175,8 @@ def fit_cmd(asset, examples, output, drivers, kernel, sigma, degree, smoothing, 
         clamp_weights=clamp_weights, normalize_weights=normalize_weights, rtol=tolerance,
         meshes=tuple(meshes), deformers=tuple(deformers), group=group or api.DEFAULT_GROUP,
     )
-    atomic.check_output(output, [asset, *examples], (".usda", ".usdc", ".usd"))
-    if report:
-        atomic.check_output(report, [asset, *examples, output])
+    reads = api.files_read([asset, *examples], deformers)
+    atomic.check_outputs([(output, LAYER_FORMATS), *([(report, REPORT_FORMATS)] if report else [])], reads)
     if group and os.path.exists(output):
         api.read_correctives(asset, output)  # refuse a bad layer to update before the long fit
     with _collect_warnings(ui):
@@ -181,9 +185,8 @@ def fit_cmd(asset, examples, output, drivers, kernel, sigma, degree, smoothing, 
         payload = fit_report(result, output)
         if strict and result.missed:
             raise StrictError(f"{output}: not written: {result.missed} vertices missed the tolerance (--strict)")
-        api.write_correctives(result, output, update=bool(group))
-    if report:
-        _write_json(report, payload, [asset, *examples, output])
+        side = [(report, _json_text(payload))] if report else []
+        api.write_correctives(result, output, update=bool(group), side_files=side)
     if as_json:
         click.echo(json.dumps(payload, sort_keys=True))
     _render_fit(ui, result, output)
@@ -263,18 +266,18 @@ def eval_cmd(asset, correctives, anim, output, frames, points_cache, chunk_size,
         _eval_chunked(ui, asset, correctives, anim, output, frames, points_cache, chunk_size, chunk, deformers)
         return
     with _collect_warnings(ui):
-        with ui.progress("weights") as progress:
-            atomic.check_output(output, [asset, correctives, anim], (".usda", ".usdc", ".usd"))
+        reads = api.files_read([asset, correctives, anim], deformers)
+        atomic.check_outputs([(output, LAYER_FORMATS), *([(points_cache, LAYER_FORMATS)] if points_cache else [])],
+                             reads)
+        span = api.parse_frames(frames)
         api.load_deformers(deformers)
-        result = api.evaluate(asset, correctives, anim, frames=api.parse_frames(frames), progress=progress)
-        cache_layer = None
+        with ui.progress("weights") as progress:
+            result = api.evaluate(asset, correctives, anim, frames=span, progress=progress)
+        cache = None
         if points_cache:
-            atomic.check_output(points_cache, [asset, correctives, anim, output], (".usda", ".usdc", ".usd"))
             with ui.progress("points cache") as progress:
-                cache_layer = api.points_cache_layer(result, deformers, progress=progress)
-        api.write_weights(result, output)
-        if cache_layer is not None:
-            api.export_layer(cache_layer, points_cache, [asset, correctives, anim, output])
+                cache = (points_cache, api.points_cache_layer(result, deformers, progress=progress))
+        api.write_weights(result, output, points_cache=cache, deformers=deformers)
     frames_n = sum(len(a.times) for a in result.animations)
     summary = {
         "output": output, "points_cache": points_cache, "seconds": round(result.seconds, 6),
@@ -301,10 +304,8 @@ def _eval_chunked(ui: _Ui, asset, correctives, anim, output, frames, points_cach
         raise chunks.ChunkUsageError("--chunk needs --chunk-size (every farm task must cut the shot the same way)")
     if chunk_size < 1:
         raise chunks.ChunkUsageError(f"--chunk-size {chunk_size}: must be at least 1 frame")
-    inputs = [asset, correctives, anim]
-    atomic.check_output(output, inputs, chunks.FORMATS)
-    if points_cache:
-        atomic.check_output(points_cache, [*inputs, output], chunks.FORMATS)
+    reads = api.files_read([asset, correctives, anim], deformers)
+    atomic.check_outputs([(output, chunks.FORMATS), *([(points_cache, chunks.FORMATS)] if points_cache else [])], reads)
     with _collect_warnings(ui):
         api.load_deformers(deformers)
         with ui.progress("weights") as progress:
@@ -372,7 +373,7 @@ def compare_cmd(asset, examples, anim, report_dir, vertex, mesh, frames, views, 
         meshes=(mesh,) if mesh else (), deformers=tuple(deformers),
     )
     span, view_frames = api.parse_frames(frames), report.parse_views(views)
-    report.check_report_dir(report_dir, [asset, *examples, anim])  # before the fit, not after
+    report.check_report_dir(report_dir, api.files_read([asset, *examples, anim], deformers))  # before the fit
     with _collect_warnings(ui), ui.progress("fitting examples") as progress:
         result = compare_meshes(asset, examples, anim, settings, frames=span,
                                 fit_result=api.fit(asset, examples, settings, progress=progress))
@@ -492,10 +493,16 @@ def main(argv: Sequence[str] | None = None) -> None:
     quiet = any(a in ("-q", "--quiet", "--json") for a in (argv if argv is not None else sys.argv[1:]))
     try:
         with api.usd_diagnostics() as usd_messages:
-            cli.main(args=list(argv) if argv is not None else None, prog_name="psdbake", standalone_mode=False)
+            # make_context + invoke rather than cli.main: click's main echoes a blank line on
+            # Ctrl-C (for the terminal's ^C), and a refusal must be exactly one line
+            args = list(argv) if argv is not None else sys.argv[1:]
+            with cli.make_context("psdbake", args) as ctx:
+                cli.invoke(ctx)
         if not quiet:
             for message in dict.fromkeys(usd_messages):  # USD repeats itself; once is enough
                 click.echo(f"psdbake: warning: USD: {message}", err=True)
+    except click.exceptions.Exit as exc:  # --help, --version
+        sys.exit(exc.exit_code)
     except click.exceptions.Abort:
         click.echo("psdbake: interrupted", err=True)
         sys.exit(EXIT_INTERRUPTED)

@@ -42,8 +42,14 @@ def load_deformer(spec: str) -> Factory:
             module = importlib.import_module(module_name)
     except DeformerError:
         raise
+    except SystemExit as exc:  # a deformer module cannot end the run: it fails to load (exit 5)
+        raise DeformerError(
+            f"deformer {spec!r}: importing {module_name} called sys.exit({exc.code!r}) (SystemExit): a deformer "
+            "module must not end the process"
+        ) from None
     except Exception as exc:
-        raise DeformerError(f"deformer {spec!r}: cannot import {module_name}: {type(exc).__name__}: {exc}") from None
+        first = (str(exc).strip().splitlines() or [""])[0]
+        raise DeformerError(f"deformer {spec!r}: cannot import {module_name}: {type(exc).__name__}: {first}") from None
     factory = getattr(module, attr, None)
     if not callable(factory):
         raise DeformerError(f"deformer {spec!r}: {module_name} has no callable {attr!r}")
@@ -53,3 +59,26 @@ def load_deformer(spec: str) -> Factory:
 def load_deformers(specs: Sequence[str]) -> list[tuple[str, Factory]]:
     """Load a chain of specs, in order."""
     return [(spec, load_deformer(spec)) for spec in specs]
+
+
+def deformer_files(specs: Sequence[str]) -> list[str]:
+    """The source files behind deformer specs (``file.py:factory`` or an importable module),
+    as real paths: inputs no output may overwrite. Specs that do not resolve are skipped
+    (``load_deformer`` refuses them with its own message)."""
+    found = []
+    for spec in specs:
+        module_name = spec.rpartition(":")[0]
+        if module_name.endswith(".py"):
+            origin: str | None = module_name
+        else:
+            module = sys.modules.get(module_name)
+            origin = getattr(module, "__file__", None)
+            if origin is None:
+                try:
+                    found_spec = importlib.util.find_spec(module_name)
+                except (ImportError, ValueError):
+                    found_spec = None
+                origin = found_spec.origin if found_spec else None
+        if origin and os.path.isfile(origin):
+            found.append(os.path.realpath(origin))
+    return found

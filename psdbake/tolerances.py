@@ -67,6 +67,16 @@ DEFAULT_SIGMA = 1.0
 #: The RBF must give each example a weight of at least this at its own pose.
 SELF_WEIGHT_MIN = 0.99
 
+#: Most whole frames one ``--frames START:END`` may name (eval, compare, batch chunk plans).
+#: 1,000,000 frames is 11.5 hours at 24 fps, 4.6 at 60: longer than any shot or film, so a
+#: larger range is a typo (``1:1000000000``). ``eval`` holds every frame's joint transforms
+#: (frames x joints x 128 bytes), so a range near the limit is for ``--chunk-size`` farms.
+MAX_FRAMES = 1_000_000
+
+#: Largest magnitude of a ``--frames`` bound: beyond 2**53 consecutive whole frames are no
+#: longer distinct float64 time codes.
+MAX_FRAME_MAGNITUDE = 2.0**53
+
 
 def float32_floor(points: np.ndarray) -> float:
     """Smallest residual the float32 black box can resolve for these points."""

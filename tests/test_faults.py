@@ -4,6 +4,7 @@ old file or the complete new one, never a partial one, and no temporary file is 
 from __future__ import annotations
 
 import os
+import re
 import resource
 import signal
 import subprocess
@@ -81,4 +82,115 @@ def test_two_writers_never_interleave(tmp_path):
         procs = [subprocess.Popen(_cmd(out, "--kernel", k), cwd=ROOT) for k in refs]
         assert all(p.wait(timeout=60) == 0 for p in procs)
         assert out.read_bytes() in refs.values()
+    _no_temps(tmp_path)
+
+
+# --- commands with several outputs: all land or none ---------------------------------------
+
+ANIM = fixture("arm_anim.usda")
+
+
+def _multi_output(tmp_path, command: str) -> tuple[list[str], list]:
+    """(argv, outputs) of a multi-output command, every output already holding an old file."""
+    if command == "fit --report":
+        outputs = [tmp_path / "corr.usda", tmp_path / "fit.json"]
+        argv = _cmd(outputs[0], "--report", str(outputs[1]))
+    elif command == "eval --points-cache":
+        corr = tmp_path / "in_corr.usda"
+        subprocess.run(_cmd(corr), check=True, cwd=ROOT)
+        outputs = [tmp_path / "weights.usda", tmp_path / "cache.usda"]
+        argv = [PSDBAKE, "eval", ASSET, str(corr), "--anim", ANIM, "-o", str(outputs[0]), "--points-cache",
+                str(outputs[1]), "-q", "--frames", "1:12"]
+    else:  # eval --chunk-size: 2 chunk layers, 2 manifests
+        corr = tmp_path / "in_corr.usda"
+        subprocess.run(_cmd(corr), check=True, cwd=ROOT)
+        out = tmp_path / "weights.usda"
+        argv = [PSDBAKE, "eval", ASSET, str(corr), "--anim", ANIM, "-o", str(out), "--chunk-size", "6",
+                "--frames", "1:12", "-q"]
+        subprocess.run(argv, check=True, cwd=ROOT)  # learn the file names, then make them all "old"
+        outputs = sorted(p for p in tmp_path.iterdir() if p.name.startswith("weights"))
+    for i, path in enumerate(outputs):
+        path.write_bytes(OLD + f"# old output {i}\n".encode())
+    return argv, outputs
+
+
+MULTI = ["fit --report", "eval --points-cache", "eval --chunk-size"]
+
+
+def _run_paused(argv, moment: str, marker, sig, release: bool) -> subprocess.CompletedProcess:
+    """Run until the commit's MOMENT, prove it got there (the marker), signal it, let it go."""
+    env = {**os.environ, "PSDBAKE_PAUSE_AT": f"{moment}:{marker}"}
+    proc = subprocess.Popen(argv, cwd=ROOT, env=env, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 60
+    while not os.path.exists(marker):
+        assert proc.poll() is None, f"the run ended before the {moment} moment: {proc.stderr.read()}"
+        assert time.monotonic() < deadline, f"never reached the {moment} moment"
+        time.sleep(0.01)
+    proc.send_signal(sig)
+    if release:
+        os.remove(marker)
+    _, err = proc.communicate(timeout=60)
+    return subprocess.CompletedProcess(argv, proc.returncode, "", err)
+
+
+@pytest.mark.parametrize("command", MULTI)
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
+def test_killed_before_the_commit_keeps_every_old_output(command, sig, tmp_path):
+    """Killed with every new output written to its temporary file but none renamed: the
+    run unwinds (exit 130, one line), every old output is intact, no temporary is left."""
+    argv, outputs = _multi_output(tmp_path, command)
+    old = {p: p.read_bytes() for p in outputs}
+    done = _run_paused(argv, "commit", tmp_path / "marker", sig, release=False)
+    assert done.returncode == 130, done.stderr
+    assert done.stderr.strip() == "psdbake: interrupted"
+    assert {p: p.read_bytes() for p in outputs} == old
+    _no_temps(tmp_path)
+
+
+@pytest.mark.parametrize("command", MULTI)
+def test_killed_between_renames_lands_every_new_output(command, tmp_path):
+    """SIGTERM after the first rename is held until the last one: every output is new."""
+    argv, outputs = _multi_output(tmp_path, command)
+    old = {p: p.read_bytes() for p in outputs}
+    done = _run_paused(argv, "rename", tmp_path / "marker", signal.SIGTERM, release=True)
+    assert done.returncode == 130, done.stderr
+    assert all(p.read_bytes() != old[p] for p in outputs), "some outputs are old, some new"
+    _no_temps(tmp_path)
+
+
+@pytest.mark.parametrize("command", MULTI)
+def test_sigkill_before_the_commit_keeps_every_old_output(command, tmp_path):
+    """SIGKILL cannot be handled: temporary files may stay, but no output is touched."""
+    argv, outputs = _multi_output(tmp_path, command)
+    old = {p: p.read_bytes() for p in outputs}
+    done = _run_paused(argv, "commit", tmp_path / "marker", signal.SIGKILL, release=False)
+    assert done.returncode == -signal.SIGKILL
+    assert {p: p.read_bytes() for p in outputs} == old
+
+
+@pytest.mark.parametrize("command", MULTI)
+@pytest.mark.parametrize("which", ["smallest", "largest"])
+def test_file_size_limit_keeps_every_old_output(command, which, tmp_path):
+    """A 'full disk' (RLIMIT_FSIZE) part-way through the outputs: the limit is set one byte
+    under the smallest output (the first write fails) or the largest (the others are written
+    first): exit 6, one line saying why, every old output intact, no temporary left."""
+    argv, outputs = _multi_output(tmp_path, command)
+    subprocess.run(argv, check=True, cwd=ROOT)
+    sizes = [p.stat().st_size for p in outputs]
+    limit = (min(sizes) if which == "smallest" else max(sizes)) - 1
+    for i, path in enumerate(outputs):
+        path.write_bytes(OLD + f"# old output {i}\n".encode())
+    old = {p: p.read_bytes() for p in outputs}
+
+    def small_files() -> None:
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+        resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
+
+    done = subprocess.run(argv, cwd=ROOT, capture_output=True, text=True, preexec_fn=small_files)
+    assert done.returncode == 6, done.stderr
+    lines = done.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("psdbake: error:"), done.stderr
+    assert "pxrInternal" not in lines[0] and ".cpp" not in lines[0] and ".tmp" not in lines[0], lines[0]
+    assert re.search(r"file-size limit", lines[0]), lines[0]
+    assert {p: p.read_bytes() for p in outputs} == old
     _no_temps(tmp_path)

@@ -86,6 +86,9 @@ class SkinningBlackBox:
         deformers: Sequence[tuple[str, DeformerFactory]] = (),
     ) -> None:
         scene.require_not_instanced(mesh)
+        if not np.isfinite(time):  # USD accepts a time sample at inf; no pose or frame lives there
+            raise InputError(f"{where(scene.label, mesh)}: time code {time!r} is not finite (a time sample key of "
+                             "inf in the layer): time codes must be finite numbers")
         self._scene = scene  # UsdSkel queries die with their stage: keep it alive
         self.mesh = mesh
         self.time = float(time)
@@ -143,33 +146,49 @@ class SkinningBlackBox:
 def _instantiate(spec: str, factory: DeformerFactory, scene: Scene, mesh: str, time: float) -> PointFn:
     try:
         fn = factory(scene.stage, mesh, time)
-    except Exception as exc:
+    except (Exception, SystemExit) as exc:  # a deformer cannot end the run: it fails (exit 5)
         raise DeformerError(
-            f"deformer {spec} failed to set up for {where(scene.label, mesh)} at time {time:g}: "
-            f"{type(exc).__name__}: {exc}"
+            f"deformer {spec} failed to set up for {where(scene.label, mesh)} at time {time:g}: {_why(exc)}"
         ) from None
     if not callable(fn):
         raise DeformerError(f"deformer {spec} returned {type(fn).__name__}, not a function of the points")
     return fn
 
 
+def _why(exc: BaseException) -> str:
+    """One line for an exception a deformer raised (SystemExit: it tried to end the process)."""
+    if isinstance(exc, SystemExit):
+        return f"it called sys.exit({exc.code!r}) (SystemExit): a deformer must return points or raise an error"
+    text = (str(exc).strip().splitlines() or [""])[0]
+    return f"{type(exc).__name__}: {text}"
+
+
 def _checked(spec: str, fn: PointFn, points: Points, box: SkinningBlackBox) -> Points:
+    """The deformer's output, or DeformerError: it must be an (n, 3) array of real numbers,
+    finite and within float32's range (USD stores points as float32: beyond it they become inf)."""
+    at = f"{where(box.label, box.mesh)} at time {box.time:g}"
     try:
         out = fn(points.copy())
-    except Exception as exc:
-        raise DeformerError(
-            f"deformer {spec} failed on {where(box.label, box.mesh)} at time {box.time:g}: "
-            f"{type(exc).__name__}: {exc}"
-        ) from None
-    out = np.asarray(out, dtype=np.float64) if out is not None else None
-    if out is None or out.shape != points.shape:
-        shape = None if out is None else out.shape
-        raise DeformerError(
-            f"deformer {spec} returned shape {shape} for {where(box.label, box.mesh)} "
-            f"at time {box.time:g}, expected {points.shape}"
-        )
+    except (Exception, SystemExit) as exc:  # a deformer cannot end the run: it fails (exit 5)
+        raise DeformerError(f"deformer {spec} failed on {at}: {_why(exc)}") from None
+    try:
+        array = None if out is None else np.asarray(out)
+    except (Exception, SystemExit) as exc:  # a ragged list, or an object whose __array__ fails
+        raise DeformerError(f"deformer {spec} returned a {type(out).__name__} that is not an array of numbers "
+                            f"for {at} ({_why(exc)})") from None
+    if array is None or array.dtype.kind not in "iuf":
+        kinds = {"U": "strings", "S": "bytes", "b": "booleans", "c": "complex numbers", "M": "dates", "m": "timedeltas"}
+        what = "None" if out is None else f"{type(out).__name__} of {kinds.get(array.dtype.kind, array.dtype.name)}" \
+            if array.dtype.kind != "O" else type(out).__name__
+        raise DeformerError(f"deformer {spec} returned {what} for {at}, expected an {points.shape} array of numbers")
+    out = array.astype(np.float64)
+    if out.shape != points.shape:
+        raise DeformerError(f"deformer {spec} returned shape {out.shape} for {at}, expected {points.shape}")
     if not np.all(np.isfinite(out)):
+        raise DeformerError(f"deformer {spec} returned NaN or inf for {at}")
+    if not np.abs(out).max(initial=0.0) <= FLOAT32_MAX:
         raise DeformerError(
-            f"deformer {spec} returned NaN or inf for {where(box.label, box.mesh)} at time {box.time:g}"
+            f"deformer {spec} returned values up to {np.abs(out).max():.3g} for {at}: beyond float32's range "
+            f"(+-{FLOAT32_MAX:.3g}), USD would store them as inf"
         )
     return out

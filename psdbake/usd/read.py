@@ -11,10 +11,8 @@ Gf convention: matrices are row-vector (p' = p . M); they are converted to numpy
 
 from __future__ import annotations
 
-import contextlib
 import os
-import re
-from collections.abc import Iterator, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -22,6 +20,9 @@ from numpy.typing import NDArray
 from pxr import Sdf, Tf, Usd, UsdGeom, UsdSkel
 
 from ..errors import InputError, where
+from .dependencies import layer_files, require_regular
+from .diagnostics import first_line as _first_line
+from .integrity import require_readable_crates
 
 
 @dataclass(frozen=True)
@@ -35,16 +36,6 @@ class SkinnedMesh:
     point_count: int
 
 
-def _first_line(exc: BaseException | str) -> str:
-    """USD's message without its C++ source location ("Error in '...' at line N in file ...")."""
-    text = str(exc).strip()
-    quoted = re.findall(r" : '(.*?)'\s*(?:\n|$)", text, flags=re.S)
-    if quoted:
-        text = quoted[-1]
-    lines = [line.strip() for line in text.splitlines() if line.strip()]
-    return lines[0] if lines else type(exc).__name__
-
-
 def open_layer(path: str) -> Sdf.Layer:
     """Open one input file read-only, or raise InputError naming it."""
     if not os.path.exists(path):
@@ -53,10 +44,14 @@ def open_layer(path: str) -> Sdf.Layer:
         raise InputError(f"{path}: is a folder, not a USD file")
     if not os.access(path, os.R_OK):
         raise InputError(f"{path}: file is not readable (permission denied)")
+    require_regular(path)
+    require_readable_crates([path])
     try:
         layer = Sdf.Layer.FindOrOpen(path)
     except Tf.ErrorException as exc:
         raise InputError(f"{path}: not a readable USD file ({_first_line(exc)})") from None
+    except UnicodeDecodeError:
+        raise InputError(f"{path}: not a readable USD file (it holds text that is not UTF-8)") from None
     if layer is None:
         raise InputError(f"{path}: not a readable USD file")
     # USD's time-sample queries loop forever on an infinite time-code rate: refuse it here.
@@ -78,6 +73,7 @@ def compose(files: Sequence[str | Sdf.Layer]) -> Usd.Stage:
         if any(layer.identifier == k.identifier for k in keep):
             continue  # e.g. --anim ASSET: the asset's own animation must stay weaker than CORRECTIVES
         keep.insert(0, layer)
+    layer_files(keep)  # every layer the stage will open is a regular file: no FIFO blocks composition
     for layer in keep:
         root.subLayerPaths.append(layer.identifier)
     try:
@@ -89,20 +85,6 @@ def compose(files: Sequence[str | Sdf.Layer]) -> Usd.Stage:
         raise InputError(f"{files[0]}: composition error: {_first_line(str(errors[0]))}")
     stage.psdbake_layers = keep  # keep in-memory sublayers alive as long as the stage
     return stage
-
-
-@contextlib.contextmanager
-def usd_diagnostics() -> Iterator[list[str]]:
-    """Trap USD's own warnings and errors (printed from C++ otherwise) and hand back their
-    one-line texts, so the CLI decides what users see."""
-    found: list[str] = []
-    with Tf.DiagnosticTrap() as trap:
-        try:
-            yield found
-        finally:
-            for diagnostic in list(trap.GetWarnings()) + list(trap.GetStatuses()) + list(trap.GetErrors()):
-                found.append(_first_line(getattr(diagnostic, "commentary", "") or str(diagnostic)))
-            trap.Clear()
 
 
 def _matrices(values) -> NDArray[np.float64]:
@@ -342,6 +324,8 @@ def read_driver_groups(scene: Scene, mesh: str) -> list[tuple[str, object]]:
 
 
 def _read_group(scene: Scene, mesh: str, prefix: str):
+    """One group's psd: driver data, every number validated on read (finite, shapes,
+    positivity), each refusal naming its attribute: eval then never computes NaN weights."""
     from ..posespace import WIDTH
     from ..rbf import KERNELS
     from .write import DriverData
@@ -349,25 +333,60 @@ def _read_group(scene: Scene, mesh: str, prefix: str):
     prim = scene.prim(mesh)
     label = scene.label
 
+    def at(name: str) -> str:
+        return where(label, mesh, prefix + name)
+
     def get(name: str, required: bool = True):
         attr = prim.GetAttribute(prefix + name)
         value = attr.Get() if attr else None
         if value is None and required:
-            raise InputError(f"{where(label, mesh, prefix + name)}: missing (the CORRECTIVES layer is incomplete)")
+            raise InputError(f"{at(name)}: missing (the CORRECTIVES layer is incomplete)")
         return value
 
+    def numbers(name: str, value=None) -> NDArray[np.float64]:
+        """An attribute's values as float64 (a scalar becomes one value), or refuse its type."""
+        value = get(name) if value is None else value
+        try:
+            return np.array(value, dtype=np.float64).reshape(-1)
+        except (TypeError, ValueError):
+            raise InputError(f"{at(name)}: {type(value).__name__} value is not numbers") from None
+
+    def finite(name: str, values: NDArray[np.float64], why: str = "NaN or inf would make the weights NaN"
+               ) -> NDArray[np.float64]:
+        bad = np.nonzero(~np.isfinite(values))[0]
+        if len(bad):
+            raise InputError(f"{at(name)}: value {int(bad[0])} is {float(values[bad[0]])!r}: every value must be "
+                             f"finite ({why})")
+        return values
+
+    def integers(name: str) -> NDArray[np.int64]:
+        values = numbers(name)
+        bad = np.nonzero(~np.isfinite(values) | (values != np.round(values)))[0]
+        if len(bad):
+            raise InputError(f"{at(name)}: value {int(bad[0])} is {float(values[bad[0]])!r}, not an integer")
+        return values.astype(np.int64)
+
+    def scalar(name: str) -> float:
+        values = numbers(name)
+        if len(values) != 1:
+            raise InputError(f"{at(name)}: {len(values)} values, expected one number")
+        return float(values[0])
+
     drivers = [str(d) for d in get("drivers")]
-    dims = np.array(get("dimensions"), dtype=np.int64)
+    dims = integers("dimensions")
     dim = len(dims)
     shapes = [str(s) for s in get("shapes")]
-    centers = np.array(get("centers"), dtype=np.float64)
-    powers = np.array(get("polyPowers"), dtype=np.int64)
-    coefficients = np.array(get("coefficients"), dtype=np.float64)
+    centers = numbers("centers")
+    powers = integers("polyPowers")
+    coefficients = numbers("coefficients")
     quats = get("driverBindRotations")
-    bind = np.array([[*q.GetImaginary(), q.GetReal()] for q in quats], dtype=np.float64).reshape(-1, 4)
+    try:
+        bind = np.array([[*q.GetImaginary(), q.GetReal()] for q in quats], dtype=np.float64).reshape(-1, 4)
+    except (AttributeError, TypeError, ValueError):
+        raise InputError(f"{at('driverBindRotations')}: not an array of quaternions") from None
     space = str(get("poseSpace"))
     if space not in WIDTH:
-        raise InputError(f"{where(label, mesh, prefix + 'poseSpace')}: unknown pose space {space!r}")
+        raise InputError(f"{at('poseSpace')}: unknown pose space {space!r}")
     bad_dims = dim == 0 or dims.min() < 0 or dims.max() >= WIDTH[space] * len(drivers)
     if bad_dims or centers.size % dim or powers.size % dim or len(bind) != len(drivers):
         raise InputError(f"{where(label, mesh)}: {prefix} driver data sizes do not match {len(drivers)} drivers")
@@ -376,39 +395,187 @@ def _read_group(scene: Scene, mesh: str, prefix: str):
     missing = [d for d in drivers if d not in joints]
     if missing:
         skel = skel_query.GetSkeleton().GetPrim().GetPath()
-        raise InputError(f"{where(label, mesh, prefix + 'drivers')}: joint {missing[0]!r} is not in skeleton <{skel}>")
+        raise InputError(f"{at('drivers')}: joint {missing[0]!r} is not in skeleton <{skel}>")
     if str(get("kernel")) not in KERNELS:
-        raise InputError(f"{where(label, mesh, prefix + 'kernel')}: unknown kernel {get('kernel')!r}")
+        raise InputError(f"{at('kernel')}: unknown kernel {get('kernel')!r}")
     centers = centers.reshape(-1, dim)
     powers = powers.reshape(-1, dim)
     rows = len(centers) + len(powers)
     if not shapes or coefficients.size != rows * len(shapes):
-        raise InputError(
-            f"{where(label, mesh, prefix + 'coefficients')}: expected {rows} x {len(shapes)} values, "
-            f"got {coefficients.size}"
-        )
+        raise InputError(f"{at('coefficients')}: expected {rows} x {len(shapes)} values, got {coefficients.size}")
+    # -- every number finite, every shape consistent (README: "The psd: schema") --
+    finite("centers", centers.reshape(-1))
+    finite("coefficients", coefficients)
+    sigma = scalar("sigma")
+    if not (np.isfinite(sigma) and sigma > 0):
+        raise InputError(f"{at('sigma')}: {sigma!r} is not a finite number > 0 (the RBF width in radians)")
+    smoothing = scalar("smoothing")
+    if not (np.isfinite(smoothing) and smoothing >= 0):
+        raise InputError(f"{at('smoothing')}: {smoothing!r} is not a finite number >= 0")
+    degree = integers("degree")
+    if len(degree) != 1 or degree[0] < -1:
+        shown = int(degree[0]) if len(degree) == 1 else degree.tolist()
+        raise InputError(f"{at('degree')}: {shown!r} is not one integer >= -1 (-1: no polynomial term)")
+    degree = int(degree[0])
+    _check_powers(at("polyPowers"), powers, degree, dim)
+    shift = finite("polyShift", numbers("polyShift"))
+    scale = finite("polyScale", numbers("polyScale"))
+    for name, values in (("polyShift", shift), ("polyScale", scale)):
+        if len(values) != dim:
+            raise InputError(f"{at(name)}: {len(values)} values for {dim} psd:dimensions (one per dimension)")
+    if np.any(scale == 0):
+        raise InputError(f"{at('polyScale')}: value {int(np.argmax(scale == 0))} is zero (the polynomial term "
+                         "divides by it)")
+    norms = np.linalg.norm(np.nan_to_num(bind, nan=0.0, posinf=0.0, neginf=0.0), axis=1)
+    bad = np.nonzero(~np.all(np.isfinite(bind), axis=1) | (norms < 1e-12))[0]
+    if len(bad):
+        raise InputError(f"{at('driverBindRotations')}: quaternion {int(bad[0])} (driver {drivers[bad[0]]!r}) is "
+                         f"{tuple(bind[bad[0]][[3, 0, 1, 2]].tolist())!r}: not a rotation (zero or not finite)")
+    twist = get("twistAxis", required=False)
+    twist_axis = None
+    if space == "swingTwist":
+        if twist is None:
+            raise InputError(f"{at('twistAxis')}: missing: the swingTwist pose space needs the twist axis")
+        axis = numbers("twistAxis", twist)
+        if len(axis) != 3 or not np.all(np.isfinite(axis)) or np.linalg.norm(axis) == 0:
+            raise InputError(f"{at('twistAxis')}: {tuple(axis.tolist())!r} is not a finite non-zero 3-vector")
+        twist_axis = tuple(float(v) for v in axis)
+    elif twist is not None:
+        twist_axis = tuple(float(v) for v in numbers("twistAxis", twist))
+    example_times = finite("exampleTimes", numbers("exampleTimes"), "time codes are finite numbers")
     return DriverData(
         drivers=drivers,
         bind_rotations=bind,
         pose_space=space,
-        twist_axis=tuple(float(v) for v in get("twistAxis")) if get("twistAxis", required=False) else None,
+        twist_axis=twist_axis,
         clamp_weights=bool(get("clampWeights", required=False) or False),
         normalize_weights=bool(get("normalizeWeights", required=False) or False),
         kernel=str(get("kernel")),
-        sigma=float(get("sigma")),
-        degree=int(get("degree")),
-        smoothing=float(get("smoothing")),
+        sigma=sigma,
+        degree=degree,
+        smoothing=smoothing,
         centers=centers,
         center_labels=[str(s) for s in get("centerLabels")],
         shapes=shapes,
         coefficients=coefficients.reshape(rows, len(shapes)),
         powers=powers,
-        shift=np.array(get("polyShift"), dtype=np.float64),
-        scale=np.array(get("polyScale"), dtype=np.float64),
+        shift=shift,
+        scale=scale,
         dims=dims,
-        example_times=[float(t) for t in get("exampleTimes")],
+        example_times=[float(t) for t in example_times],
         example_sources=[str(s) for s in get("exampleSources")],
     )
+
+
+def _check_powers(at: str, powers: NDArray[np.int64], degree: int, dim: int) -> None:
+    """psd:polyPowers must be the monomials of total degree <= psd:degree in dim variables
+    (scipy's RBFInterpolator's set, in any order): empty for degree -1."""
+    from math import comb
+
+    expected = comb(dim + degree, dim) if degree >= 0 else 0
+    sums = powers.sum(axis=1) if len(powers) else np.zeros(0, dtype=np.int64)
+    distinct = len({tuple(row) for row in powers.tolist()}) == len(powers)
+    if len(powers) != expected or np.any(powers < 0) or np.any(sums > degree) or not distinct:
+        raise InputError(
+            f"{at}: {len(powers)} monomials do not match psd:degree {degree} in {dim} dimensions (expected the "
+            f"{expected} distinct monomials of total degree <= {degree}{', none' if degree < 0 else ''})"
+        )
+
+
+#: What decides how UsdSkel skins a mesh: the binding (UsdSkelBindingAPI, inherited down
+#: namespace), and on Skeleton and BlendShape prims their joints, bind pose and offsets.
+_BINDING = frozenset({"skel:joints", "skel:skeleton", "skel:skinningMethod", "skel:blendShapes",
+                      "skel:blendShapeTargets"})
+_BINDING_ON = {"Skeleton": frozenset({"joints", "bindTransforms"}),
+               "BlendShape": frozenset({"offsets", "pointIndices", "normalOffsets", "inbetweens"})}
+
+
+def check_examples_binding(asset: Scene, examples: Scene, path: str) -> None:
+    """Refuse an EXAMPLES file (``examples``: the file composed over the asset) that changes
+    the skinning: the binding primvars and relationships of any prim, a Skeleton's joints or
+    bindTransforms, a BlendShape's offsets. fit would invert a skinning that eval and UsdSkel
+    (reading the asset's binding) never apply, and the correctives would miss the sculpts.
+    EXAMPLES may carry only the pose (the bound SkelAnimation) and the sculpted points."""
+    for prim in examples.stage.Traverse(Usd.TraverseInstanceProxies()):
+        original = asset.stage.GetPrimAtPath(prim.GetPath())
+        kinds = [kind for kind in _BINDING_ON if prim.IsA(getattr(UsdSkel, kind))
+                 or (original and original.IsA(getattr(UsdSkel, kind)))]
+        extra = frozenset().union(*(_BINDING_ON[k] for k in kinds))
+        for prop in prim.GetAuthoredProperties():
+            name = prop.GetName()
+            if not (name.startswith("primvars:skel:") or name in _BINDING or name in extra):
+                continue
+            before = original.GetProperty(name) if original else None
+            if not _same_property(prop, before):
+                raise InputError(
+                    f"{where(path, str(prim.GetPath()), name)}: the EXAMPLES layer re-authors the asset's skinning "
+                    "binding: EXAMPLES may only carry the pose (the bound SkelAnimation) and the sculpted points, "
+                    "because eval and UsdSkel skin with the asset's binding (change it in the asset and run "
+                    "psdbake pose again)"
+                )
+
+
+def require_finite_time_samples(scene: Scene, path: str, label: str) -> None:
+    """Refuse a time sample keyed at inf on the prim at path (in any layer of its prim stack).
+    USD lets a layer author one, but its composed queries skip it: a pose or weight keyed
+    there would be silently dropped, and no frame or example can live at inf."""
+    prim = scene.prim(path)
+    for spec in prim.GetPrimStack() if prim else []:
+        layer = spec.layer
+        file = label if layer.realPath and os.path.realpath(layer.realPath) == os.path.realpath(label) else \
+            (layer.realPath or label)
+        for attr in spec.attributes:
+            bad = [t for t in layer.ListTimeSamplesForPath(attr.path) if not np.isfinite(t)]
+            if bad:
+                raise InputError(f"{where(file, path, attr.name)}: time sample at time code {float(bad[0])!r}: "
+                                 "time codes must be finite numbers (USD's queries skip this one)")
+
+
+def require_psd_prims_skinned(scene: Scene, correctives: str, asset: str) -> None:
+    """Every prim on which the CORRECTIVES file authors psd:version must be a skinned mesh of
+    the stage: directly, or through a reference or instance of a corrected asset that
+    sublayers CORRECTIVES (the instanced-shot workflow). Anything else (CORRECTIVES fitted on
+    another asset) would be silently ignored by eval."""
+    layer = open_layer(correctives)
+    reached: set[str] = set()
+    for info in scene.skinned_meshes():
+        reached |= {str(s.path) for s in scene.prim(info.path).GetPrimStack() if s.layer.identifier == layer.identifier}
+    stray = [p for p in psd_prims(layer) if p not in reached]
+    if stray:
+        raise InputError(f"{where(correctives, stray[0])}: has correctives but is not a skinned mesh of {asset} "
+                         "(CORRECTIVES fitted on another asset?): eval would ignore them")
+
+
+def check_corrective_indices(scene: Scene, mesh: str, channels: Sequence[str], point_count: int) -> None:
+    """The BlendShapes behind channels must index only the mesh's points (a CORRECTIVES layer
+    fitted on a denser mesh at the same path would be silently clipped by UsdSkel)."""
+    for shape in read_corrective_shapes(scene, mesh, channels):
+        if len(shape.indices) and (shape.indices.min() < 0 or shape.indices.max() >= point_count):
+            raise InputError(f"{where(scene.label, mesh + '/' + shape.name, 'pointIndices')}: indices outside the "
+                             f"{point_count} points of the asset's mesh")
+
+
+def _same_property(prop: Usd.Property, other: Usd.Property | None) -> bool:
+    """Same composed value: relationship targets, or attribute default and time samples."""
+    if other is None or not other.IsValid():
+        return False
+    if isinstance(prop, Usd.Relationship) != isinstance(other, Usd.Relationship):
+        return False
+    if isinstance(prop, Usd.Relationship):
+        return list(prop.GetTargets()) == list(other.GetTargets())
+    times = list(prop.GetTimeSamples())
+    if times != list(other.GetTimeSamples()):
+        return False
+    return all(_same_value(prop.Get(t), other.Get(t)) for t in [Usd.TimeCode.Default(), *times])
+
+
+def _same_value(a, b) -> bool:
+    if a is None or b is None:
+        return a is None and b is None
+    try:
+        return bool(a == b)
+    except (TypeError, ValueError):
+        return False
 
 
 def read_corrective_shapes(scene: Scene, mesh: str, channels: Sequence[str]) -> list:

@@ -19,22 +19,66 @@ from pxr import Gf, Sdf, Tf, Usd, UsdGeom, Vt
 
 from .. import atomic
 from ..errors import InputError, OutputError
+from .dependencies import layer_files
+from .diagnostics import first_line
 
 FORMATS = (".usda", ".usdc", ".usd")
 #: Version of the psd: attribute schema written by this psdbake.
 PSD_VERSION = 2
 
 
-def export_atomic(layer: Sdf.Layer, path: str, inputs: Iterable[str] = ()) -> str:
-    """Write layer to path via temp file + fsync + rename (``atomic.replacing``)."""
-    ext = os.path.splitext(path)[1].lower()
+def files_read(inputs: Iterable[str | Sdf.Layer]) -> list[str]:
+    """Every file the given inputs read (themselves and every layer they reach through
+    sublayers, references, payloads and clips): what no output may overwrite."""
+    return layer_files([p for p in inputs if p])
+
+
+def export_all(outputs: Sequence[tuple[str, Sdf.Layer | str]], inputs: Iterable[str] = ()) -> list[str]:
+    """Write several outputs together: layers (and small text files such as a JSON report,
+    given as ``str``), every one to a temporary file first, then all renamed
+    (``atomic.Transaction``), so a failure leaves every old output in place. ``inputs``
+    are expanded to every file they read; no output may be one of them."""
+    with atomic.Transaction(files_read(inputs)) as tx:
+        for path, layer in outputs:
+            if isinstance(layer, str):
+                tmp = tx.path(path, (".json",))
+                try:
+                    with open(tmp, "w", encoding="utf-8") as fh:
+                        fh.write(layer)
+                except OSError as exc:
+                    raise OutputError(f"{path}: cannot write ({exc.strerror or exc})") from None
+                continue
+            tmp = tx.path(path, FORMATS)
+            args = {"format": "usdc"} if os.path.splitext(path)[1].lower() == ".usd" else {}
+            try:
+                written, detail = layer.Export(tmp, args=args), ""
+            except Tf.ErrorException as exc:
+                written, detail = False, first_line(exc).replace(tmp, path)
+            if not written:
+                raise OutputError(f"{path}: cannot write: {_why_not_written(tmp, detail)}")
+    return [path for path, _ in outputs]
+
+
+def _why_not_written(tmp: str, detail: str) -> str:
+    """The likely cause when USD fails to write a layer (it reports no errno: "Could not
+    close", or a crate-writer exception that speaks of a corrupt value)."""
+    import resource
+
+    limit = resource.getrlimit(resource.RLIMIT_FSIZE)[0]
+    if limit != resource.RLIM_INFINITY:
+        return f"the file-size limit (ulimit -f, RLIMIT_FSIZE) of {limit} bytes was reached"
     try:
-        with atomic.replacing(path, inputs, FORMATS) as tmp:
-            args = {"format": "usdc"} if ext == ".usd" else {}
-            if not layer.Export(tmp, args=args):
-                raise OutputError(f"{path}: USD could not write the layer")
-    except Tf.ErrorException as exc:
-        raise OutputError(f"{path}: USD could not write the layer ({str(exc).strip().splitlines()[0]})") from None
+        st = os.statvfs(os.path.dirname(tmp) or ".")
+        if st.f_bavail * st.f_frsize < 1 << 20:
+            return "no space left on the device"
+    except OSError:
+        pass
+    return f"USD could not write the layer{f' ({detail})' if detail else ''}"
+
+
+def export_atomic(layer: Sdf.Layer, path: str, inputs: Iterable[str] = ()) -> str:
+    """Write layer to path via temp file + fsync + rename (``export_all`` of one layer)."""
+    export_all([(path, layer)], inputs)
     return path
 
 

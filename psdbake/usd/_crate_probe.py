@@ -1,0 +1,88 @@
+"""Read every value of USD layer files, in a process of its own (``psdbake.usd.integrity``).
+
+Run as ``python _crate_probe.py FILE...`` with nothing but ``pxr`` imported: for each
+file it prints ``reading N``, opens the file (each layer inside a ``.usdz`` too), reads
+every field and time sample of every spec, composes the layer on a stage of its own and
+reads every property there, then prints ``ok N``. An unreadable value prints ``error N
+"MESSAGE"`` (JSON) and exits 3. A corrupt crate file can crash USD's reader (SIGSEGV,
+abort); the parent sees the signal and the last ``reading N``.
+"""
+
+from __future__ import annotations
+
+import json
+import resource
+import sys
+import zipfile
+
+#: Address-space cap of the probe: a corrupt size field must not take the machine's memory.
+_MEMORY_LIMIT = 8 << 30
+
+
+def _identifiers(path: str) -> list[str]:
+    if path.lower().endswith(".usdz"):
+        with zipfile.ZipFile(path) as package:
+            inner = [n for n in package.namelist() if n.lower().endswith((".usda", ".usdc", ".usd"))]
+        return [path] + [f"{path}[{name}]" for name in inner]
+    return [path]
+
+
+def read_every_value(identifier: str) -> None:
+    from pxr import Sdf
+
+    layer = Sdf.Layer.FindOrOpen(identifier)
+    if layer is None:
+        raise ValueError("USD cannot open it")
+    paths: list = []
+    layer.Traverse(Sdf.Path.absoluteRootPath, paths.append)
+    for path in paths:
+        str(path)  # names must be text
+        spec = layer.GetObjectAtPath(path)
+        if spec is None:
+            continue
+        for key in spec.ListInfoKeys():
+            spec.GetInfo(key)
+        if path.IsPropertyPath():
+            for t in layer.ListTimeSamplesForPath(path):
+                layer.QueryTimeSample(path, t)
+    _compose(layer)
+
+
+def _compose(layer) -> None:
+    """The layer on a stage of its own (what psdbake does next): every prim and property
+    composed and read, so composition-level faults show here, not half-way through a fit."""
+    from pxr import Usd
+
+    stage = Usd.Stage.Open(layer, Usd.Stage.LoadAll)
+    for prim in stage.TraverseAll():
+        for prop in prim.GetProperties():
+            if isinstance(prop, Usd.Attribute):
+                prop.Get()
+                prop.GetTimeSamples()
+            else:
+                prop.GetTargets()
+
+
+def main(files: list[str]) -> int:
+    try:
+        resource.setrlimit(resource.RLIMIT_AS, (_MEMORY_LIMIT, _MEMORY_LIMIT))
+    except (ValueError, OSError):
+        pass
+    for i, path in enumerate(files):
+        print(f"reading {i}", flush=True)
+        try:
+            for identifier in _identifiers(path):
+                read_every_value(identifier)
+        except Exception as exc:  # any failure is the file's: report it, the parent names the file
+            try:
+                message = str(exc) if not isinstance(exc, UnicodeDecodeError) else "text that is not UTF-8"
+            except UnicodeDecodeError:
+                message = "text that is not UTF-8"
+            print(f"error {i} {json.dumps(message)}", flush=True)
+            return 3
+        print(f"ok {i}", flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))

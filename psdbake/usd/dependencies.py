@@ -1,0 +1,126 @@
+"""Every file a command reads: the given layers and every layer they reach.
+
+Two jobs need the same walk over composition arcs (sublayers, references, payloads,
+value clips, variants included):
+
+* **nothing hangs**: USD opens the layers an input reaches by itself while composing, so
+  a FIFO or a device behind a sublayer would block it forever; every layer file is
+  checked to be a regular file *before* any stage is composed;
+* **nothing is lost**: an output must never be one of those files (or a link to one),
+  so the output guard (``psdbake.atomic``) compares outputs with this set, not only
+  with the paths typed on the command line.
+
+The walk opens layers with ``Sdf`` only (no composition) and follows each layer's
+authored asset paths, anchored to that layer, as UsdUtils' dependency extraction does.
+Missing files are skipped here: composition reports them with its own message.
+"""
+
+from __future__ import annotations
+
+import os
+import stat
+from collections.abc import Iterable
+
+from pxr import Sdf, Tf, UsdUtils
+
+from ..errors import InputError
+from .diagnostics import first_line
+from .integrity import require_readable_crates
+
+_KIND = ("sublayer", "reference", "payload")  # UsdUtils.ExtractExternalReferences' three lists
+
+
+def require_regular(path: str, referrer: str | None = None, kind: str = "layer") -> None:
+    """Refuse a layer path that exists but is not a regular file (FIFO, device, socket):
+    opening it would block or read without end."""
+    try:
+        mode = os.stat(path).st_mode
+    except OSError:
+        return  # missing or unreadable: open_layer or composition say so, naming it
+    if stat.S_ISREG(mode) or stat.S_ISDIR(mode):
+        return  # folders are refused by open_layer with their own message
+    what = "a FIFO" if stat.S_ISFIFO(mode) else "a device" if stat.S_ISCHR(mode) or stat.S_ISBLK(mode) else "not a file"
+    if referrer:
+        raise InputError(f"{referrer}: {kind} {path} is {what}, not a regular file (psdbake reads only regular files)")
+    raise InputError(f"{path}: is {what}, not a regular file (psdbake reads only regular files)")
+
+
+def _is_layer_file(path: str) -> bool:
+    ext = os.path.splitext(path)[1].lstrip(".").lower()
+    return bool(ext) and Sdf.FileFormat.FindByExtension(ext) is not None
+
+
+def _innermost(path: str) -> str:
+    """The file a (possibly package-relative) path names: ``inner.usdc`` of ``pkg.usdz[inner.usdc]``."""
+    return path.rstrip("]").rsplit("[", 1)[-1] if path.endswith("]") else path
+
+
+def _outer(path: str) -> str:
+    """A package-relative path ``pkg.usdz[inner.usdc]`` lives in ``pkg.usdz``."""
+    return path.split("[", 1)[0]
+
+
+def _arcs(layer: Sdf.Layer) -> list[tuple[str, str]]:
+    """(kind, authored asset path) of every arc layer authors, sorted."""
+    if layer.anonymous or not layer.realPath:
+        return sorted(("arc", p) for p in layer.GetCompositionAssetDependencies())
+    try:
+        groups = UsdUtils.ExtractExternalReferences(layer.identifier)
+    except Tf.ErrorException:
+        return sorted(("arc", p) for p in layer.GetCompositionAssetDependencies())
+    return sorted((kind, p) for kind, paths in zip(_KIND, groups, strict=True) for p in paths)
+
+
+def _open(path: str, referrer: str | None, kind: str) -> Sdf.Layer | None:
+    """The layer at path, None when it is not a layer file psdbake can follow. A layer that
+    an input reaches but USD cannot read is named with the layer that reaches it (the file
+    given on the command line is opened by ``read.open_layer``, which names it)."""
+    outer = _outer(path)
+    if not _is_layer_file(_innermost(path)) or not os.path.isfile(outer):
+        return None
+    try:
+        require_readable_crates([outer])
+    except InputError as exc:
+        if referrer is None:
+            raise
+        raise InputError(f"{referrer}: {kind} {exc}") from None
+    try:
+        layer = Sdf.Layer.FindOrOpen(path)
+    except Tf.ErrorException as exc:
+        if referrer is None:
+            return None
+        raise InputError(f"{referrer}: {kind} {path} is not a readable USD file ({first_line(exc)})") from None
+    return layer
+
+
+def layer_files(items: Iterable[str | Sdf.Layer]) -> list[str]:
+    """The real paths of every file the given layers read, themselves included, sorted.
+
+    Raises InputError when a reached layer file is not a regular file or cannot be read."""
+    found: set[str] = set()
+    pending: list[tuple[Sdf.Layer | str, str | None, str]] = []  # (layer or path, referrer, arc kind)
+    for item in items:
+        if not isinstance(item, Sdf.Layer):
+            require_regular(_outer(item))
+        pending.append((item, None, "layer"))
+    seen: set[str] = set()
+    while pending:
+        item, referrer, kind = pending.pop()
+        if isinstance(item, Sdf.Layer):
+            layer: Sdf.Layer | None = item
+        else:
+            if os.path.exists(_outer(item)):
+                found.add(os.path.realpath(_outer(item)))
+            layer = _open(item, referrer, kind)
+        if layer is None or layer.identifier in seen:
+            continue  # not a layer, or reached before (cycles included)
+        seen.add(layer.identifier)
+        name = layer.identifier if not layer.anonymous else (referrer or "an in-memory layer")
+        for arc, asset in _arcs(layer):
+            resolved = layer.ComputeAbsolutePath(asset) if asset else ""
+            if not resolved or not os.path.exists(_outer(resolved)):
+                continue  # missing: composition names it
+            if _is_layer_file(_innermost(resolved)):
+                require_regular(_outer(resolved), name, arc)
+            pending.append((resolved, name, arc))
+    return sorted(found)
