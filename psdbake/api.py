@@ -33,7 +33,7 @@ from .inverse import InverseResult, SculptOutOfRangeError, invert_example
 from .normals import CorrectiveNormals, PosedNormals, corrective_normals
 from .usd import write as usdwrite
 from .usd.blackbox import FLOAT32_MAX, SkinningBlackBox
-from .usd.diagnostics import usd_diagnostics
+from .usd.diagnostics import usd_diagnostics, usd_errors
 from .usd.normalbox import NormalBlackBox, read_mesh_shading
 from .usd.read import (
     DEFAULT_GROUP,
@@ -60,6 +60,7 @@ __all__ = [  # noqa: RUF022 - grouped: results, then functions
     "DEFAULT_GROUP",
     "load_deformers",
     "usd_diagnostics",
+    "usd_errors",
     "Example",
     "FitResult",
     "FitSettings",
@@ -1029,6 +1030,8 @@ def pose(asset: str, poses: str, deformers: Sequence[str] = (), *, progress: Pro
     meshes = scene.skinned_meshes()
     for info in meshes:
         validate_animation(scene, info.path)
+        if (anim_path := scene.animation_prim(info.path)) is not None:
+            require_finite_time_samples(scene, anim_path, poses)
     anims = sorted({a for m in meshes if (a := scene.animation_prim(m.path))})
     if not anims:
         raise InputError(f"{poses}: no SkelAnimation is bound to the skeleton (skel:animationSource)")

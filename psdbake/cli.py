@@ -24,7 +24,7 @@ import click
 from . import __version__, api, atomic, report
 from . import tolerances as tol
 from .compare import compare as compare_meshes
-from .errors import PsdError, PsdWarning, StrictError
+from .errors import PsdError, PsdWarning, StrictError, UsdDataError
 from .rbf import KERNELS
 
 EXIT_INTERNAL, EXIT_USAGE, EXIT_INTERRUPTED = 1, 2, 130
@@ -110,6 +110,28 @@ def cli() -> None:
 
     pose -> (artists sculpt) -> fit -> eval. See README.md for the file conventions.
     """
+
+
+_INPUT_PARAMS = ("asset", "examples", "correctives", "anim", "poses", "file", "layers", "jobs_file")
+
+
+class _Command(click.Command):
+    """A psdbake command: when USD refuses the inputs' data past psdbake's own checks
+    (``UsdDataError``), the message names this command's input files."""
+
+    def invoke(self, ctx: click.Context):
+        try:
+            with api.usd_errors():
+                return super().invoke(ctx)
+        except UsdDataError as exc:
+            files: list[str] = []
+            for name in _INPUT_PARAMS:
+                value = ctx.params.get(name)
+                files += [str(v) for v in value] if isinstance(value, (list, tuple)) else [str(value)] if value else []
+            raise UsdDataError(f"{', '.join(files) or 'the inputs'}: {exc}") from None
+
+
+cli.command_class = _Command
 
 
 @cli.command("pose")

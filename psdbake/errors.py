@@ -19,6 +19,12 @@ class InputError(PsdError):
     exit_code = 3
 
 
+class UsdDataError(InputError):
+    """USD itself refused the inputs' data half-way through a command (a ``Tf.ErrorException``
+    past psdbake's own checks): which input is at fault is not known where it is raised, so
+    the CLI names the command's input files."""
+
+
 class FitError(PsdError):
     """The inputs are readable but the fit is ill-posed (e.g. duplicate poses)."""
 

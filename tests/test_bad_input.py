@@ -129,6 +129,8 @@ ASSET_DEFECTS = {
     "zero_weights": ("zero_weights.usda", f"<{MESH}", r"zero"),
     "bind_transforms_count_mismatch": ("bind_transforms_count_mismatch.usda", f"<{SKEL}", r"bindTransforms"),
     "rest_points_nan": ("rest_points_nan.usda", f"<{MESH}", r"NaN"),
+    "joint_weights_element_size_mismatch": ("joint_weights_element_size_mismatch.usda", f"<{MESH}",
+                                            r"jointWeights has elementSize 2 .* jointIndices 4"),
 }
 
 
@@ -423,7 +425,7 @@ def test_failed_fit_keeps_old_output(failure, cli, tmp_path):
 # --- the catalogue itself ----------------------------------------------------------------
 
 #: Derived from psdbake's own fit: floating-point details may differ across machines.
-FIT_DERIVED = ("good_correctives.usda", "psd_")
+FIT_DERIVED = ("good_correctives.usda", "psd_", "crate_")
 
 
 def _tree(folder: str) -> set[str]:

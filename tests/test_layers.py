@@ -100,3 +100,59 @@ def test_regular_sublayer_chain_still_composes(cli, tmp_path):
     code, _, err = cli("fit", tmp_path / "top.usda", EXAMPLES, "-o", out, "-q")
     assert (code, err) == (0, "")
     assert out.exists()
+
+
+CRATES = {
+    # file: what the line says (the probe reads every value in a child process first)
+    "crate_value_corrupt.usdc": r"not a readable USD file \(Corrupt",
+    "crate_name_not_utf8.usdc": r"not UTF-8",
+    "crate_crashes_reader.usdc": r"crashed .*SIGSEGV",
+    "crate_value_bad_type.usdc": r"not a readable USD file",
+}
+
+
+@pytest.mark.parametrize("role", ["fit ASSET", "pose ASSET", "stack LAYER", "inspect"])
+@pytest.mark.parametrize("name", list(CRATES))
+def test_corrupt_crate_file(name, role, cli, tmp_path):
+    """Bits flipped in a binary layer: refused in one line before any work, whether the
+    damage would show late (a value read half-way through a fit) or crash USD's reader."""
+    argv, outputs = _roles(os.path.join(BAD, name), tmp_path)[role]
+    before = digest([os.path.join(BAD, name)])
+    refused(cli(*argv), EXIT_INPUT, names=[name], says=CRATES[name], outputs=outputs, inputs=before)
+
+
+def test_corrupt_crate_reached_through_a_sublayer(cli, tmp_path):
+    top = tmp_path / "top.usda"
+    top.write_text(f"#usda 1.0\n(\n    subLayers = [@{os.path.join(BAD, 'crate_crashes_reader.usdc')}@]\n)\n")
+    out = tmp_path / "corr.usda"
+    refused(cli("fit", top, EXAMPLES, "-o", out), EXIT_INPUT, names=["top.usda", "crate_crashes_reader.usdc"],
+            says=r"sublayer .*crashed", outputs=[out])
+
+
+def test_good_crate_file_is_accepted(cli, tmp_path):
+    """The probe does not refuse what is fine: the good asset as a crate file fits."""
+    from pxr import Sdf
+
+    crate = tmp_path / "asset.usdc"
+    Sdf.Layer.FindOrOpen(ASSET).Export(str(crate))
+    out = tmp_path / "corr.usda"
+    code, _, err = cli("fit", crate, EXAMPLES, "-o", out, "-q")
+    assert (code, err) == (0, "")
+    assert out.exists()
+
+
+def test_usd_refusing_data_late_names_the_inputs(cli, tmp_path, monkeypatch):
+    """A Tf.ErrorException past psdbake's own checks (USD refusing data half-way through a
+    command) is bad input naming the command's files, never an internal error or C++ text."""
+    from pxr import Tf
+
+    import psdbake.api
+
+    def refuse(*args, **kwargs):
+        raise Tf.ErrorException("Error in 'pxrInternal_v0_26_11__pxrReserved__::UsdStage::Foo' at line 5 in file "
+                                "/opt/USD/pxr/usd/usd/stage.cpp : 'Failed verification: ' value is corrupt ''")
+
+    monkeypatch.setattr(psdbake.api, "fit", refuse)
+    out = tmp_path / "corr.usda"
+    refused(cli("fit", ASSET, EXAMPLES, "-o", out), EXIT_INPUT, names=["good_asset.usda", "good_examples.usda"],
+            says=r"USD could not use the data \(Failed verification: ' value is corrupt", outputs=[out])

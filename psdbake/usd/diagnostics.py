@@ -13,6 +13,8 @@ from collections.abc import Iterator
 
 from pxr import Tf
 
+from ..errors import UsdDataError
+
 
 def first_line(exc: BaseException | str) -> str:
     """USD's message without its C++ source location ("Error in '...' at line N in file ...")."""
@@ -23,6 +25,7 @@ def first_line(exc: BaseException | str) -> str:
     quoted = re.findall(r" : '(.*?)'\s*(?:\n|$)", text, flags=re.S)
     if quoted:
         text = quoted[-1]
+    text = re.sub(r"pxrInternal_v\w*?__pxrReserved__::", "", text)  # USD's C++ namespace, e.g. in type names
     lines = [line.strip() for line in text.splitlines() if line.strip()]
     if len(lines) > 1 and lines[0].endswith(":"):  # e.g. "Cycle detected:" then the arcs of the cycle
         return re.sub(r",?@anon:[^@]*@,?", "", " ".join(lines))  # without psdbake's and USD's in-memory layers
@@ -41,3 +44,13 @@ def usd_diagnostics() -> Iterator[list[str]]:
             for diagnostic in list(trap.GetWarnings()) + list(trap.GetStatuses()) + list(trap.GetErrors()):
                 found.append(first_line(getattr(diagnostic, "commentary", "") or str(diagnostic)))
             trap.Clear()
+
+
+@contextlib.contextmanager
+def usd_errors() -> Iterator[None]:
+    """A ``Tf.ErrorException`` that escapes psdbake's own checks (USD refusing corrupt or
+    inconsistent data) becomes a ``UsdDataError`` (bad input, exit 3), not an internal error."""
+    try:
+        yield
+    except Tf.ErrorException as exc:
+        raise UsdDataError(f"USD could not use the data ({first_line(exc)})") from None

@@ -225,7 +225,10 @@ class Scene:
         value = attr.Get(Usd.TimeCode.Default())
         if value is None:
             raise InputError(f"{where(self.label, mesh, 'points')}: no rest points authored")
-        pts = np.array(value, dtype=np.float64).reshape(-1, 3)
+        try:
+            pts = np.array(value, dtype=np.float64).reshape(-1, 3)
+        except (TypeError, ValueError):
+            raise InputError(f"{where(self.label, mesh, 'points')}: is not a point array ({type(value).__name__})") from None
         if not np.all(np.isfinite(pts)):
             raise InputError(f"{where(self.label, mesh, 'points')}: rest points contain NaN or inf")
         return pts
@@ -672,6 +675,12 @@ def validate_skinning(scene: Scene, mesh: str) -> list[str]:
     indices = np.array(ind_pv.Get() or [], dtype=np.int64)
     weights = np.array(w_pv.Get() or [], dtype=np.float64)
     k = max(1, int(ind_pv.GetElementSize()))
+    k_weights, interp = max(1, int(w_pv.GetElementSize())), (ind_pv.GetInterpolation(), w_pv.GetInterpolation())
+    if k_weights != k or interp[0] != interp[1]:
+        raise InputError(
+            f"{label}: jointWeights has elementSize {k_weights} ({interp[1]}) and jointIndices {k} ({interp[0]}): "
+            "UsdSkel needs one weight per joint index, so it cannot skin these points"
+        )
     n = len(scene.rest_points(mesh))
     constant = ind_pv.GetInterpolation() == UsdGeom.Tokens.constant
     expected = k if constant else n * k
