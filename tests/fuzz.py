@@ -74,7 +74,7 @@ CLEAN_EXITS = {3, 4, 5, 6}
 NUMBER = re.compile(r"(?<![\w.])-?\d+(?:\.\d+)?(?:e[-+]?\d+)?(?![\w.])")
 TYPES = ["float3[]", "point3f[]", "int[]", "float[]", "quatf[]", "half3[]", "token[]", "double[]", "matrix4d[]",
          "string", "bool", "vector3f[]"]
-CASE_SECONDS = 60
+CASE_SECONDS = float(os.environ.get("PSDBAKE_FUZZ_CASE_SECONDS", 60))
 RECYCLE = 1000  # cases per worker process before a fresh one (bounds any slow growth)
 MEMORY_LIMIT = 4 << 30  # address space per worker: a runaway allocation fails instead of swamping the machine
 OUTPUTS = {"fit": "fit_out.usda", "weights": "weights.usda", "cache": "cache.usda"}
@@ -926,6 +926,7 @@ def run_case(case: int, seed: int, folder: str, mode: str = "text", *, capture: 
                 target, paths, mutations, arcs = (_prepare_sdf if mode == "sdf" else _prepare_usdc)(rng, cdir)
             except Exception as exc:
                 return Outcome(case, "?", True, f"skipped: case not built ({type(exc).__name__}: {exc})", mode)
+        report("target", target)
         report("mutations", mutations)
         ok, what, command, err = True, "", "", ""
         for name, argv, outputs in _commands(mode, target, paths, cdir):
@@ -1016,9 +1017,10 @@ class _Worker:
         self.ready = False
         self.mutations: list[str] = []
         self.command = ""
+        self.target = "?"
 
     def send(self, case: int) -> None:
-        self.case, self.started, self.mutations, self.command = case, time.perf_counter(), [], ""
+        self.case, self.started, self.mutations, self.command, self.target = case, time.perf_counter(), [], "", "?"
         self.proc.stdin.write(f"{case}\n".encode())
         self.proc.stdin.flush()
 
@@ -1064,12 +1066,12 @@ class _Worker:
 
 def _dead(w: _Worker, mode: str, seed: int, hang: bool) -> Outcome:
     if hang:
-        what = f"hang: more than {CASE_SECONDS} s"
+        what = f"hang: more than {CASE_SECONDS:g} s"
     else:
         rc = w.proc.returncode
         what = f"crash: killed by {signal.Signals(-rc).name}" if rc is not None and rc < 0 else f"crash: exit {rc}"
     step = w.command.split(" ", 2)[1] if w.command else "prepare"
-    return Outcome(w.case, "?", False, f"{step} {what}", mode, tuple(w.mutations), w.command, w.stderr_tail(),
+    return Outcome(w.case, w.target, False, f"{step} {what}", mode, tuple(w.mutations), w.command, w.stderr_tail(),
                    time.perf_counter() - w.started)
 
 
@@ -1139,6 +1141,8 @@ def run(cases: int, seed: int = 0, only: int | None = None, progress: bool = Fal
                     for msg in msgs:
                         if msg["kind"] == "ready":
                             w.ready = True
+                        elif msg["kind"] == "target":
+                            w.target = msg["value"]
                         elif msg["kind"] == "mutations":
                             w.mutations = msg["value"]
                         elif msg["kind"] == "command":

@@ -9,8 +9,9 @@ import pytest
 
 from tests import fuzz
 
-# cases per mode: together well under a minute on two cores
-BOUNDED = {"text": 150, "sdf": 500, "usdc": 400}
+# cases per mode: together under a minute on two cores (a usdc case costs most: psdbake
+# reads every crate input in a probe process of its own)
+BOUNDED = {"text": 150, "sdf": 500, "usdc": 80}
 
 
 @pytest.mark.parametrize("mode", fuzz.MODES)
@@ -31,7 +32,7 @@ def test_mutated_inputs_end_cleanly(mode):
 @pytest.mark.parametrize("mode", ["sdf", "usdc"])
 def test_cases_replay(mode):
     """A case's mutations depend only on (mode, seed, case): --only N replays what a run did."""
-    run = {o.case: o for o in fuzz.run(cases=6, seed=7, mode=mode, first=40)}
+    run = {o.case: o for o in fuzz.run(cases=4, seed=7, mode=mode, first=40)}
     again = fuzz.run(cases=0, seed=7, mode=mode, only=43)[0]
     assert again.mutations == run[43].mutations and again.what == run[43].what
     other = fuzz.run(cases=0, seed=8, mode=mode, only=43)[0]
