@@ -14,6 +14,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import re
 import signal
 import sys
 import warnings
@@ -532,7 +533,8 @@ def main(argv: Sequence[str] | None = None) -> None:
         exc.show()
         sys.exit(exc.exit_code)
     except PsdError as exc:
-        click.echo(f"psdbake: error: {exc}", err=True)
+        one_line = re.sub(r"\s*\n\s*", " ", str(exc).strip())  # a value's repr may span lines (a matrix)
+        click.echo(f"psdbake: error: {one_line}", err=True)
         sys.exit(exc.exit_code)
     except KeyboardInterrupt:
         click.echo("psdbake: interrupted", err=True)

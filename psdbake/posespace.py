@@ -41,11 +41,21 @@ POSE_SPACES = ("rotationVector", "swingTwist", "quaternion")
 WIDTH = {"rotationVector": 3, "swingTwist": 4, "quaternion": 9}
 
 
+#: Transform entries beyond float32's range: UsdSkel skins in float32, so such a joint or
+#: prim transform cannot be evaluated (and squaring its entries overflows float64).
+LARGEST_ENTRY = float(np.finfo(np.float32).max)
+
+
 def undefined_rotations(matrices: Matrices) -> NDArray[np.bool_]:
-    """Which transforms (..., 4, 4) have no rotation: a NaN/inf entry or a zero-scale axis."""
+    """Which transforms (..., 4, 4) have no rotation: a NaN/inf entry, an entry beyond
+    float32's range, a zero-scale axis, or axes that do not span 3-D (a degenerate frame)."""
     m = np.asarray(matrices, dtype=np.float64)
-    norms = np.linalg.norm(np.nan_to_num(m[..., :3, :3], nan=0.0, posinf=0.0, neginf=0.0), axis=-1)
-    return ~np.all(np.isfinite(m), axis=(-2, -1)) | np.any(norms < 1e-12, axis=-1)
+    usable = np.all(np.isfinite(m), axis=(-2, -1)) & np.all(np.abs(np.nan_to_num(m)) <= LARGEST_ENTRY, axis=(-2, -1))
+    block = np.where(usable[..., None, None], m[..., :3, :3], 0.0)
+    norms = np.linalg.norm(block, axis=-1)
+    unit = block / np.where(norms > 0, norms, 1.0)[..., None]
+    frame = np.abs(np.linalg.det(unit))  # 1 for orthogonal axes, 0 when they are coplanar
+    return ~usable | np.any(norms < 1e-12, axis=-1) | (frame < 1e-9)
 
 
 def rotations(matrices: Matrices) -> Rotation:

@@ -46,7 +46,7 @@ PSD_CASES = {
     "psd_sigma_zero.usda": ("sigma", r"0\.0 is not a finite number > 0"),
     "psd_coefficients_nan.usda": ("coefficients", r"value 4 is nan.*finite"),
     "psd_centers_inf.usda": ("centers", r"value 8 is inf.*finite"),
-    "psd_bind_rotation_zero.usda": ("driverBindRotations", r"quaternion 0 .*Shoulder/Elbow.*not a rotation"),
+    "psd_bind_rotation_zero.usda": ("driverBindRotations", r"quaternion 0 .*Shoulder/Elbow.*not a unit quaternion"),
     "psd_swing_twist_no_axis.usda": ("twistAxis", r"missing.*swingTwist"),
     "psd_twist_axis_zero.usda": ("twistAxis", r"not a finite non-zero"),
     "psd_smoothing_negative.usda": ("smoothing", r"-1\.0 is not a finite number >= 0"),

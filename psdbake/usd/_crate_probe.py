@@ -10,10 +10,14 @@ abort); the parent sees the signal and the last ``reading N``.
 
 from __future__ import annotations
 
+import contextlib
 import json
+import os
 import resource
 import sys
+import tempfile
 import zipfile
+from collections.abc import Callable, Iterator
 
 #: Address-space cap of the probe: a corrupt size field must not take the machine's memory.
 _MEMORY_LIMIT = 8 << 30
@@ -63,6 +67,23 @@ def _compose(layer) -> None:
                 prop.GetTargets()
 
 
+@contextlib.contextmanager
+def _stderr_of_usd() -> Iterator[Callable[[], str]]:
+    """What USD's C++ code writes straight to file descriptor 2 meanwhile (not a Tf
+    diagnostic: e.g. its crate reader's failed posix_madvise of a section past the file)."""
+    with tempfile.TemporaryFile() as capture:
+        saved = os.dup(2)
+        os.dup2(capture.fileno(), 2)
+        text: list[str] = []
+        try:
+            yield lambda: "".join(text)
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+        capture.seek(0)
+        text.append(capture.read().decode("utf-8", "replace"))
+
+
 def main(files: list[str]) -> int:
     try:
         resource.setrlimit(resource.RLIMIT_AS, (_MEMORY_LIMIT, _MEMORY_LIMIT))
@@ -71,8 +92,11 @@ def main(files: list[str]) -> int:
     for i, path in enumerate(files):
         print(f"reading {i}", flush=True)
         try:
-            for identifier in _identifiers(path):
-                read_every_value(identifier)
+            with _stderr_of_usd() as said:
+                for identifier in _identifiers(path):
+                    read_every_value(identifier)
+            if "posix_madvise" in said():  # USD mapped a section past the file's end: a corrupt size
+                raise ValueError("a crate section claims more bytes than the file holds")
         except Exception as exc:  # any failure is the file's: report it, the parent names the file
             try:
                 message = str(exc) if not isinstance(exc, UnicodeDecodeError) else "text that is not UTF-8"

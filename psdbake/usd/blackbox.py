@@ -111,7 +111,14 @@ class SkinningBlackBox:
             if not (np.isfinite(det) and abs(det) > 1e-12 * max(np.abs(m[:3, :3]).max(), 1e-300) ** 3):
                 raise InputError(f"{where(scene.label, prim_path)}: its world transform at time {time:g} is singular "
                                  "or not finite (a zero, NaN or infinite xformOp)")
-        to_local = skel_to_world @ np.linalg.inv(mesh_to_world)
+        try:
+            with np.errstate(all="ignore"):
+                to_local = skel_to_world @ np.linalg.inv(mesh_to_world)
+        except np.linalg.LinAlgError:  # LU of a matrix whose entries overflow on the way
+            to_local = np.full((4, 4), np.inf)
+        if not np.all(np.abs(to_local) <= FLOAT32_MAX):  # finite and in float32's range
+            raise InputError(f"{where(scene.label, mesh)}: its transform relative to the skeleton at time {time:g} "
+                             "is beyond float32's range (a huge xformOp)")
         self._linear, self._translate = to_local[:3, :3], to_local[3, :3]
         self._deformers: list[tuple[str, PointFn]] = [
             (spec, _instantiate(spec, factory, scene, mesh, self.time)) for spec, factory in deformers

@@ -99,10 +99,13 @@ def layer_files(items: Iterable[str | Sdf.Layer]) -> list[str]:
     Raises InputError when a reached layer file is not a regular file or cannot be read."""
     found: set[str] = set()
     pending: list[tuple[Sdf.Layer | str, str | None, str]] = []  # (layer or path, referrer, arc kind)
+    items = list(items)
     for item in items:
         if not isinstance(item, Sdf.Layer):
             require_regular(_outer(item))
         pending.append((item, None, "layer"))
+    # one probe process for every binary file given (the reached ones are probed as found)
+    require_readable_crates([_outer(i) for i in items if not isinstance(i, Sdf.Layer) and os.path.isfile(_outer(i))])
     seen: set[str] = set()
     while pending:
         item, referrer, kind = pending.pop()

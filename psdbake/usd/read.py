@@ -20,6 +20,7 @@ from numpy.typing import NDArray
 from pxr import Sdf, Tf, Usd, UsdGeom, UsdSkel
 
 from ..errors import InputError, where
+from ..posespace import undefined_rotations
 from .dependencies import layer_files, require_regular
 from .diagnostics import first_line as _first_line
 from .integrity import require_readable_crates
@@ -57,7 +58,11 @@ def open_layer(path: str) -> Sdf.Layer:
     # USD's time-sample queries loop forever on an infinite time-code rate: refuse it here.
     for key in ("timeCodesPerSecond", "framesPerSecond", "startTimeCode", "endTimeCode"):
         if layer.pseudoRoot.HasInfo(key):
-            value = float(layer.pseudoRoot.GetInfo(key))
+            raw = layer.pseudoRoot.GetInfo(key)
+            try:
+                value = float(raw)
+            except (TypeError, ValueError):
+                raise InputError(f"{path}: layer metadata {key} is {type(raw).__name__} {raw!r}, not a number") from None
             positive = key.endswith("PerSecond")
             if not np.isfinite(value) or (positive and value <= 0):
                 raise InputError(f"{path}: layer metadata {key} = {value!r} is not a {'positive ' if positive else ''}number")
@@ -92,6 +97,58 @@ def _matrices(values) -> NDArray[np.float64]:
     return np.array(values, dtype=np.float64).reshape(-1, 4, 4)
 
 
+def _types(**names: str) -> dict[str, Sdf.ValueTypeName]:
+    return {name.replace("__", ":"): getattr(Sdf.ValueTypeNames, t) for name, t in names.items()}
+
+
+#: The value type of every attribute psdbake reads, per schema (roles ignored: a float3[]
+#: where point3f[] belongs is the same data). An attribute authored with another type (a
+#: DCC that retyped it, a damaged file) is refused naming it, before any of it is used.
+_SCHEMA_TYPES = {
+    "PointBased": _types(points="Point3fArray", normals="Normal3fArray", primvars__normals="Normal3fArray",
+                         faceVertexIndices="IntArray", faceVertexCounts="IntArray",
+                         primvars__skel__jointIndices="IntArray", primvars__skel__jointWeights="FloatArray",
+                         primvars__skel__geomBindTransform="Matrix4d", primvars__skel__skinningMethod="Token",
+                         skel__joints="TokenArray", skel__blendShapes="TokenArray"),
+    "Skeleton": _types(joints="TokenArray", bindTransforms="Matrix4dArray", restTransforms="Matrix4dArray"),
+    "SkelAnimation": _types(joints="TokenArray", translations="Float3Array", rotations="QuatfArray",
+                            scales="Half3Array", blendShapes="TokenArray", blendShapeWeights="FloatArray"),
+    "BlendShape": _types(offsets="Vector3fArray", normalOffsets="Vector3fArray", pointIndices="IntArray"),
+}
+#: psd: attributes (``psd:version``, ``psd:groups``, then ``psd:[GROUP:]NAME``): the schema's types.
+_PSD_TYPES = _types(
+    version="Int", groups="TokenArray", poseSpace="Token", twistAxis="Double3", clampWeights="Bool",
+    normalizeWeights="Bool", drivers="TokenArray", driverBindRotations="QuatdArray", kernel="Token", sigma="Double",
+    degree="Int", smoothing="Double", centers="DoubleArray", centerLabels="StringArray", shapes="TokenArray",
+    coefficients="DoubleArray", polyPowers="IntArray", dimensions="IntArray", polyShift="DoubleArray",
+    polyScale="DoubleArray", exampleTimes="DoubleArray", exampleSources="StringArray",
+)
+
+
+def check_value_types(stage: Usd.Stage, label: str) -> None:
+    """Refuse an attribute psdbake reads that is authored with the wrong value type."""
+    schemas = [(UsdGeom.PointBased, _SCHEMA_TYPES["PointBased"]), (UsdSkel.Skeleton, _SCHEMA_TYPES["Skeleton"]),
+               (UsdSkel.Animation, _SCHEMA_TYPES["SkelAnimation"]), (UsdSkel.BlendShape, _SCHEMA_TYPES["BlendShape"])]
+    for prim in stage.Traverse(Usd.TraverseInstanceProxies()):
+        expected: dict[str, Sdf.ValueTypeName] = {}
+        for schema, types in schemas:
+            if prim.IsA(schema):
+                expected.update(types)
+        if prim.IsA(UsdGeom.PointBased):
+            for name in prim.GetPropertyNames():
+                if name.startswith("psd:"):
+                    leaf = name.rsplit(":", 1)[-1]
+                    if leaf in _PSD_TYPES:
+                        expected[name] = _PSD_TYPES[leaf]
+        for name, want in expected.items():
+            attr = prim.GetAttribute(name)
+            # the authored opinions' types: for a schema attribute the composed type name is the schema's
+            for spec in attr.GetPropertyStack() if attr else []:
+                if isinstance(spec, Sdf.AttributeSpec) and spec.typeName.type != want.type:
+                    raise InputError(f"{where(spec.layer.identifier, str(prim.GetPath()), name)}: authored as "
+                                     f"{spec.typeName}, where UsdSkel and psdbake read {want}")
+
+
 class Scene:
     """A composed stage with its UsdSkel cache: the skinned meshes and their skeletons."""
 
@@ -99,6 +156,7 @@ class Scene:
         self.files = list(files)
         self.label = label or str(self.files[0])
         self.stage = compose(self.files)
+        check_value_types(self.stage, self.label)
         self.cache = UsdSkel.Cache()
         # mesh -> (skinning query, skeleton query, owning SkelRoot, bound Skeleton's path)
         self._targets: dict[str, tuple[UsdSkel.SkinningQuery, UsdSkel.SkeletonQuery, str, str]] = {}
@@ -273,9 +331,19 @@ class Scene:
                 f"{where(self.label, str(skel.GetPrim().GetPath()), 'bindTransforms')}: "
                 f"{len(world)} matrices for {len(parents)} joints"
             )
+        attr = where(self.label, str(skel.GetPrim().GetPath()), "bindTransforms")
+        if undefined_rotations(world).any():
+            joint = skel_query.GetJointOrder()[int(np.argmax(undefined_rotations(world)))]
+            raise InputError(f"{attr}: joint {str(joint)!r} has a NaN, infinite, huge, zero-scale or degenerate matrix")
         local = world.copy()
         has_parent = parents >= 0
-        local[has_parent] = world[has_parent] @ np.linalg.inv(world[parents[has_parent]])
+        with np.errstate(all="ignore"):
+            local[has_parent] = world[has_parent] @ np.linalg.inv(world[parents[has_parent]])
+        bad = undefined_rotations(local)
+        if bad.any():
+            joint = skel_query.GetJointOrder()[int(np.argmax(bad))]
+            raise InputError(f"{attr}: joint {str(joint)!r} has no usable local bind transform (its parent's matrix "
+                             "cannot be inverted at float precision)")
         return local
 
     def authored_point_samples(self, layer: Sdf.Layer, mesh: str) -> list[float]:
@@ -429,11 +497,13 @@ def _read_group(scene: Scene, mesh: str, prefix: str):
     if np.any(scale == 0):
         raise InputError(f"{at('polyScale')}: value {int(np.argmax(scale == 0))} is zero (the polynomial term "
                          "divides by it)")
-    norms = np.linalg.norm(np.nan_to_num(bind, nan=0.0, posinf=0.0, neginf=0.0), axis=1)
-    bad = np.nonzero(~np.all(np.isfinite(bind), axis=1) | (norms < 1e-12))[0]
+    with np.errstate(over="ignore", invalid="ignore"):
+        norms = np.linalg.norm(np.nan_to_num(bind, nan=0.0, posinf=0.0, neginf=0.0), axis=1)
+    # psdbake writes unit quaternions; 1e-3 leaves room for hand-authored or rounded ones
+    bad = np.nonzero(~np.all(np.isfinite(bind), axis=1) | ~(np.abs(norms - 1.0) < 1e-3))[0]
     if len(bad):
         raise InputError(f"{at('driverBindRotations')}: quaternion {int(bad[0])} (driver {drivers[bad[0]]!r}) is "
-                         f"{tuple(bind[bad[0]][[3, 0, 1, 2]].tolist())!r}: not a rotation (zero or not finite)")
+                         f"{tuple(bind[bad[0]][[3, 0, 1, 2]].tolist())!r}: not a unit quaternion (a rotation)")
     twist = get("twistAxis", required=False)
     twist_axis = None
     if space == "swingTwist":
@@ -592,7 +662,7 @@ def read_corrective_shapes(scene: Scene, mesh: str, channels: Sequence[str]) -> 
     for channel in channels:
         target = by_channel.get(channel)
         prim = scene.prim(target) if target else None
-        if prim is None or not prim.IsA(UsdSkel.BlendShape):
+        if not prim or not prim.IsA(UsdSkel.BlendShape):
             raise InputError(f"{where(scene.label, mesh, 'skel:blendShapeTargets')}: no BlendShape for channel {channel!r}")
         shape = UsdSkel.BlendShape(prim)
         offsets = np.array(shape.GetOffsetsAttr().Get() or [], dtype=np.float64).reshape(-1, 3)
@@ -637,7 +707,7 @@ def existing_blend_shapes(scene: Scene, mesh: str) -> tuple[list[str], list[str]
     channels = [str(c) for c in (binding.GetBlendShapesAttr().Get() or [])]
     rel = binding.GetBlendShapeTargetsRel()
     targets = [str(t) for t in rel.GetTargets()] if rel else []
-    if channels and len(targets) != len(channels):
+    if len(targets) != len(channels):
         raise InputError(
             f"{where(scene.label, mesh, 'skel:blendShapeTargets')}: {len(targets)} targets for "
             f"{len(channels)} skel:blendShapes"
