@@ -31,12 +31,16 @@ demo: $(STAMP)
 	@echo "  shot.usda          ASSET + CORRECTIVES + ANIM + WEIGHTS stacked: open it in any UsdSkel viewer"
 	@echo "View: usdview $(OUT)/shot.usda   (compare: usdview fixtures/arm_lbs.usda with fixtures/arm_anim.usda)"
 
+LINTED := psdbake tests benchmarks fixtures/generate.py fixtures/character.py fixtures/bad/make_bad.py
+
 test: $(STAMP)
-	$(BIN)/ruff check psdbake tests benchmarks fixtures/generate.py fixtures/character.py
+	$(BIN)/ruff check $(LINTED)
+	$(BIN)/mypy
 	$(BIN)/python -m pytest -q
 
 lint: $(STAMP)
-	$(BIN)/ruff check psdbake tests benchmarks fixtures/generate.py fixtures/character.py
+	$(BIN)/ruff check $(LINTED)
+	$(BIN)/mypy
 
 fidelity: $(STAMP)
 	$(BIN)/python -m benchmarks.fidelity

@@ -31,7 +31,8 @@ sys.path.insert(0, os.path.join(os.path.dirname(HERE), "fixtures"))
 
 import generate  # noqa: E402
 
-from psdbake import api, compare  # noqa: E402
+from psdbake.report import comparison as compare  # noqa: E402
+from psdbake.settings import FitSettings  # noqa: E402
 from psdbake.usd.blackbox import SkinningBlackBox  # noqa: E402
 from psdbake.usd.read import Scene  # noqa: E402
 
@@ -108,7 +109,7 @@ def run(folder: str, truths=("sin", "linear")) -> list[Row]:
         truth_pts = np.stack(
             [SkinningBlackBox(shot_scene, generate.MESH, t)(rest + offsets(e, w)) for t, (e, w) in shot.items()]
         )
-        for label, settings in (("gaussian", api.FitSettings()), ("gaussian + linear", api.FitSettings(degree=1))):
+        for label, settings in (("gaussian", FitSettings()), ("gaussian + linear", FitSettings(degree=1))):
             m = compare.compare(asset, [examples], anim, settings).meshes[0]
             for method, pts in (("SSD", m.ssd), ("forward PSD", m.forward), ("inverse PSD", m.inverse)):
                 err = np.linalg.norm(pts - truth_pts, axis=2) / m.diagonal

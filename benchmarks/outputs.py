@@ -35,11 +35,16 @@ def _psdbake(*args: str, cwd: str = ROOT) -> None:
 
 
 def demo(out: str) -> None:
-    d = os.path.join(out, "demo")
+    """The demo's commands on copies of its fixtures inside out (so the stack's relative
+    paths do not depend on where the checkout is)."""
+    d, inputs = os.path.join(out, "demo"), os.path.join(out, "inputs")
     os.makedirs(d)
-    arm, anim = os.path.join(FIX, "arm_lbs.usda"), os.path.join(FIX, "arm_anim.usda")
-    _psdbake("pose", arm, "--anim", os.path.join(FIX, "arm_poses.usda"), "-o", os.path.join(d, "to_sculpt.usda"))
-    _psdbake("fit", arm, os.path.join(FIX, "arm_lbs_examples.usda"), "-o", os.path.join(d, "correctives.usda"))
+    os.makedirs(inputs)
+    for name in ("arm_lbs.usda", "arm_anim.usda", "arm_poses.usda", "arm_lbs_examples.usda"):
+        shutil.copy(os.path.join(FIX, name), inputs)
+    arm, anim = os.path.join(inputs, "arm_lbs.usda"), os.path.join(inputs, "arm_anim.usda")
+    _psdbake("pose", arm, "--anim", os.path.join(inputs, "arm_poses.usda"), "-o", os.path.join(d, "to_sculpt.usda"))
+    _psdbake("fit", arm, os.path.join(inputs, "arm_lbs_examples.usda"), "-o", os.path.join(d, "correctives.usda"))
     _psdbake("eval", arm, os.path.join(d, "correctives.usda"), "--anim", anim, "-o", os.path.join(d, "weights.usda"),
              "--points-cache", os.path.join(d, "points_cache.usda"))
     _psdbake("stack", os.path.join(d, "shot.usda"), arm, os.path.join(d, "correctives.usda"), anim,

@@ -20,7 +20,8 @@ import numpy as np
 from numpy.typing import NDArray
 from pxr import UsdSkel
 
-from psdbake.usd.blackbox import DeformerFactory, SkinningBlackBox
+from psdbake.deformers import DeformerFactory
+from psdbake.usd.blackbox import SkinningBlackBox
 from psdbake.usd.read import Scene
 
 from . import deformers

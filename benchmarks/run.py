@@ -48,6 +48,8 @@ import psdbake
 from psdbake import api
 from psdbake import tolerances as tol
 from psdbake.inverse import InverseResult, invert_example
+from psdbake.results import FitResult
+from psdbake.settings import FitSettings
 from psdbake.usd.read import Scene
 
 from . import references, rigs
@@ -216,9 +218,9 @@ def measure_psdbake(rig: rigs.Rig, scene: Scene) -> tuple[dict, list[InverseResu
     return summary, results
 
 
-def measure_fit(rig: rigs.Rig) -> tuple[dict, api.FitResult]:
+def measure_fit(rig: rigs.Rig) -> tuple[dict, FitResult]:
     """One full ``api.fit`` of the rig from its EXAMPLES file (read, invert, RBF)."""
-    settings = api.FitSettings(deformers=tuple(spec for spec, _ in rig.deformers))
+    settings = FitSettings(deformers=tuple(spec for spec, _ in rig.deformers))
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         started = time.perf_counter()
@@ -310,7 +312,7 @@ def blackbox_call_seconds(rig: rigs.Rig, scene: Scene, repeats: int = 5) -> floa
     return float(np.median(times))
 
 
-def bench_rig(rig: rigs.Rig) -> tuple[dict, api.FitResult]:
+def bench_rig(rig: rigs.Rig) -> tuple[dict, FitResult]:
     """Every method on one rig; returns the JSON record and the fit (for the eval benchmark)."""
     scene = rig.scene()
     log(f"{rig.name}: psdbake invert_example x{len(rig.times)}")
@@ -350,7 +352,7 @@ def _stack_stage(layers: Sequence[str]) -> Usd.Stage:
     return stage
 
 
-def measure_eval(folder: str, rig: rigs.Rig, fit_result: api.FitResult) -> dict:
+def measure_eval(folder: str, rig: rigs.Rig, fit_result: FitResult) -> dict:
     """RBF weights over EVAL_FRAMES frames; points cache vs UsdSkel.BakeSkinning over CACHE_FRAMES."""
     corr = api.write_correctives(fit_result, os.path.join(folder, "eval_correctives.usda"))
     started = time.perf_counter()

@@ -15,18 +15,28 @@ from typing import TYPE_CHECKING, Any
 
 __version__ = "0.1.0"
 
+#: The public surface, by defining module: the one list (``__all__`` and the type checker's
+#: view below are derived from it; tests/test_layering.py checks they agree).
 _EXPORTS = {
     "api": (
-        "Example", "FitResult", "FitSettings", "MeshFit", "WeightsResult", "correctives_layer", "evaluate", "fit",
-        "parse_frames", "points_cache_layer", "pose", "weights_layer", "write_correctives", "write_points_cache",
-        "write_pose", "write_weights",
+        "correctives_layer", "describe", "evaluate", "files_read", "fit", "points_cache_layer", "pose",
+        "weights_layer", "write_correctives", "write_points_cache", "write_pose", "write_stack", "write_weights",
     ),
-    "batch": ("Batch", "BatchResult", "JobResult", "load_jobs", "run_batch"),
-    "chunks": ("ChunkedWeights", "ChunkPlan", "evaluate_chunks", "plan_chunks", "write_chunks"),
-    "errors": ("DeformerError", "FitError", "InputError", "OutputError", "PsdError", "PsdWarning", "StrictError"),
+    "settings": ("FitSettings",),
+    "results": ("AnimWeights", "Example", "FitResult", "MeshFit", "PoseResult", "Progress", "WeightsResult"),
+    "frames": ("parse_frames",),
+    "farm": ("Batch", "BatchResult", "JobResult", "load_jobs", "run_batch"),
+    "farm.chunked": ("ChunkedWeights", "evaluate_chunks", "write_chunks"),
+    "farm.plan": ("ChunkPlan", "plan_chunks"),
+    "errors": (
+        "DeformerError", "FitError", "InputError", "OutputError", "PsdError", "PsdWarning", "SettingError",
+        "StrictError", "UsdDataError",
+    ),
     "inverse": ("InverseResult", "invert_example"),
     "powell": ("PowellResult", "minimize_lockstep"),
-    "rbf": ("CardinalRbf", "fit_cardinal"),
+    "rbf": ("KERNELS", "CardinalRbf", "fit_cardinal"),
+    "posespace": ("POSE_SPACES",),
+    "usd.schema": ("DriverData", "PSD_VERSION"),
 }
 _WHERE = {name: module for module, names in _EXPORTS.items() for name in names}
 
@@ -48,26 +58,39 @@ def __dir__() -> list[str]:
 
 if TYPE_CHECKING:  # for type checkers and IDEs: the same names, eagerly
     from .api import (  # noqa: F401
-        Example,
-        FitResult,
-        FitSettings,
-        MeshFit,
-        WeightsResult,
         correctives_layer,
+        describe,
         evaluate,
+        files_read,
         fit,
-        parse_frames,
         points_cache_layer,
         pose,
         weights_layer,
         write_correctives,
         write_points_cache,
         write_pose,
+        write_stack,
         write_weights,
     )
-    from .batch import Batch, BatchResult, JobResult, load_jobs, run_batch  # noqa: F401
-    from .chunks import ChunkedWeights, ChunkPlan, evaluate_chunks, plan_chunks, write_chunks  # noqa: F401
-    from .errors import DeformerError, FitError, InputError, OutputError, PsdError, PsdWarning, StrictError  # noqa: F401
+    from .errors import (  # noqa: F401
+        DeformerError,
+        FitError,
+        InputError,
+        OutputError,
+        PsdError,
+        PsdWarning,
+        SettingError,
+        StrictError,
+        UsdDataError,
+    )
+    from .farm import Batch, BatchResult, JobResult, load_jobs, run_batch  # noqa: F401
+    from .farm.chunked import ChunkedWeights, evaluate_chunks, write_chunks  # noqa: F401
+    from .farm.plan import ChunkPlan, plan_chunks  # noqa: F401
+    from .frames import parse_frames  # noqa: F401
     from .inverse import InverseResult, invert_example  # noqa: F401
+    from .posespace import POSE_SPACES  # noqa: F401
     from .powell import PowellResult, minimize_lockstep  # noqa: F401
-    from .rbf import CardinalRbf, fit_cardinal  # noqa: F401
+    from .rbf import KERNELS, CardinalRbf, fit_cardinal  # noqa: F401
+    from .results import AnimWeights, Example, FitResult, MeshFit, PoseResult, Progress, WeightsResult  # noqa: F401
+    from .settings import FitSettings  # noqa: F401
+    from .usd.schema import PSD_VERSION, DriverData  # noqa: F401

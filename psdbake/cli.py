@@ -22,11 +22,21 @@ from collections.abc import Iterator, Sequence
 
 import click
 
-from . import __version__, api, atomic, report
+from . import __version__, api, atomic, farm, report
 from . import tolerances as tol
-from .compare import compare as compare_meshes
-from .errors import PsdError, PsdWarning, StrictError, UsdDataError
+from .deformers import load_deformers
+from .errors import PsdError, PsdWarning, SettingError, StrictError, UsdDataError
+from .farm import chunked
+from .farm.plan import ChunkUsageError
+from .frames import parse_frames
+from .groups import read_correctives
+from .posespace import POSE_SPACES
 from .rbf import KERNELS
+from .report import compare as compare_meshes
+from .results import FitResult
+from .settings import FitSettings
+from .usd.diagnostics import usd_diagnostics, usd_errors
+from .usd.schema import DEFAULT_GROUP
 
 EXIT_INTERNAL, EXIT_USAGE, EXIT_INTERRUPTED = 1, 2, 130
 
@@ -113,6 +123,9 @@ def cli() -> None:
     """
 
 
+#: Library parameter -> the flag that sets it, for messages (``SettingError``).
+FLAGS = {"rtol": "--tolerance", "meshes": "--mesh", "drivers": "--driver"}
+
 _INPUT_PARAMS = ("asset", "examples", "correctives", "anim", "poses", "file", "layers", "jobs_file")
 
 
@@ -122,7 +135,7 @@ class _Command(click.Command):
 
     def invoke(self, ctx: click.Context):
         try:
-            with api.usd_errors():
+            with usd_errors():
                 return super().invoke(ctx)
         except UsdDataError as exc:
             files: list[str] = []
@@ -168,7 +181,7 @@ def pose_cmd(asset, poses, output, deformers, quiet, verbose, as_json) -> None:
               help="Polynomial degree (-1: none). Default: the kernel's minimum (none for gaussian).")
 @click.option("--smoothing", type=float, default=0.0, show_default=True, help="RBF smoothing (0 interpolates exactly).")
 @click.option("--no-rest-example", is_flag=True, help="Do not add the bind pose as an implicit zero example.")
-@click.option("--pose-space", type=click.Choice(["rotationVector", "swingTwist", "quaternion"]),
+@click.option("--pose-space", type=click.Choice(list(POSE_SPACES)),
               default="rotationVector", show_default=True, help="Pose coordinates of each driver joint (README).")
 @click.option("--twist-axis", type=(float, float, float), default=None, metavar="X Y Z",
               help="swingTwist: the twist axis in each driver's bind frame, e.g. 1 0 0 for a bone along x.")
@@ -192,16 +205,16 @@ def fit_cmd(asset, examples, output, drivers, kernel, sigma, degree, smoothing, 
             quiet, verbose, as_json) -> None:
     """Fit rest-space corrective BlendShapes and their RBF drivers from sculpted EXAMPLES."""
     ui = _Ui(quiet, verbose, as_json)
-    settings = api.FitSettings(
+    settings = FitSettings(
         drivers=tuple(drivers), kernel=kernel, sigma=sigma, degree=degree, smoothing=smoothing,
         rest_example=not no_rest_example, pose_space=pose_space, twist_axis=twist_axis,
         clamp_weights=clamp_weights, normalize_weights=normalize_weights, rtol=tolerance,
-        meshes=tuple(meshes), deformers=tuple(deformers), group=group or api.DEFAULT_GROUP,
+        meshes=tuple(meshes), deformers=tuple(deformers), group=group or DEFAULT_GROUP,
     )
     reads = api.files_read([asset, *examples], deformers)
     atomic.check_outputs([(output, LAYER_FORMATS), *([(report, REPORT_FORMATS)] if report else [])], reads)
     if group and os.path.exists(output):
-        api.read_correctives(asset, output)  # refuse a bad layer to update before the long fit
+        read_correctives(asset, output)  # refuse a bad layer to update before the long fit
     with _collect_warnings(ui):
         with ui.progress("fitting examples") as progress:
             result = api.fit(asset, examples, settings, jobs=jobs, progress=progress)
@@ -215,7 +228,7 @@ def fit_cmd(asset, examples, output, drivers, kernel, sigma, degree, smoothing, 
     _render_fit(ui, result, output)
 
 
-def fit_report(result: api.FitResult, output: str) -> dict:
+def fit_report(result: FitResult, output: str) -> dict:
     """The --report / --json payload: per mesh and example, what was solved and how well."""
     meshes = []
     for m in result.meshes:
@@ -242,7 +255,7 @@ def fit_report(result: api.FitResult, output: str) -> dict:
     }
 
 
-def _render_fit(ui: _Ui, result: api.FitResult, output: str) -> None:
+def _render_fit(ui: _Ui, result: FitResult, output: str) -> None:
     n_ex = sum(len(m.examples) for m in result.meshes)
     solved = sum(len(inv.indices) for m in result.meshes for inv in m.inverses)
     ui.say(f"psdbake fit: {len(result.meshes)} mesh(es), {n_ex} example(s), {solved} vertices solved in {result.seconds:.2f} s")
@@ -292,8 +305,8 @@ def eval_cmd(asset, correctives, anim, output, frames, points_cache, chunk_size,
         reads = api.files_read([asset, correctives, anim], deformers)
         atomic.check_outputs([(output, LAYER_FORMATS), *([(points_cache, LAYER_FORMATS)] if points_cache else [])],
                              reads)
-        span = api.parse_frames(frames)
-        api.load_deformers(deformers)
+        span = parse_frames(frames)
+        load_deformers(deformers)
         with ui.progress("weights") as progress:
             result = api.evaluate(asset, correctives, anim, frames=span, progress=progress)
         cache = None
@@ -320,22 +333,21 @@ def eval_cmd(asset, correctives, anim, output, frames, points_cache, chunk_size,
 
 def _eval_chunked(ui: _Ui, asset, correctives, anim, output, frames, points_cache, chunk_size, chunk,
                   deformers) -> None:
-    """eval --chunk-size N [--chunk K]: chunk layers plus the value-clip manifest(s) (psdbake.chunks)."""
-    from . import chunks
-
+    """eval --chunk-size N [--chunk K]: chunk layers plus the value-clip manifest(s) (psdbake.farm.chunked)."""
     if chunk_size is None:
-        raise chunks.ChunkUsageError("--chunk needs --chunk-size (every farm task must cut the shot the same way)")
+        raise ChunkUsageError("--chunk needs --chunk-size (every farm task must cut the shot the same way)")
     if chunk_size < 1:
-        raise chunks.ChunkUsageError(f"--chunk-size {chunk_size}: must be at least 1 frame")
+        raise ChunkUsageError(f"--chunk-size {chunk_size}: must be at least 1 frame")
     reads = api.files_read([asset, correctives, anim], deformers)
-    atomic.check_outputs([(output, chunks.FORMATS), *([(points_cache, chunks.FORMATS)] if points_cache else [])], reads)
+    atomic.check_outputs([(output, chunked.FORMATS), *([(points_cache, chunked.FORMATS)] if points_cache else [])],
+                         reads)
     with _collect_warnings(ui):
-        api.load_deformers(deformers)
+        load_deformers(deformers)
         with ui.progress("weights") as progress:
-            ev = chunks.evaluate_chunks(asset, correctives, anim, chunk_size, frames=api.parse_frames(frames),
-                                        chunk=chunk, progress=progress)
+            ev = chunked.evaluate_chunks(asset, correctives, anim, chunk_size, frames=parse_frames(frames),
+                                         chunk=chunk, progress=progress)
         with ui.progress("points cache") as progress:
-            written = chunks.write_chunks(ev, output, points_cache=points_cache, deformers=deformers, progress=progress)
+            written = chunked.write_chunks(ev, output, points_cache=points_cache, deformers=deformers, progress=progress)
     summary = {
         "output": written.manifest, "clip_manifest": written.clip_manifest, "points_cache": written.points_cache,
         "points_cache_clip_manifest": written.points_clip_manifest, "chunk_size": ev.plan.size,
@@ -376,7 +388,7 @@ def _eval_chunked(ui: _Ui, asset, correctives, anim, output, frames, points_cach
 @click.option("--degree", type=int, default=None, help="Polynomial degree, as for fit.")
 @click.option("--smoothing", type=float, default=0.0, show_default=True, help="RBF smoothing, as for fit.")
 @click.option("--no-rest-example", is_flag=True, help="As for fit.")
-@click.option("--pose-space", type=click.Choice(["rotationVector", "swingTwist", "quaternion"]),
+@click.option("--pose-space", type=click.Choice(list(POSE_SPACES)),
               default="rotationVector", show_default=True, help="As for fit.")
 @click.option("--twist-axis", type=(float, float, float), default=None, metavar="X Y Z", help="As for fit.")
 @click.option("--clamp-weights", is_flag=True, help="As for fit.")
@@ -389,13 +401,13 @@ def compare_cmd(asset, examples, anim, report_dir, vertex, mesh, frames, views, 
     """Fit EXAMPLES, then compare plain skinning, forward PSD and inverse PSD (same RBF weights)
     at every frame of ANIM; write an HTML report with figures and per-frame statistics."""
     ui = _Ui(quiet, verbose, as_json)
-    settings = api.FitSettings(
+    settings = FitSettings(
         drivers=tuple(drivers), kernel=kernel, sigma=sigma, degree=degree, smoothing=smoothing,
         rest_example=not no_rest_example, pose_space=pose_space, twist_axis=twist_axis,
         clamp_weights=clamp_weights, normalize_weights=normalize_weights,
         meshes=(mesh,) if mesh else (), deformers=tuple(deformers),
     )
-    span, view_frames = api.parse_frames(frames), report.parse_views(views)
+    span, view_frames = parse_frames(frames), report.parse_views(views)
     report.check_report_dir(report_dir, api.files_read([asset, *examples, anim], deformers))  # before the fit
     with _collect_warnings(ui), ui.progress("fitting examples") as progress:
         result = compare_meshes(asset, examples, anim, settings, frames=span,
@@ -465,10 +477,8 @@ def batch_cmd(jobs_file, workers, scheduler, retries, dry_run, quiet, verbose, a
     A job reading a file other jobs write runs after them; jobs writing one file run in file
     order. One line per finished job on stderr; the exit code is the first failed job's.
     """
-    from . import batch
-
     ui = _Ui(quiet, verbose, as_json)
-    jobs = batch.load_jobs(jobs_file)
+    jobs = farm.load_jobs(jobs_file, {name: cli.commands[name] for name in farm.COMMANDS})  # the CLI is the job schema
     if dry_run:
         if as_json:
             click.echo(json.dumps([{"job": t.label, "command": t.command_line, "needs": list(t.needs),
@@ -479,7 +489,7 @@ def batch_cmd(jobs_file, workers, scheduler, retries, dry_run, quiet, verbose, a
             ui.say(f"{t.label:<24} {t.command_line}" + (f"   (after {waits})" if waits else ""))
         return
 
-    def done(r: batch.JobResult, n: int, total: int) -> None:
+    def done(r: farm.JobResult, n: int, total: int) -> None:
         if r.status in ("failed", "lost"):
             code = f"exit {r.exit_code}" if r.exit_code is not None else r.status
             click.echo(f"psdbake: error: {jobs_file} {r.label} failed ({code}): {r.error}", err=True)
@@ -490,7 +500,7 @@ def batch_cmd(jobs_file, workers, scheduler, retries, dry_run, quiet, verbose, a
             for w in r.warnings:
                 click.echo(f"psdbake: warning: {jobs_file} {r.label}: {w}", err=True)
 
-    result = batch.run_batch(jobs, scheduler=scheduler, workers=workers, signal_retries=retries, on_done=done)
+    result = farm.run_batch(jobs, scheduler=scheduler, workers=workers, signal_retries=retries, on_done=done)
     if as_json:
         click.echo(json.dumps(result.summary(), sort_keys=True))
     where = f"on {scheduler} ({result.workers} workers)" if scheduler else f"on {result.workers} local worker(s)"
@@ -500,8 +510,8 @@ def batch_cmd(jobs_file, workers, scheduler, retries, dry_run, quiet, verbose, a
     if result.exit_code:
         bad = [r.label for r in result.results if r.status in ("failed", "lost")]
         skipped = result.count("skipped")
-        raise batch.BatchError(f"{jobs_file}: {len(bad)} job(s) failed: {', '.join(bad)}"
-                                + (f"; {skipped} skipped" if skipped else ""), result.exit_code)
+        raise farm.BatchError(f"{jobs_file}: {len(bad)} job(s) failed: {', '.join(bad)}"
+                               + (f"; {skipped} skipped" if skipped else ""), result.exit_code)
 
 
 def _terminate(signum, frame) -> None:
@@ -515,7 +525,7 @@ def main(argv: Sequence[str] | None = None) -> None:
         signal.signal(signal.SIGTERM, _terminate)
     quiet = any(a in ("-q", "--quiet", "--json") for a in (argv if argv is not None else sys.argv[1:]))
     try:
-        with api.usd_diagnostics() as usd_messages:
+        with usd_diagnostics() as usd_messages:
             # make_context + invoke rather than cli.main: click's main echoes a blank line on
             # Ctrl-C (for the terminal's ^C), and a refusal must be exactly one line
             args = list(argv) if argv is not None else sys.argv[1:]
@@ -531,6 +541,9 @@ def main(argv: Sequence[str] | None = None) -> None:
         sys.exit(EXIT_INTERRUPTED)
     except click.ClickException as exc:
         exc.show()
+        sys.exit(exc.exit_code)
+    except SettingError as exc:  # the library names its parameter; users know the flag
+        click.echo(f"psdbake: error: {exc.render(FLAGS.get(exc.param, '--' + exc.param.replace('_', '-')))}", err=True)
         sys.exit(exc.exit_code)
     except PsdError as exc:
         one_line = re.sub(r"\s*\n\s*", " ", str(exc).strip())  # a value's repr may span lines (a matrix)

@@ -18,12 +18,15 @@ import sys
 from collections.abc import Callable, Sequence
 from typing import Any
 
+from .arrays import Points
 from .errors import DeformerError
 
-Factory = Callable[[Any, str, float], Callable]
+PointFn = Callable[[Points], Points]  # posed points -> deformed points, mesh local space
+#: ``factory(stage, mesh_path, time)`` -> the deformer's function for that mesh and time.
+DeformerFactory = Callable[[Any, str, float], PointFn]
 
 
-def load_deformer(spec: str) -> Factory:
+def load_deformer(spec: str) -> DeformerFactory:
     """Resolve one spec to its factory, or raise DeformerError saying why."""
     module_name, sep, attr = spec.rpartition(":")
     if not sep or not module_name or not attr:
@@ -34,6 +37,8 @@ def load_deformer(spec: str) -> Factory:
                 raise DeformerError(f"deformer {spec!r}: file {module_name} not found")
             name = "psdbake_user_deformer_" + os.path.splitext(os.path.basename(module_name))[0]
             loader_spec = importlib.util.spec_from_file_location(name, module_name)
+            if loader_spec is None or loader_spec.loader is None:
+                raise DeformerError(f"deformer {spec!r}: {module_name} cannot be loaded as a Python module")
             module = importlib.util.module_from_spec(loader_spec)
             loader_spec.loader.exec_module(module)
         else:
@@ -56,7 +61,7 @@ def load_deformer(spec: str) -> Factory:
     return factory
 
 
-def load_deformers(specs: Sequence[str]) -> list[tuple[str, Factory]]:
+def load_deformers(specs: Sequence[str]) -> list[tuple[str, DeformerFactory]]:
     """Load a chain of specs, in order."""
     return [(spec, load_deformer(spec)) for spec in specs]
 

@@ -25,6 +25,18 @@ class UsdDataError(InputError):
     the CLI names the command's input files."""
 
 
+class SettingError(InputError):
+    """A setting with a bad value, named by the library's parameter (``rtol``, ``drivers``);
+    the CLI shows it under its own flag (``--tolerance``, ``--driver``) with ``render``."""
+
+    def __init__(self, param: str, value: object, problem: str, location: str = "") -> None:
+        self.param, self.value, self.problem, self.location = param, value, problem, location
+        super().__init__(self.render(param))
+
+    def render(self, name: str) -> str:
+        return f"{self.location + ': ' if self.location else ''}{name} {self.value!r}: {self.problem}"
+
+
 class FitError(PsdError):
     """The inputs are readable but the fit is ill-posed (e.g. duplicate poses)."""
 

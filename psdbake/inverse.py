@@ -28,8 +28,8 @@ from numpy.typing import NDArray
 
 from . import powell
 from . import tolerances as tol
+from .arrays import Points
 
-Points = NDArray[np.float64]  # (n, 3)
 BlackBox = Callable[[Points], Points]
 
 

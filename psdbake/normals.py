@@ -199,7 +199,7 @@ def normal_maps_from_probes(
     lengths = np.linalg.solve(np.swapaxes(safe, 1, 2), total[:, :, None])[:, :, 0]  # lengths @ rows = total
     maps = lengths[:, :, None] * safe
     maps[~good | np.any(lengths <= 0, axis=1)] = np.nan
-    return maps
+    return np.asarray(maps, dtype=np.float64)
 
 
 @dataclass(frozen=True)

@@ -30,16 +30,14 @@ determinant) block is negated before the rotation is taken.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from dataclasses import dataclass
+
 import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
-Matrices = NDArray[np.float64]  # (j, 4, 4) Gf row-vector transforms
-Quaternions = NDArray[np.float64]  # (j, 4) scalar-last (x, y, z, w), as scipy
-
-POSE_SPACES = ("rotationVector", "swingTwist", "quaternion")
-WIDTH = {"rotationVector": 3, "swingTwist": 4, "quaternion": 9}
-
+from .arrays import Matrices, Quaternions
 
 #: Transform entries beyond float32's range: UsdSkel skins in float32, so such a joint or
 #: prim transform cannot be evaluated (and squaring its entries overflows float64).
@@ -93,18 +91,44 @@ def swing_twist(delta: Rotation, axis: NDArray[np.float64]) -> tuple[Rotation, N
     return Rotation.from_quat(q) * twist.inv(), angle
 
 
+def _rotation_vector(delta: Rotation, twist_axis: NDArray[np.float64] | None) -> NDArray[np.float64]:
+    return delta.as_rotvec().reshape(-1)
+
+
+def _chordal(delta: Rotation, twist_axis: NDArray[np.float64] | None) -> NDArray[np.float64]:
+    return (delta.as_matrix().reshape(-1, 3, 3) - np.eye(3)).reshape(-1)
+
+
+def _swing_twist(delta: Rotation, twist_axis: NDArray[np.float64] | None) -> NDArray[np.float64]:
+    if twist_axis is None:
+        raise ValueError("swingTwist pose space needs a twist axis")
+    swing, twist = swing_twist(delta, twist_axis)
+    return np.concatenate([swing.as_rotvec().reshape(-1, 3), twist[:, None]], axis=1).reshape(-1)
+
+
+@dataclass(frozen=True)
+class PoseSpace:
+    """One way of turning a driver's rotation into RBF coordinates (``psd:poseSpace``)."""
+
+    width: int  # coordinates per driver
+    coordinates: Callable[[Rotation, NDArray[np.float64] | None], NDArray[np.float64]]
+    needs_twist_axis: bool = False
+
+
+#: The pose spaces, by their ``psd:poseSpace`` token: the CLI's choices, the fit's and the
+#: reader's validation all read this registry, so a new pose space is one entry here.
+POSE_SPACES: dict[str, PoseSpace] = {
+    "rotationVector": PoseSpace(3, _rotation_vector),
+    "swingTwist": PoseSpace(4, _swing_twist, needs_twist_axis=True),
+    "quaternion": PoseSpace(9, _chordal),
+}
+
+
 def features(delta: Rotation, space: str = "rotationVector", twist_axis=None) -> NDArray[np.float64]:
-    """Pose coordinates of the joints' relative rotations, concatenated: (WIDTH[space] j,)."""
-    if space == "rotationVector":
-        return delta.as_rotvec().reshape(-1)
-    if space == "quaternion":
-        return (delta.as_matrix().reshape(-1, 3, 3) - np.eye(3)).reshape(-1)
-    if space == "swingTwist":
-        if twist_axis is None:
-            raise ValueError("swingTwist pose space needs a twist axis")
-        swing, twist = swing_twist(delta, twist_axis)
-        return np.concatenate([swing.as_rotvec().reshape(-1, 3), twist[:, None]], axis=1).reshape(-1)
-    raise ValueError(f"unknown pose space {space!r}: choose one of {', '.join(POSE_SPACES)}")
+    """Pose coordinates of the joints' relative rotations, concatenated: (width j,)."""
+    if space not in POSE_SPACES:
+        raise ValueError(f"unknown pose space {space!r}: choose one of {', '.join(POSE_SPACES)}")
+    return POSE_SPACES[space].coordinates(delta, twist_axis)
 
 
 def pose_coordinates(bind_local: Matrices, local: Matrices, space: str = "rotationVector",

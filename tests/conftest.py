@@ -1,11 +1,14 @@
-"""Shared helpers: fixture paths, an in-process CLI runner, Pixar's bake of a stack."""
+"""Shared helpers: fixture paths, the in-process CLI runner (``run_cli``; fixtures ``cli``
+and ``run``), Pixar's bake of a stack (``bake``, read with ``points``)."""
 
 from __future__ import annotations
 
 import hashlib
+import io
 import os
 import re
 import sys
+import tempfile
 from collections.abc import Iterable
 
 import numpy as np
@@ -30,19 +33,46 @@ CESIUM = fixture("cesiumman", "CesiumMan.usdz")
 CESIUM_EXAMPLES = fixture("cesiumman", "cesiumman_examples.usda")
 
 
+def run_cli(*args) -> tuple[int, str, str]:
+    """Run the CLI in-process: (exit code, stdout, stderr) as file descriptors 1 and 2 saw
+    them, USD's C++ output included (USD prints from C++ straight to fd 2, so capturing
+    ``sys.stderr`` alone, as ``capsys`` does, misses lines users see). This is what
+    ``capfd`` captures, done here so that module-scoped fixtures can run the CLI too: fds 1
+    and 2 point at temporary files and ``sys.stdout``/``sys.stderr`` write through to them
+    for the call. The one CLI runner of the tests (the ``cli`` and ``run`` fixtures)."""
+    sys.stdout.flush()
+    sys.stderr.flush()
+    with tempfile.TemporaryFile() as out, tempfile.TemporaryFile() as err:
+        saved_fds, saved_streams = (os.dup(1), os.dup(2)), (sys.stdout, sys.stderr)
+        os.dup2(out.fileno(), 1)
+        os.dup2(err.fileno(), 2)
+        sys.stdout, sys.stderr = (io.TextIOWrapper(io.FileIO(fd, "w", closefd=False), encoding="utf-8",
+                                                   errors="replace", newline="", write_through=True) for fd in (1, 2))
+        try:
+            with pytest.raises(SystemExit) as exc:
+                main([str(a) for a in args])
+        finally:
+            for stream in (sys.stdout, sys.stderr):
+                stream.close()  # flushes; the fd stays open (closefd=False)
+            sys.stdout, sys.stderr = saved_streams
+            for fd, saved in zip((1, 2), saved_fds, strict=True):
+                os.dup2(saved, fd)
+                os.close(saved)
+        out.seek(0)
+        err.seek(0)
+        return exc.value.code, out.read().decode("utf-8", "replace"), err.read().decode("utf-8", "replace")
+
+
 @pytest.fixture
-def cli(capfd):
-    """Run the CLI in-process: (exit code, stdout, stderr), USD's C++ output included
-    (``capfd``, not ``capsys``: USD prints from C++ straight to file descriptor 2)."""
+def cli():
+    """The in-process CLI runner (``run_cli``) as a fixture."""
+    return run_cli
 
-    def _run(*args) -> tuple[int, str, str]:
-        capfd.readouterr()
-        with pytest.raises(SystemExit) as exc:
-            main([str(a) for a in args])
-        out, err = capfd.readouterr()
-        return exc.value.code, out, err
 
-    return _run
+@pytest.fixture
+def run():
+    """Another name for the ``cli`` fixture (the same runner), used by many tests."""
+    return run_cli
 
 
 def no_leftovers(outputs: Iterable) -> None:
@@ -107,33 +137,36 @@ def warned(result, *, names=(), says: str = "", outputs=()) -> str:
     return hits[0]
 
 
-@pytest.fixture
-def run(capsys):
-    """Run the CLI in-process: returns (exit code, stdout, stderr)."""
-
-    def _run(*args: str) -> tuple[int, str, str]:
-        with pytest.raises(SystemExit) as exc:
-            main([str(a) for a in args])
-        out, err = capsys.readouterr()
-        return exc.value.code, out, err
-
-    return _run
+_KEEP: list = []  # anonymous layers live as long as the session
 
 
-def bake_stack(layers: list[str], time: float) -> dict[str, np.ndarray]:
-    """UsdSkel.BakeSkinning of the given layers (strongest first) at time: mesh -> points."""
+def stage_of(layers: list) -> Usd.Stage:
+    """A stage over layers (paths or identifiers, strongest first) with an anonymous root as
+    its edit target, so baking writes nowhere on disk."""
     root = Sdf.Layer.CreateAnonymous(".usda")
     for path in layers:
-        root.subLayerPaths.append(path)
+        root.subLayerPaths.append(str(path))
+    _KEEP.append(root)
     stage = Usd.Stage.Open(root)
     stage.SetEditTarget(Usd.EditTarget(root))
-    skel_roots = [p for p in stage.Traverse() if p.IsA(UsdSkel.Root)]
-    meshes = []
-    for p in skel_roots:
-        meshes += [m for m in Usd.PrimRange(p) if m.IsA(UsdGeom.Mesh)]
-    for p in skel_roots:
-        assert UsdSkel.BakeSkinning(UsdSkel.Root(p), Gf.Interval(time, time))
-    return {str(m.GetPath()): np.array(UsdGeom.Mesh(m).GetPointsAttr().Get(time), dtype=np.float64) for m in meshes}
+    return stage
+
+
+def bake(layers: list | Usd.Stage, first: float, last: float | None = None) -> Usd.Stage:
+    """Pixar's ``UsdSkel.BakeSkinning`` of the stack ``layers`` (strongest first; or a stage
+    already open) over the frames first..last (last defaults to first), the one way the
+    tests bake: the whole stage at once (``stage.Traverse()``), which is how UsdSkel itself
+    bakes a stage, nested SkelRoots included. Returns the baked stage (``points`` reads it)."""
+    stage = layers if isinstance(layers, Usd.Stage) else stage_of(layers)
+    assert UsdSkel.BakeSkinning(stage.Traverse(), Gf.Interval(first, first if last is None else last))
+    return stage
+
+
+def points(stage: Usd.Stage, mesh: str, time: float, dtype=np.float64) -> np.ndarray:
+    """The points of a (baked) mesh at time, (n, 3)."""
+    prim = stage.GetPrimAtPath(mesh)
+    assert prim.IsA(UsdGeom.PointBased), f"no mesh at <{mesh}>"
+    return np.array(UsdGeom.PointBased(prim).GetPointsAttr().Get(time), dtype=dtype)
 
 
 def sculpt(path: str, mesh: str, time: float) -> np.ndarray:
@@ -145,17 +178,14 @@ def diagonal(points: np.ndarray) -> float:
     return float(np.linalg.norm(points.max(axis=0) - points.min(axis=0)))
 
 
-_KEEP: list = []  # anonymous layers live as long as the session
-
-
 def pose_only(examples: str) -> str:
     """An EXAMPLES layer without its sculpted points: the pose alone, usable as ANIM
     (else its points samples would be skinned again)."""
     layer = Sdf.Layer.CreateAnonymous(".usda")
     layer.TransferContent(Sdf.Layer.FindOrOpen(examples))
-    points: list[Sdf.Path] = []
-    layer.Traverse(Sdf.Path.absoluteRootPath, lambda p: points.append(p) if p.IsPropertyPath() and p.name == "points" else None)
-    for path in points:
+    found: list[Sdf.Path] = []
+    layer.Traverse(Sdf.Path.absoluteRootPath, lambda p: found.append(p) if p.IsPropertyPath() and p.name == "points" else None)
+    for path in found:
         layer.GetPrimAtPath(path.GetPrimPath()).RemoveProperty(layer.GetPropertyAtPath(path))
     _KEEP.append(layer)
     return layer.identifier
@@ -170,16 +200,10 @@ def baked_normal_errors(layers: list[str], mesh: str, time: float, sculpt_points
     from psdbake.normals import angle_between, vertex_normals
     from psdbake.usd.normalbox import read_mesh_shading
 
-    root = Sdf.Layer.CreateAnonymous(".usda")
-    for path in layers:
-        root.subLayerPaths.append(path)
-    stage = Usd.Stage.Open(root)
-    stage.SetEditTarget(Usd.EditTarget(root))
+    stage = stage_of(layers)
     shading = read_mesh_shading(stage.GetPrimAtPath(mesh))
     assert shading.normals is not None, shading.why_not
-    for p in [p for p in stage.Traverse() if p.IsA(UsdSkel.Root)]:
-        assert UsdSkel.BakeSkinning(UsdSkel.Root(p), Gf.Interval(time, time))
-    geom = UsdGeom.Mesh(stage.GetPrimAtPath(mesh))
-    baked = np.array(geom.GetNormalsAttr().Get(time), dtype=np.float64)
-    points = np.array(geom.GetPointsAttr().Get(time), dtype=np.float64) if sculpt_points is None else sculpt_points
-    return angle_between(baked, vertex_normals(points, shading.topology))
+    bake(stage, time)
+    baked = np.array(UsdGeom.Mesh(stage.GetPrimAtPath(mesh)).GetNormalsAttr().Get(time), dtype=np.float64)
+    shape = points(stage, mesh, time) if sculpt_points is None else sculpt_points
+    return angle_between(baked, vertex_normals(shape, shading.topology))

@@ -23,14 +23,12 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
-from conftest import generate
+from conftest import generate, stage_of
 from pxr import Gf, Sdf, Usd, UsdGeom, UsdSkel, Vt
 
 SPEC = generate.ArmSpec(rings=12, segments=8)  # 96 points: fast, and every feature of the arm rig
 TIMES = (1.0, 2.0, 3.0)
 Pose = dict  # joint leaf name -> (axis, degrees), as generate.EXAMPLE_POSES
-
-_KEEP: list = []  # anonymous layers must outlive the stages that use them
 
 
 @dataclass(frozen=True)
@@ -62,26 +60,6 @@ def bulge(spec: generate.ArmSpec = SPEC, scale: float = 1.0) -> Callable[[float]
     g_inv = np.linalg.inv(np.array(generate.geom_bind_matrix(), dtype=np.float64)[:3, :3])
     angles = {t: (p.get("Elbow", (None, 0.0))[1], p.get("Wrist", (None, 0.0))[1]) for t, p in generate.EXAMPLE_POSES.items()}
     return lambda t: scale * generate.elbow_bulge(bind, *angles[t]) @ g_inv
-
-
-def stage_of(layers: list[str]) -> Usd.Stage:
-    """A stage over layers (strongest first), edits going to an anonymous session-like root."""
-    root = Sdf.Layer.CreateAnonymous(".usda")
-    for path in layers:
-        root.subLayerPaths.append(path)
-    _KEEP.append(root)
-    stage = Usd.Stage.Open(root)
-    stage.SetEditTarget(Usd.EditTarget(root))
-    return stage
-
-
-def bake(layers: list[str], time: float, meshes: list[str]) -> dict[str, np.ndarray]:
-    """``UsdSkel.BakeSkinning`` over the whole stage (each SkelRoot found in a traversal,
-    nested ones included, which is how UsdSkel itself bakes a stage) at time: mesh -> points."""
-    stage = stage_of(layers)
-    assert UsdSkel.BakeSkinning(stage.Traverse(), Gf.Interval(time, time))
-    return {m: np.array(UsdGeom.PointBased(stage.GetPrimAtPath(m)).GetPointsAttr().Get(time), dtype=np.float64)
-            for m in meshes}
 
 
 def bake_sculpts(layers: list[str], offsets: dict[str, Callable[[float], np.ndarray]]) -> dict:

@@ -7,8 +7,9 @@ The defective files live in ``fixtures/bad/`` (one defect each, written from sma
 baselines by ``fixtures/bad/make_bad.py``). Permission cases (chmod 000, read-only
 folders) are made in ``tmp_path`` because git cannot carry them.
 
-The CLI runs in-process with ``capfd`` (not ``capsys``): USD prints its own warnings
-from C++ straight to file descriptor 2, and users see those lines too.
+The CLI runs in-process with its output captured at the file descriptors (conftest's
+``run_cli``, as ``capfd`` does): USD prints its own warnings from C++ straight to file
+descriptor 2, and users see those lines too.
 """
 
 from __future__ import annotations

@@ -17,8 +17,9 @@ from pathlib import Path
 import pytest
 from conftest import fixture
 
-from psdbake import batch
+from psdbake import farm
 from psdbake.cli import cli
+from psdbake.errors import InputError, PsdError
 
 ASSET, EXAMPLES = fixture("arm_lbs.usda"), fixture("arm_lbs_examples.usda")
 POSES, ANIM = fixture("arm_poses.usda"), fixture("arm_anim.usda")
@@ -63,6 +64,11 @@ OUTPUTS = (
       for part in ("", ".clipmanifest", ".f0001-0200", ".f0201-0400", ".f0401-0600")),
 )
 TASKS = 7  # pose, 2 fits, 3 eval chunks, stack
+COMMANDS = {name: cli.commands[name] for name in farm.COMMANDS}  # what psdbake batch passes: the CLI is the schema
+
+
+def load_jobs(path: str) -> farm.Batch:
+    return farm.load_jobs(path, COMMANDS)
 
 
 def jobs_file(folder: Path, text: str) -> str:
@@ -107,7 +113,7 @@ correctives = "out/c.usda"
 anim = "shot.usda"
 output = "out/w.usda"
 """)
-    jobs = batch.load_jobs(path)
+    jobs = load_jobs(path)
     fit, ev = jobs.tasks
     assert fit.args == (
         "--output=out/c.usda", "--driver=Elbow", "--kernel=cubic", "--sigma=0.25", "--degree=-1", "--no-rest-example",
@@ -156,7 +162,7 @@ asset = "a.usda"
 anim = "poses.usda"
 output = "other.usda"
 """)
-    tasks = batch.load_jobs(path).tasks
+    tasks = load_jobs(path).tasks
     labels = [t.label for t in tasks]
     assert labels == ["[[pose]] #1", "[[fit]] #1", "[[fit]] #2", "[[eval]] #1", "[[stack]] #1", "[[pose]] #2"]
     key = {t.label: t.key for t in tasks}
@@ -167,23 +173,23 @@ output = "other.usda"
     assert by["[[stack]] #1"].needs == (key["[[fit]] #1"], key["[[fit]] #2"], key["[[eval]] #1"])
     assert by["[[pose]] #2"].needs == by["[[pose]] #2"].after == ()
     assert len(set(key.values())) == len(tasks)
-    assert [t.key for t in batch.load_jobs(path).tasks] == [t.key for t in tasks]  # deterministic keys
+    assert [t.key for t in load_jobs(path).tasks] == [t.key for t in tasks]  # deterministic keys
 
 
 MANIFESTS = ("out/w.usda", "out/w.clipmanifest.usda", "out/p.usdc", "out/p.clipmanifest.usdc")
 
 
 def test_eval_chunks_are_cut_as_eval_cuts_them():
-    parts = batch.eval_chunks("out/w.usda", "out/p.usdc", "1:10", 4)
+    parts = farm.eval_chunks("out/w.usda", "out/p.usdc", "1:10", 4)
     assert parts == [
         (1, ("out/w.f0001-0004.usda", "out/p.f0001-0004.usdc", *MANIFESTS)),
         (2, ("out/w.f0005-0008.usda", "out/p.f0005-0008.usdc", *MANIFESTS)),
         (3, ("out/w.f0009-0010.usda", "out/p.f0009-0010.usdc", *MANIFESTS)),
     ]
-    assert [k for k, _ in batch.eval_chunks("w.usda", None, "0.5:1000.5", 100)] == list(range(1, 11))
-    assert batch.eval_chunks("w.usda", None, "-5:4", 5)[0][1] == ("w.fm0005-m0001.usda", "w.usda", "w.clipmanifest.usda")
-    with pytest.raises(batch.PsdError, match="no whole frame"):
-        batch.eval_chunks("w.usda", None, "1.2:1.8", 10)
+    assert [k for k, _ in farm.eval_chunks("w.usda", None, "0.5:1000.5", 100)] == list(range(1, 11))
+    assert farm.eval_chunks("w.usda", None, "-5:4", 5)[0][1] == ("w.fm0005-m0001.usda", "w.usda", "w.clipmanifest.usda")
+    with pytest.raises(PsdError, match="no whole frame"):
+        farm.eval_chunks("w.usda", None, "1.2:1.8", 10)
 
 
 def test_a_chunked_eval_is_one_task_per_chunk(tmp_path):
@@ -200,7 +206,7 @@ chunk_size = 100
 output = "view.usda"
 layers = ["a.usda", "c.usda", "shot.usda", "w.usda"]
 """)
-    tasks = batch.load_jobs(path).tasks
+    tasks = load_jobs(path).tasks
     chunks = tasks[:3]
     assert [t.label for t in chunks] == ["[[eval]] #1 chunk 1/3", "[[eval]] #1 chunk 2/3", "[[eval]] #1 chunk 3/3"]
     for k, t in enumerate(chunks, start=1):
@@ -212,8 +218,8 @@ layers = ["a.usda", "c.usda", "shot.usda", "w.usda"]
     assert tasks[3].needs == tuple(t.key for t in chunks)  # the reader waits for every chunk
     head = '[[eval]]\nasset = "a.usda"\ncorrectives = "c.usda"\nanim = "s.usda"\noutput = "w.usda"\n'
     for extra, message in [("chunk_size = 10", "chunk_size needs frames"), ('frames = "1:5"\nchunk_size = 0', "at least 1")]:
-        with pytest.raises(batch.InputError, match=r"jobs.toml \[\[eval\]\] #1: .*" + message):
-            batch.load_jobs(jobs_file(tmp_path / "bad", head + extra))
+        with pytest.raises(InputError, match=r"jobs.toml \[\[eval\]\] #1: .*" + message):
+            load_jobs(jobs_file(tmp_path / "bad", head + extra))
 
 
 GOOD_FIT = '[[fit]]\nasset = "a.usda"\nexamples = ["e.usda"]\noutput = "out/c.usda"\n'
@@ -263,7 +269,7 @@ def test_missing_jobs_file(run, tmp_path):
 def local_run(tmp_path_factory) -> tuple[Path, dict]:
     folder = tmp_path_factory.mktemp("batch") / "local"
     path = jobs_file(folder, PIPELINE)
-    summary = batch.run_batch(batch.load_jobs(path), workers=2).summary()
+    summary = farm.run_batch(load_jobs(path), workers=2).summary()
     return folder, summary
 
 
@@ -339,7 +345,7 @@ def _kill_first_job(parents, what: str, sig: int, found: dict, stop: threading.E
         for parent in parents():
             for child in _children(parent):
                 line = _cmdline(child)
-                if "psdbake._job" in line and f" {what} " in line:
+                if "psdbake.farm.job" in line and f" {what} " in line:
                     found.update(parent=parent, job=child, chunk=int(re.search(r"--chunk=(\d+)", line).group(1)))
                     os.kill(child if parent == os.getpid() else parent, sig)
                     return
@@ -348,7 +354,7 @@ def _kill_first_job(parents, what: str, sig: int, found: dict, stop: threading.E
 
 def _wait_gone(pid: int) -> None:
     for _ in range(3000):  # a killed worker's job unwinds on SIGTERM; bounded so a survivor fails the test
-        if not os.path.exists(f"/proc/{pid}") or "psdbake._job" not in _cmdline(pid):
+        if not os.path.exists(f"/proc/{pid}") or "psdbake.farm.job" not in _cmdline(pid):
             return
         time.sleep(0.01)
     raise AssertionError(f"job process {pid} outlived its killed worker")
@@ -356,12 +362,12 @@ def _wait_gone(pid: int) -> None:
 
 def test_local_job_killed_by_a_signal_is_rerun(local_run, tmp_path):
     folder = tmp_path / "killed_local"
-    jobs = batch.load_jobs(jobs_file(folder, PIPELINE))
+    jobs = load_jobs(jobs_file(folder, PIPELINE))
     found, stop = {}, threading.Event()
     killer = threading.Thread(target=_kill_first_job, args=(lambda: [os.getpid()], "eval", signal.SIGKILL, found, stop))
     killer.start()
     try:
-        result = batch.run_batch(jobs, workers=2)
+        result = farm.run_batch(jobs, workers=2)
     finally:
         stop.set()
         killer.join()
@@ -400,13 +406,13 @@ def test_dask_cluster_gives_the_local_outputs_byte_for_byte(cluster, local_run, 
 def test_dask_batch_survives_a_worker_killed_mid_job(cluster, local_run, tmp_path):
     c, client = cluster
     folder = tmp_path / "dask_killed"
-    jobs = batch.load_jobs(jobs_file(folder, PIPELINE))
+    jobs = load_jobs(jobs_file(folder, PIPELINE))
     pids = set(client.run(os.getpid).values())
     found, stop = {}, threading.Event()
     killer = threading.Thread(target=_kill_first_job, args=(lambda: sorted(pids), "eval", signal.SIGKILL, found, stop))
     killer.start()
     try:
-        result = batch.run_batch(jobs, scheduler=c.scheduler_address)
+        result = farm.run_batch(jobs, scheduler=c.scheduler_address)
     finally:
         stop.set()
         killer.join()
@@ -432,7 +438,7 @@ def test_scheduler_without_dask_is_a_usage_error(run, tmp_path, monkeypatch):
 
 def test_bad_scheduler_address_is_one_line(run, tmp_path, monkeypatch):
     pytest.importorskip("distributed")
-    from psdbake import batch_dask
+    from psdbake.farm.backends import dask as dask_backend
 
     path = jobs_file(tmp_path, GOOD_FIT)
     code, _, err = run("batch", path, "--scheduler", "udp://127.0.0.1:8786")
@@ -440,7 +446,7 @@ def test_bad_scheduler_address_is_one_line(run, tmp_path, monkeypatch):
     with socket.socket() as s:  # a port nothing listens on
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
-    monkeypatch.setattr(batch_dask, "CONNECT_TIMEOUT", 1.0)
+    monkeypatch.setattr(dask_backend, "CONNECT_TIMEOUT", 1.0)
     code, _, err = run("batch", path, "--scheduler", f"tcp://127.0.0.1:{port}")
     assert code == 3 and err.startswith(f"psdbake: error: --scheduler tcp://127.0.0.1:{port}: cannot connect (")
     assert err.count("\n") == 1 and not (tmp_path / "out").exists()  # nothing ran, no folder made

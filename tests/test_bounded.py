@@ -1,9 +1,9 @@
 """Bounded input and documented exits (issue 10): nothing blocks, nothing is read or allocated
 without a limit, and signals and crashed workers end in one line and a documented exit code.
 
-Jobs files must be regular files of at most ``batch.MAX_JOBS_FILE_BYTES`` and no job may
+Jobs files must be regular files of at most ``farm.MAX_JOBS_FILE_BYTES`` and no job may
 write the jobs file or a ``--deformer`` source; ``--frames`` ranges are counted by arithmetic
-(``tolerances.MAX_FRAMES``, ``chunks.MAX_CHUNKS``) and chunk plans made lazily; a scheduler
+(``tolerances.MAX_FRAMES``, ``farm.MAX_CHUNKS``) and chunk plans made lazily; a scheduler
 that never answers is refused after ``PSDBAKE_SCHEDULER_TIMEOUT`` seconds; SIGTERM/SIGINT of
 ``fit --jobs 2`` ends its workers at once (130); a worker killed under a deformer is exit 5
 naming the deformer and the example; a signal during start-up is 130 with the one line.
@@ -23,7 +23,7 @@ import tracemalloc
 import pytest
 from conftest import FIXTURES, digest, fixture, refused
 
-from psdbake import batch, chunks
+from psdbake import farm
 from psdbake import tolerances as tol
 
 BAD = os.path.join(FIXTURES, "bad")
@@ -61,9 +61,9 @@ def test_jobs_file_must_be_a_regular_file(kind, says, cli, tmp_path):
 
 def test_jobs_file_size_is_capped(cli, tmp_path):
     path = tmp_path / "jobs.toml"
-    path.write_bytes(b"# " + b"x" * batch.MAX_JOBS_FILE_BYTES + b"\n")
+    path.write_bytes(b"# " + b"x" * farm.MAX_JOBS_FILE_BYTES + b"\n")
     before = digest([path])
-    refused(cli("batch", path, "--dry-run"), EXIT_INPUT, names=[str(path)], says=str(batch.MAX_JOBS_FILE_BYTES),
+    refused(cli("batch", path, "--dry-run"), EXIT_INPUT, names=[str(path)], says=str(farm.MAX_JOBS_FILE_BYTES),
             inputs=before)
 
 
@@ -113,13 +113,13 @@ def test_eval_frames_refused(frames, chunk, says, cli, tmp_path):
 def test_too_many_chunks_refused(cli, tmp_path):
     out = tmp_path / "w.usda"
     refused(cli("eval", ASSET, CORRECTIVES, "--anim", ANIM, "-o", out, "--frames", "1:1000000", "--chunk-size", "10"),
-            EXIT_USAGE, names=["--chunk-size"], says=str(chunks.MAX_CHUNKS), outputs=[out])
+            EXIT_USAGE, names=["--chunk-size"], says=str(farm.MAX_CHUNKS), outputs=[out])
 
 
 def test_chunk_plan_is_lazy():
     tracemalloc.start()
     try:
-        plan = chunks.plan_frames((1.0, float(tol.MAX_FRAMES)), 100)
+        plan = farm.plan_frames((1.0, float(tol.MAX_FRAMES)), 100)
         c = plan.chunk(5000)
         assert (len(plan.chunks), plan.first, plan.last, plan.width) == (10_000, 1.0, 1e6, 7)
         assert (c.first, c.last, len(c.times)) == (499_901.0, 500_000.0, 100)
@@ -127,7 +127,7 @@ def test_chunk_plan_is_lazy():
     finally:
         tracemalloc.stop()
     assert peak < 100_000, f"planning one chunk of a million frames allocated {peak} bytes"
-    with pytest.raises(chunks.ChunkUsageError, match=r"1\.\.10000"):
+    with pytest.raises(farm.ChunkUsageError, match=r"1\.\.10000"):
         plan.chunk(10_001)
 
 

@@ -19,7 +19,7 @@ import sys
 import character
 import numpy as np
 import pytest
-from conftest import ROOT, bake_stack, diagonal, fixture, pose_only, sculpt
+from conftest import ROOT, bake, diagonal, fixture, points, pose_only, run_cli, sculpt
 from pxr import Sdf, Usd
 
 ROUNDTRIP_RTOL = 1e-5
@@ -39,14 +39,9 @@ def fit_groups(run, out, order=("l_elbow", "r_elbow", "neck")) -> None:
 
 @pytest.fixture(scope="module")
 def fitted(tmp_path_factory):
-    """The three group fits into one layer (run in a subprocess-free CLI call each)."""
-    from psdbake.cli import main
-
+    """The three group fits into one layer (an in-process CLI call each)."""
     out = tmp_path_factory.mktemp("character") / "correctives.usda"
-    for group in ("l_elbow", "r_elbow", "neck"):
-        with pytest.raises(SystemExit) as exc:
-            main(["fit", ASSET, *examples_of(group), "--group", group, "-o", str(out), "-q"])
-        assert exc.value.code == 0
+    fit_groups(run_cli, out)
     return out
 
 
@@ -71,13 +66,13 @@ def test_bake_of_stack_reproduces_every_sculpt(example_set, fitted, run, tmp_pat
     code, _, err = run("eval", ASSET, fitted, "--anim", examples, "-o", weights, "-q")
     assert code == 0, err
     for t in sorted(character.EXAMPLE_SETS[example_set]["poses"]):
-        baked = bake_stack([str(weights), pose_only(examples), str(fitted), ASSET], t)
-        plain = bake_stack([pose_only(examples), ASSET], t)
+        baked = bake([str(weights), pose_only(examples), str(fitted), ASSET], t)
+        plain = bake([pose_only(examples), ASSET], t)
         for mesh in character.EXAMPLE_SETS[example_set]["meshes"]:
             target = sculpt(examples, mesh, t)
-            err_rel = np.abs(baked[mesh] - target).max() / diagonal(target)
+            err_rel = np.abs(points(baked, mesh, t) - target).max() / diagonal(target)
             assert err_rel <= ROUNDTRIP_RTOL, f"{example_set} {mesh} t={t}: {err_rel:.2e}"
-            assert np.abs(plain[mesh] - target).max() / diagonal(target) > 100 * ROUNDTRIP_RTOL
+            assert np.abs(points(plain, mesh, t) - target).max() / diagonal(target) > 100 * ROUNDTRIP_RTOL
 
 
 def test_brow_animation_is_exactly_as_before(fitted, run, tmp_path):
@@ -86,8 +81,8 @@ def test_brow_animation_is_exactly_as_before(fitted, run, tmp_path):
     frames = sorted(Sdf.Layer.FindOrOpen(ANIM).ListTimeSamplesForPath(f"{character.ANIM}.blendShapeWeights"))
     moved = []
     for t in frames:
-        with_psd = bake_stack([str(weights), ANIM, str(fitted), ASSET], t)[character.BROW]
-        before = bake_stack([ANIM, ASSET], t)[character.BROW]
+        with_psd = points(bake([str(weights), ANIM, str(fitted), ASSET], t), character.BROW, t)
+        before = points(bake([ANIM, ASSET], t), character.BROW, t)
         assert np.array_equal(with_psd, before), f"frame {t}"
         moved.append(with_psd)
     # and the brow's blend shape really animates over the shot (the check is not vacuous)

@@ -11,21 +11,15 @@ import sys
 
 import numpy as np
 import pytest
-from conftest import ROOT, fixture, generate
-from pxr import Gf, Sdf, Usd, UsdGeom, UsdSkel, UsdValidation
+from conftest import ROOT, bake, fixture, generate, points, run_cli, stage_of
+from pxr import Sdf, Usd, UsdValidation
 
-from psdbake import chunks, rbf
-from psdbake.cli import main
+from psdbake import rbf
+from psdbake.farm import plan as chunks
 
 ASSET, EXAMPLES = fixture("arm_lbs.usda"), fixture("arm_lbs_examples.usda")
 FRAMES, SIZE = 1000, 100
 ANIM_PRIM = generate.ANIM
-
-
-def _cli(*args) -> int:
-    with pytest.raises(SystemExit) as exc:
-        main([str(a) for a in args])
-    return exc.value.code
 
 
 @pytest.fixture(scope="module")
@@ -33,34 +27,23 @@ def shot(tmp_path_factory):
     """CORRECTIVES fitted by the CLI, a 1,000-frame ANIM, one eval of it and one in 10 chunks."""
     d = tmp_path_factory.mktemp("chunks")
     corr, anim = d / "corr.usda", d / "anim.usda"
-    assert _cli("fit", ASSET, EXAMPLES, "-o", corr, "-q") == 0
+    assert run_cli("fit", ASSET, EXAMPLES, "-o", corr, "-q")[0] == 0
     generate.write_animation(str(anim), generate.shot_poses(FRAMES))
     (d / "one").mkdir()
     (d / "farm").mkdir()
     single, single_cache = d / "one" / "weights.usda", d / "one" / "cache.usda"
-    assert _cli("eval", ASSET, corr, "--anim", anim, "-o", single, "--points-cache", single_cache, "-q") == 0
+    assert run_cli("eval", ASSET, corr, "--anim", anim, "-o", single, "--points-cache", single_cache, "-q")[0] == 0
     manifest, cache = d / "farm" / "weights.usda", d / "farm" / "cache.usda"
-    assert _cli("eval", ASSET, corr, "--anim", anim, "-o", manifest, "--points-cache", cache,
-                "--frames", f"1:{FRAMES}", "--chunk-size", SIZE, "-q") == 0
+    assert run_cli("eval", ASSET, corr, "--anim", anim, "-o", manifest, "--points-cache", cache,
+                   "--frames", f"1:{FRAMES}", "--chunk-size", SIZE, "-q")[0] == 0
     return {"dir": d, "corr": corr, "anim": anim, "single": single, "single_cache": single_cache,
             "manifest": manifest, "cache": cache}
 
 
-def _stage(layers) -> Usd.Stage:
-    root = Sdf.Layer.CreateAnonymous(".usda")
-    for path in layers:  # strongest first
-        root.subLayerPaths.append(str(path))
-    return Usd.Stage.Open(root)
-
-
 def _bake_all(layers) -> np.ndarray:
     """UsdSkel.BakeSkinning of the stack at frames 1..FRAMES: (frames, points, 3) float32."""
-    stage = _stage(layers)
-    stage.SetEditTarget(Usd.EditTarget(stage.GetRootLayer()))
-    root = UsdSkel.Root(stage.GetPrimAtPath("/Arm"))
-    assert UsdSkel.BakeSkinning(root, Gf.Interval(1, FRAMES))
-    attr = UsdGeom.Mesh(stage.GetPrimAtPath(generate.MESH)).GetPointsAttr()
-    return np.stack([np.array(attr.Get(float(t)), dtype=np.float32) for t in range(1, FRAMES + 1)])
+    stage = bake([str(p) for p in layers], 1, FRAMES)
+    return np.stack([points(stage, generate.MESH, float(t), np.float32) for t in range(1, FRAMES + 1)])
 
 
 def test_ten_chunks_bake_exactly_like_one_eval(shot):
@@ -77,7 +60,7 @@ def test_ten_chunks_bake_exactly_like_one_eval(shot):
     assert np.abs(one - plain).max() > 1e-3 * np.ptp(one[0], axis=0).max()
 
     # the weights themselves, through the clip stage: every frame and subframes at chunk boundaries
-    stages = _stage([shot["single"], *base]), _stage([shot["manifest"], *base])
+    stages = stage_of([shot["single"], *base]), stage_of([shot["manifest"], *base])
     a, b = (s.GetAttributeAtPath(f"{ANIM_PRIM}.blendShapeWeights") for s in stages)
     order = [list(s.GetAttributeAtPath(f"{ANIM_PRIM}.blendShapes").Get()) for s in stages]
     assert order[0] == order[1] and len(order[0]) == 3
@@ -177,7 +160,7 @@ def test_authored_fractional_samples_and_negative_frames(shot, tmp_path, run):
     assert summary["chunk_count"] == 3 and summary["output"] == str(manifest)
     assert summary["clip_manifest"] == str(tmp_path / "w.clipmanifest.usda")
     base = [anim, shot["corr"], ASSET]
-    stages = _stage([single, *base]), _stage([manifest, *base])
+    stages = stage_of([single, *base]), stage_of([manifest, *base])
     a, b = (s.GetAttributeAtPath(f"{ANIM_PRIM}.blendShapeWeights") for s in stages)
     assert a.GetTimeSamples() == b.GetTimeSamples() and len(a.GetTimeSamples()) == 11
     for t in [*a.GetTimeSamples(), -0.25, 0.75]:

@@ -4,13 +4,16 @@ from __future__ import annotations
 
 import json
 import os
+import re
+import select
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import ROOT, bake_stack, diagonal, fixture, generate, sculpt
+from conftest import ROOT, bake, diagonal, fixture, generate, points, sculpt
 from pxr import Sdf, Usd
 
 ASSET, EXAMPLES = fixture("arm_lbs.usda"), fixture("arm_lbs_examples.usda")
@@ -26,7 +29,7 @@ def test_pose_writes_plain_skinning_and_the_pose(run, tmp_path):
     for t in (1.0, 2.0, 3.0):
         ours = sculpt(str(out), generate.MESH, t)
         # the pose layer alone (over ASSET) is enough for Pixar's bake to pose the same way
-        pixar = bake_stack([POSES, ASSET], t)[generate.MESH]
+        pixar = points(bake([POSES, ASSET], t), generate.MESH, t)
         assert np.abs(ours - pixar).max() <= 1e-6 * diagonal(pixar)  # float32 round-off of both
     # fitting the unsculpted poses finds nothing to correct: a clear refusal
     code, _, err = run("fit", ASSET, out, "-o", tmp_path / "c.usda")
@@ -68,7 +71,7 @@ def test_eval_frames_and_points_cache_match_bakeskinning_of_the_stack(run, tmp_p
     times = layer.ListTimeSamplesForPath(Sdf.Path(generate.ANIM).AppendProperty("blendShapeWeights"))
     assert list(times) == [float(f) for f in range(10, 21)]
     for t in (10.0, 15.0, 20.0):
-        pixar = bake_stack([str(weights), ANIM, str(corr), ASSET], t)[generate.MESH]
+        pixar = points(bake([str(weights), ANIM, str(corr), ASSET], t), generate.MESH, t)
         cached = sculpt(str(cache), generate.MESH, t)
         assert np.abs(cached - pixar).max() <= 1e-6 * diagonal(pixar)
     # the cache needs no UsdSkel: its SkelRoot is an Xform
@@ -96,7 +99,7 @@ def test_existing_blend_shapes_are_kept_everywhere(run, tmp_path):
     for t, w in ((1.0, 0.5), (2.0, 1.0)):
         # the animation's own channel keeps its exact weight
         assert wlayer.QueryTimeSample(anim.properties["blendShapeWeights"].path, t)[0] == pytest.approx(w, abs=0)
-        baked = bake_stack([str(weights), _points_removed(examples), str(corr), str(asset)], t)[generate.MESH]
+        baked = points(bake([str(weights), _points_removed(examples), str(corr), str(asset)], t), generate.MESH, t)
         target = sculpts[t]
         assert np.abs(baked - target).max() <= 1e-5 * diagonal(target)
 
@@ -209,3 +212,82 @@ def test_inspect_reports_what_a_file_holds(run, tmp_path):
     assert code == 0 and "examples of </Arm/Geo/Tube> at time codes 1, 2, 3" in out
     code, out, _ = run("inspect", ASSET, "--json")
     assert json.loads(out)["meshes"][0]["influences"] == 4
+
+
+# --- terminal mode: progress bars on a pseudo-terminal -----------------------------------
+
+HIDE_CURSOR, SHOW_CURSOR = "\x1b[?25l", "\x1b[?25h"  # what click writes around a bar
+
+
+def _on_terminal(argv: list[str], timeout: float = 120.0) -> tuple[int, str]:
+    """Run the console script with stdout and stderr on a pseudo-terminal, as in a shell:
+    (exit code, everything it printed, the terminal's CR LF turned back into LF)."""
+    exe = os.path.join(os.path.dirname(sys.executable), "psdbake")
+    master, slave = os.openpty()
+    try:
+        proc = subprocess.Popen([exe, *map(str, argv)], cwd=ROOT, stdin=subprocess.DEVNULL, stdout=slave, stderr=slave,
+                                env={**os.environ, "TERM": "xterm"})
+    finally:
+        os.close(slave)  # the child holds its own copies: EOF (EIO) on master once it exits
+    printed = b""
+    deadline = time.monotonic() + timeout
+    try:
+        while True:
+            ready, _, _ = select.select([master], [], [], max(0.0, deadline - time.monotonic()))
+            assert ready, f"psdbake {argv[0]} still running after {timeout:g} s; printed {printed[-300:]!r}"
+            try:
+                data = os.read(master, 1 << 16)
+            except OSError:  # EIO: no process has the terminal open any more
+                break
+            if not data:
+                break
+            printed += data
+    finally:
+        os.close(master)
+        if proc.poll() is None:
+            proc.kill()
+        code = proc.wait(timeout=60)
+    return code, printed.decode("utf-8", "replace").replace("\r\n", "\n")
+
+
+def _assert_bars(text: str, bars: dict[str, int], lines: tuple[str, ...]) -> None:
+    """Each bar is drawn, reaches its total and is closed right there (cursor shown, a new
+    line) before anything else is printed; each of ``lines`` (the summary, a warning)
+    starts on a line of its own, never run onto a bar ("48/48psdbake eval: ..."); the
+    cursor that click hides while a bar is drawn is shown again at the end."""
+    for label, total in bars.items():
+        drawn = list(re.finditer(rf"{re.escape(label)}  \[[#-]+\]  (\d+)/{total}\b", text))
+        assert drawn, f"no {label!r} bar to {total} in {text!r}"
+        last = drawn[-1]
+        assert last[1] == str(total), f"the {label!r} bar stops at {last[1]}/{total}"
+        after = text[last.end():last.end() + 80]
+        assert after.startswith(SHOW_CURSOR + "\n"), f"the {label!r} bar is not closed when it ends: {after!r}"
+    for line in lines:
+        found = [m.start() for m in re.finditer(re.escape(line), text)]
+        assert found, f"{line!r} not printed: {text[-500:]!r}"
+        for at in found:
+            before = text[:at].removesuffix(SHOW_CURSOR)
+            assert before == "" or before.endswith("\n"), f"{line!r} runs onto the bar: {text[max(0, at - 80):at + 40]!r}"
+    assert HIDE_CURSOR in text, "no bar was drawn (stderr not seen as a terminal?)"
+    assert text.rfind(HIDE_CURSOR) < text.rfind(SHOW_CURSOR), f"the cursor is left hidden: {text[-200:]!r}"
+
+
+@pytest.mark.parametrize("command", ["eval", "eval --points-cache", "eval --chunk-size", "fit (warning)"])
+def test_progress_bars_on_a_terminal(command, run, tmp_path):
+    corr = tmp_path / "c.usda"
+    assert run("fit", ASSET, EXAMPLES, "-o", corr, "-q")[0] == 0
+    if command == "eval":  # one bar, then the summary on stdout (the same terminal)
+        argv = ["eval", ASSET, corr, "--anim", ANIM, "-o", tmp_path / "w.usda"]
+        bars, lines = {"weights": 48}, ("psdbake eval: 48 frame(s)",)
+    elif command == "eval --points-cache":  # two bars one after the other
+        argv = ["eval", ASSET, corr, "--anim", ANIM, "-o", tmp_path / "w.usda", "--points-cache", tmp_path / "p.usda"]
+        bars, lines = {"weights": 48, "points cache": 48}, ("psdbake eval: 48 frame(s)",)
+    elif command == "eval --chunk-size":
+        argv = ["eval", ASSET, corr, "--anim", ANIM, "-o", tmp_path / "w.usda", "--chunk-size", "20"]
+        bars, lines = {"weights": 48}, ("psdbake eval: 3 of 3 chunk(s)",)
+    else:  # heavy smoothing: a warning on stderr right after the bar, then the summary
+        argv = ["fit", ASSET, EXAMPLES, "-o", tmp_path / "c2.usda", "--smoothing", "5"]
+        bars, lines = {"fitting examples": 3}, ("psdbake: warning: ", "psdbake fit: 1 mesh(es)")
+    code, text = _on_terminal(argv)
+    assert code == 0, text
+    _assert_bars(text, bars, lines)

@@ -1,5 +1,6 @@
-"""Faults: killed at any moment, a full disk, two writers at once. Outputs are either the
-old file or the complete new one, never a partial one, and no temporary file is left."""
+"""Faults: killed during start-up, mid-write or mid-rename (each moment reached for sure, not
+guessed by a delay), a full disk, two writers at once. Outputs are either the old file or
+the complete new one, never a partial one, and no temporary file is left."""
 
 from __future__ import annotations
 
@@ -37,21 +38,105 @@ def complete(tmp_path_factory) -> bytes:
     return out.read_bytes()
 
 
+# --- killed at a known moment, not after a guessed delay ----------------------------------
+#
+# The run is held at the moment under test (psdbake's own commit hook, PSDBAKE_PAUSE_AT, or an
+# import hook during start-up), the test checks that it is there (the marker file exists, and
+# what is on disk at that moment), then signals it.
+
+def _temps(folder) -> list:
+    return sorted(p for p in folder.iterdir() if ".tmp" in p.name)
+
+
+#: ``python -c`` start-up that holds psdbake when it first imports USD: during the command's
+#: start-up (``psdbake._entry`` has installed its signal handlers, ``psdbake.cli`` is loading),
+#: before any option is parsed or output planned. argv: MARKER, then psdbake's arguments.
+_PAUSE_IN_START_UP = """
+import os, sys, time
+marker = sys.argv.pop(1)
+
+class PauseAtUsdImport:
+    def find_spec(self, name, path=None, target=None):
+        if name == "pxr":
+            sys.meta_path.remove(self)
+            open(marker, "w").close()
+            deadline = time.monotonic() + 30.0
+            while os.path.exists(marker) and time.monotonic() < deadline:
+                time.sleep(0.01)
+        return None
+
+sys.meta_path.insert(0, PauseAtUsdImport())
+sys.argv[0] = "psdbake"
+from psdbake._entry import main
+main()
+"""
+
+
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
-def test_killed_at_any_moment_leaves_old_or_complete_file(sig, tmp_path, complete):
-    # Delays spread over the whole run (start-up ~0.6 s here, fit + write ~0.1 s). The first
-    # ~0.05 s are the interpreter's own start-up, before any psdbake code can handle a signal.
-    for delay in (0.1, 0.3, 0.55, 0.65, 0.75, 0.9, 1.2):
-        out = tmp_path / "corr.usda"
-        out.write_bytes(OLD)
-        proc = subprocess.Popen(_cmd(out), cwd=ROOT, stderr=subprocess.PIPE, text=True)
-        time.sleep(delay)
-        proc.send_signal(sig)
-        _, err = proc.communicate(timeout=60)
-        assert "Traceback" not in err
-        # killed after the rename, the run exits non-zero with the new file complete: fine
-        assert out.read_bytes() in (OLD, complete), f"partial output after a kill at {delay} s"
-        _no_temps(tmp_path)
+def test_killed_during_start_up_keeps_the_old_file(sig, tmp_path):
+    out = tmp_path / "corr.usda"
+    out.write_bytes(OLD)
+
+    def nothing_planned() -> None:
+        assert not _temps(tmp_path) and out.read_bytes() == OLD
+
+    argv = [sys.executable, "-c", _PAUSE_IN_START_UP, str(tmp_path / "marker"), *_cmd(out)[1:]]
+    done = _run_paused(argv, "start-up", tmp_path / "marker", sig, release=False, at_pause=nothing_planned)
+    assert done.returncode == 130, done.stderr
+    assert done.stderr.strip() == "psdbake: interrupted"
+    assert out.read_bytes() == OLD
+    _no_temps(tmp_path)
+
+
+def _written_not_renamed(tmp_path, out, complete):
+    """At the commit moment: the new layer complete in its one temporary file, the old one in place."""
+
+    def check() -> None:
+        temps = _temps(tmp_path)
+        assert len(temps) == 1, temps
+        assert temps[0].read_bytes() == complete, "the temporary file is not the complete layer"
+        assert out.read_bytes() == OLD
+
+    return check
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
+def test_killed_mid_write_keeps_the_old_file(sig, tmp_path, complete):
+    """Killed with the new layer written to its temporary file but not renamed: the run
+    unwinds (exit 130, one line), the old file is intact, no temporary is left."""
+    out = tmp_path / "corr.usda"
+    out.write_bytes(OLD)
+    done = _run_paused(_cmd(out), "commit", tmp_path / "marker", sig, release=False,
+                       at_pause=_written_not_renamed(tmp_path, out, complete))
+    assert done.returncode == 130, done.stderr
+    assert done.stderr.strip() == "psdbake: interrupted"
+    assert out.read_bytes() == OLD
+    _no_temps(tmp_path)
+
+
+def test_killed_during_the_rename_has_the_complete_file(tmp_path, complete):
+    """SIGTERM while the output is renamed is held until the rename is done: the new file,
+    complete, and exit 130."""
+    out = tmp_path / "corr.usda"
+    out.write_bytes(OLD)
+
+    def renamed() -> None:
+        assert out.read_bytes() == complete and not _temps(tmp_path)
+
+    done = _run_paused(_cmd(out), "rename", tmp_path / "marker", signal.SIGTERM, release=True, at_pause=renamed)
+    assert done.returncode == 130, done.stderr
+    assert out.read_bytes() == complete
+    _no_temps(tmp_path)
+
+
+def test_sigkill_mid_write_keeps_the_old_file(tmp_path, complete):
+    """SIGKILL cannot be handled: the temporary file stays, the output is untouched."""
+    out = tmp_path / "corr.usda"
+    out.write_bytes(OLD)
+    done = _run_paused(_cmd(out), "commit", tmp_path / "marker", signal.SIGKILL, release=False,
+                       at_pause=_written_not_renamed(tmp_path, out, complete))
+    assert done.returncode == -signal.SIGKILL
+    assert out.read_bytes() == OLD
 
 
 def _small_file_limit() -> None:
@@ -117,15 +202,24 @@ def _multi_output(tmp_path, command: str) -> tuple[list[str], list]:
 MULTI = ["fit --report", "eval --points-cache", "eval --chunk-size"]
 
 
-def _run_paused(argv, moment: str, marker, sig, release: bool) -> subprocess.CompletedProcess:
-    """Run until the commit's MOMENT, prove it got there (the marker), signal it, let it go."""
-    env = {**os.environ, "PSDBAKE_PAUSE_AT": f"{moment}:{marker}"}
+def _run_paused(argv, moment: str, marker, sig, release: bool, at_pause=None) -> subprocess.CompletedProcess:
+    """Run until MOMENT (``commit`` or ``rename``: psdbake's commit hook; ``start-up``: argv
+    pauses itself), prove it got there (the marker), check ``at_pause()`` while it waits
+    there, signal it, let it go."""
+    env = {**os.environ, "PSDBAKE_PAUSE_AT": f"{moment}:{marker}"} if moment in ("commit", "rename") else None
     proc = subprocess.Popen(argv, cwd=ROOT, env=env, stderr=subprocess.PIPE, text=True)
     deadline = time.monotonic() + 60
-    while not os.path.exists(marker):
-        assert proc.poll() is None, f"the run ended before the {moment} moment: {proc.stderr.read()}"
-        assert time.monotonic() < deadline, f"never reached the {moment} moment"
-        time.sleep(0.01)
+    try:
+        while not os.path.exists(marker):
+            assert proc.poll() is None, f"the run ended before the {moment} moment: {proc.stderr.read()}"
+            assert time.monotonic() < deadline, f"never reached the {moment} moment"
+            time.sleep(0.01)
+        if at_pause is not None:
+            at_pause()
+    except BaseException:
+        proc.kill()
+        proc.communicate(timeout=60)
+        raise
     proc.send_signal(sig)
     if release:
         os.remove(marker)

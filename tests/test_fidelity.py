@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 from conftest import generate
 
-from psdbake import compare
+from psdbake.report import comparison as compare
 
 ANGLE_ATOL = 1e-3  # radians; float32 points put the true error near 1e-6
 

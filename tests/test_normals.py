@@ -10,8 +10,8 @@ import os
 
 import numpy as np
 import pytest
-from conftest import baked_normal_errors, fixture, generate, pose_only, sculpt
-from pxr import Gf, Sdf, Usd, UsdSkel, Vt
+from conftest import bake, baked_normal_errors, fixture, generate, pose_only, sculpt
+from pxr import Gf, Sdf, Usd, Vt
 
 from psdbake.normals import (
     PosedNormals,
@@ -120,7 +120,7 @@ def test_polygons_of_three_four_and_five_sides():
     points = flat @ tilt
     topo = Topology(np.array([3, 4, 5]), np.arange(12), 12)
     areas = np.linalg.norm(face_area_vectors(points, topo), axis=1)
-    assert np.allclose(areas, [0.5, 2.0, 2.5 * math.sin(2 * math.pi / 5)], rtol=1e-12)
+    np.testing.assert_allclose(areas, [0.5, 2.0, 2.5 * math.sin(2 * math.pi / 5)], rtol=0, atol=1e-12)  # float64, areas ~1
     assert np.abs(vertex_normals(points, topo) - np.array([0, 0, 1.0]) @ tilt).max() < 1e-12
     # A non-planar pentagon: its vector area does not depend on the fan's first vertex.
     bent = pent + np.array([[0, 0, 0.3], [0, 0, -0.2], [0, 0, 0.1], [0, 0, 0.4], [0, 0, -0.3]])
@@ -156,7 +156,8 @@ def test_rotate_between_is_the_smallest_rotation():
     a, b, v = rng.normal(size=(3, 100, 3))
     out = rotate_between(a, b, v)
     assert np.abs(angle_between(rotate_between(a, b, a), b)).max() < 1e-12  # a goes to b
-    assert np.allclose(np.linalg.norm(out, axis=1), np.linalg.norm(v, axis=1), rtol=1e-12)  # a rotation
+    # a rotation: lengths kept to float64 round-off (lengths of normal(0, 1) vectors: < 10)
+    np.testing.assert_allclose(np.linalg.norm(out, axis=1), np.linalg.norm(v, axis=1), rtol=0, atol=1e-12)
     axis = np.cross(a, b)
     assert np.allclose(np.sum(out * axis, 1), np.sum(v * axis, 1), atol=1e-12)  # about a x b
     assert np.array_equal(rotate_between(np.zeros((1, 3)), b[:1], v[:1]), v[:1])  # no direction: unchanged
@@ -204,7 +205,8 @@ def test_rest_space_offsets_give_the_corrected_shapes_normals():
     want = vertex_normals(corrected, topo)[cn.indices]
     assert np.abs(rest_normals[cn.indices] + cn.normal_offsets - want).max() < 1e-12
     assert np.abs(cn.normal_offsets[cn.indices == 12]).max() < 1e-12  # the apex keeps its normal (symmetry)
-    assert cn.rest_space == 9 and cn.max_turn == pytest.approx(angle_between(rest_normals, vertex_normals(corrected, topo)).max())
+    turn = angle_between(rest_normals, vertex_normals(corrected, topo)).max()
+    assert cn.rest_space == 9 and cn.max_turn == pytest.approx(turn, rel=0, abs=1e-12)  # radians, float64
 
 
 def test_authored_normals_keep_their_deviation_and_length():
@@ -216,7 +218,7 @@ def test_authored_normals_keep_their_deviation_and_length():
     corrected = points.copy()
     corrected[idx] += off
     new = authored[cn.indices] + cn.normal_offsets
-    assert np.allclose(np.linalg.norm(new, axis=1), 2.0, rtol=1e-12)
+    np.testing.assert_allclose(np.linalg.norm(new, axis=1), 2.0, rtol=0, atol=1e-12)  # float64
     assert np.allclose(angle_between(new, vertex_normals(corrected, topo)[cn.indices]), math.radians(10.0), atol=1e-12)
 
 
@@ -298,17 +300,6 @@ def _anim(examples: str) -> Sdf.Layer:
     return Sdf.Layer.Find(pose_only(examples))
 
 
-def _bake(layers: list[str], time: float) -> Usd.Stage:
-    root = Sdf.Layer.CreateAnonymous(".usda")
-    for path in layers:
-        root.subLayerPaths.append(path)
-    stage = Usd.Stage.Open(root)
-    stage.SetEditTarget(Usd.EditTarget(root))
-    for prim in [p for p in stage.Traverse() if p.IsA(UsdSkel.Root)]:
-        assert UsdSkel.BakeSkinning(UsdSkel.Root(prim), Gf.Interval(time, time))
-    return stage
-
-
 BOX_RIGS = {  # asset, animation, mesh, time
     "arm_lbs": ("arm_lbs.usda", "arm_lbs_examples.usda", MESH, 3.0),
     "arm_dqs": ("arm_dqs.usda", "arm_dqs_examples.usda", MESH, 3.0),
@@ -323,7 +314,7 @@ def test_normal_black_box_is_what_bake_skinning_writes(rig, tmp_path):
     scene = Scene([Sdf.Layer.Find(anim), asset])
     rest_normals = read_mesh_shading(scene.prim(mesh)).normals
     box = NormalBlackBox(scene, mesh, t)
-    stage = _bake([anim, asset], t)
+    stage = bake([anim, asset], t)
     baked = np.array(stage.GetPrimAtPath(mesh).GetAttribute("normals").Get(t), dtype=np.float64)
     # The same UsdSkel code in float32 (measured 1e-16 rad: bit-identical before the local transform)
     assert angle_between(box(rest_normals), baked).max() < 1e-6
@@ -334,9 +325,9 @@ def test_normal_black_box_is_what_bake_skinning_writes(rig, tmp_path):
 
 def test_bake_skinning_skins_only_the_normals_attribute(tmp_path):
     examples = pose_only(fixture("arm_lbs_examples.usda"))
-    stage = _bake([examples, _asset_with_normals(tmp_path, primvar=True)], 3.0)
+    stage = bake([examples, _asset_with_normals(tmp_path, primvar=True)], 3.0)
     assert not stage.GetPrimAtPath(MESH).GetAttribute("primvars:normals").GetTimeSamples()  # left at rest: stale
-    stage = _bake([examples, _asset_with_normals(tmp_path, interpolation="faceVarying")], 3.0)
+    stage = bake([examples, _asset_with_normals(tmp_path, interpolation="faceVarying")], 3.0)
     assert len(stage.GetPrimAtPath(MESH).GetAttribute("normals").Get(3.0)) == 1472  # faceVarying normals are skinned
 
 

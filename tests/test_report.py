@@ -2,20 +2,17 @@
 
 from __future__ import annotations
 
-import contextlib
 import csv
-import io
 import json
 import os
 from html.parser import HTMLParser
 
 import numpy as np
 import pytest
-from conftest import fixture
+from conftest import fixture, run_cli
 from test_fidelity import ANGLE_ATOL, _single_joint_rig
 
 from psdbake import report
-from psdbake.cli import main
 
 pytest.importorskip("matplotlib")
 
@@ -24,18 +21,10 @@ PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 METRIC_COLUMNS = [f"{k}_{s}" for k in ("forward_ssd", "inverse_ssd", "inverse_forward") for s in ("max", "mean")]
 
 
-def _cli(*args: str) -> tuple[int, str, str]:
-    """The CLI in-process, for a module-scoped fixture (the ``run`` fixture is per test)."""
-    out, err = io.StringIO(), io.StringIO()
-    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err), pytest.raises(SystemExit) as exc:
-        main([str(a) for a in args])
-    return exc.value.code, out.getvalue(), err.getvalue()
-
-
 @pytest.fixture(scope="module")
 def arm_report(tmp_path_factory):
     folder = tmp_path_factory.mktemp("arm") / "report"  # does not exist yet: compare creates it
-    code, out, err = _cli("compare", ASSET, EXAMPLES, "--anim", ANIM, "-o", folder)
+    code, out, err = run_cli("compare", ASSET, EXAMPLES, "--anim", ANIM, "-o", folder)
     return folder, code, out, err
 
 
@@ -110,8 +99,10 @@ def test_stats_have_one_row_per_frame(arm_report):
     diag = stats["diagonal"]
     for row, frame in zip(rows, stats["frames"], strict=True):
         for col in METRIC_COLUMNS:
-            assert float(row[col]) == pytest.approx(frame[col])
-            assert float(row[f"{col}_rel"]) == pytest.approx(float(row[col]) / diag)
+            # stats.csv writes repr(float) and stats.json round-trips floats: the same float64
+            # bit for bit, and *_rel is the same division (atol 0)
+            assert float(row[col]) == pytest.approx(frame[col], rel=0, abs=0)
+            assert float(row[f"{col}_rel"]) == pytest.approx(float(row[col]) / diag, rel=0, abs=0)
             assert float(row[col.replace("max", "mean")]) <= float(row[col.replace("mean", "max")]) + 1e-12
     # the bind pose: nothing to correct; elsewhere both PSDs correct
     assert float(rows[0]["inverse_ssd_max"]) < 1e-6 * diag
@@ -190,3 +181,40 @@ def test_helpers():
     assert report.parse_views("12, 30,41") == (12.0, 30.0, 41.0)
     assert report.parse_views(None) is None
     assert [report.frame_token(t) for t in (12.0, 12.5, -3.0)] == ["12", "12.5", "-3"]
+
+
+
+def test_failed_rerun_leaves_the_previous_report_whole(run, tmp_path, monkeypatch):
+    """The folder's files are one commit (atomic.Transaction): a run that fails after some
+    files are drawn changes none of the previous report's files and leaves no temporaries."""
+    from psdbake.report import figures
+
+    asset, examples, anim = _single_joint_rig(tmp_path)
+    out = tmp_path / "report"
+    assert run("compare", asset, examples, "--anim", anim, "-o", out, "--views", "2,6")[0] == 0
+    before = {name: (out / name).read_bytes() for name in os.listdir(out)}
+    draw, drawn = figures.draw_views, []
+
+    def fail_on_second_view(*args):
+        drawn.append(args[-1])
+        if len(drawn) == 2:
+            raise report.ReportError("drawing failed")
+        draw(*args)
+
+    monkeypatch.setattr(figures, "draw_views", fail_on_second_view)
+    code, _, err = run("compare", asset, examples, "--anim", anim, "-o", out, "--views", "6,11")
+    assert code == 1 and "drawing failed" in err and len(drawn) == 2
+    assert {name: (out / name).read_bytes() for name in os.listdir(out)} == before
+
+
+def test_leftovers_of_a_killed_run_do_not_make_a_folder_foreign(tmp_path):
+    """SIGKILL before the commit leaves only ``.psdbake-*.tmp*`` files: the folder is still ours."""
+    from psdbake.errors import OutputError
+
+    folder = tmp_path / "report"
+    folder.mkdir()
+    (folder / ".psdbake-abcd1234.tmp.png").write_bytes(b"partial")
+    report.check_report_dir(str(folder))
+    (folder / "notes.txt").write_text("keep me")
+    with pytest.raises(OutputError, match="not written by psdbake compare"):
+        report.check_report_dir(str(folder))

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from conftest import CESIUM, CESIUM_EXAMPLES, bake_stack, diagonal, fixture, generate, pose_only, sculpt
+from conftest import CESIUM, CESIUM_EXAMPLES, bake, diagonal, fixture, generate, points, pose_only, sculpt
 
 ROUNDTRIP_RTOL = 1e-5
 
@@ -36,10 +36,10 @@ def test_bake_of_stack_reproduces_every_sculpt(rig, run, tmp_path):
     for t in times:
         # ANIM here is the examples layer minus nothing: its points samples would be
         # skinned again, so the stack uses the asset's rest points via a points block.
-        baked = bake_stack([str(weights), pose_only(examples), str(corr), asset], t)[mesh]
+        baked = points(bake([str(weights), pose_only(examples), str(corr), asset], t), mesh, t)
         target = sculpt(examples, mesh, t)
         err_rel = np.abs(baked - target).max() / diagonal(target)
         assert err_rel <= ROUNDTRIP_RTOL, f"{rig} t={t}: {err_rel:.2e}"
         # and the correctives are what makes it so: plain skinning is far off
-        plain = bake_stack([pose_only(examples), asset], t)[mesh]
+        plain = points(bake([pose_only(examples), asset], t), mesh, t)
         assert np.abs(plain - target).max() / diagonal(target) > 100 * ROUNDTRIP_RTOL

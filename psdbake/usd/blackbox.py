@@ -17,19 +17,18 @@ is the only one that knows what the function does.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 
 import numpy as np
 from numpy.typing import NDArray
 from pxr import Usd, UsdGeom, UsdSkel, Vt
 
+from ..arrays import Points
+from ..deformers import DeformerFactory, PointFn
 from ..errors import DeformerError, InputError, where
 from .read import Scene
 
-Points = NDArray[np.float64]  # (n, 3)
 FLOAT32_MAX = float(np.finfo(np.float32).max)
-PointFn = Callable[[Points], Points]
-DeformerFactory = Callable[[Usd.Stage, str, float], PointFn]
 
 
 class _BlendShapes:

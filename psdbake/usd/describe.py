@@ -7,6 +7,7 @@ from __future__ import annotations
 from pxr import Sdf, Usd, UsdGeom, UsdSkel
 
 from .read import compose, open_layer
+from .schema import read_groups
 
 
 def describe(path: str) -> dict:
@@ -43,7 +44,7 @@ def describe(path: str) -> dict:
                 "skinning_method": binding.GetSkinningMethodAttr().Get() if binding.GetSkinningMethodAttr() else None,
                 "blend_shapes": [str(c) for c in binding.GetBlendShapesAttr().Get() or []],
             })
-        out["correctives"] += _correctives(prim)
+        out["correctives"] += _correctives(prim, path)
     # examples: points time samples this file itself authors (typed or not)
     found: list[tuple[str, list[float]]] = []
 
@@ -58,36 +59,27 @@ def describe(path: str) -> dict:
     return out
 
 
-def _correctives(prim: Usd.Prim) -> list[dict]:
-    """One entry per correctives group on prim (psd: v1 holds one flat group, 'main')."""
-    version = prim.GetAttribute("psd:version")
-    if not (version and version.HasAuthoredValue()):
+def _correctives(prim: Usd.Prim, label: str) -> list[dict]:
+    """One entry per correctives group on prim, read and validated by the schema's reader
+    (drivers are not checked against a skeleton: the file may be a CORRECTIVES layer alone)."""
+    groups = read_groups(prim, label)
+    if not groups:
         return []
-    if version.Get() == 1:
-        groups = [("main", "psd:")]
-    else:
-        names = prim.GetAttribute("psd:groups").Get() if prim.GetAttribute("psd:groups") else None
-        groups = [(str(g), f"psd:{g}:") for g in names or []]
     binding = UsdSkel.BindingAPI(prim)
     channels = [str(c) for c in binding.GetBlendShapesAttr().Get() or []]
     rel = binding.GetBlendShapeTargetsRel()
     targets = dict(zip(channels, rel.GetTargets() if rel else [], strict=False))
+    version = prim.GetAttribute("psd:version").Get()
     out = []
-    for group, prefix in groups:
-        def get(name: str, prefix: str = prefix):
-            attr = prim.GetAttribute(prefix + name)
-            return attr.Get() if attr else None
-
-        shapes = [str(s) for s in get("shapes") or []]
+    for group, data in groups:
         offsets = {}
-        for channel in shapes:
+        for channel in data.shapes:
             target = prim.GetStage().GetPrimAtPath(targets[channel]) if channel in targets else None
             if target and target.IsA(UsdSkel.BlendShape):
                 offsets[target.GetName()] = len(UsdSkel.BlendShape(target).GetPointIndicesAttr().Get() or [])
         out.append({
-            "mesh": str(prim.GetPath()), "group": group, "version": version.Get(),
-            "drivers": [str(d) for d in get("drivers") or []], "pose_space": get("poseSpace"),
-            "kernel": get("kernel"), "sigma": get("sigma"), "degree": get("degree"), "shapes": shapes,
-            "examples": len(get("exampleTimes") or []), "offsets": offsets,
+            "mesh": str(prim.GetPath()), "group": group, "version": version, "drivers": list(data.drivers),
+            "pose_space": data.pose_space, "kernel": data.kernel, "sigma": data.sigma, "degree": data.degree,
+            "shapes": list(data.shapes), "examples": len(data.example_times), "offsets": offsets,
         })
     return out

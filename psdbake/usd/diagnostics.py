@@ -25,7 +25,10 @@ def first_line(exc: BaseException | str) -> str:
     quoted = re.findall(r" : '(.*?)'\s*(?:\n|$)", text, flags=re.S)
     if quoted:
         text = quoted[-1]
-    text = re.sub(r"pxrInternal_v\w*?__pxrReserved__::", "", text)  # USD's C++ namespace, e.g. in type names
+    # the text parser names the C++ grammar rule it expected: say where, not what type
+    text = re.sub(r"parse error matching .*? at '", "parse error at '", text, flags=re.S)
+    text = re.sub(r"parse error matching .*", "parse error", text, flags=re.S)
+    text = re.sub(r"pxrInternal_v\w*?__pxrReserved__\w*::", "", text)  # USD's C++ namespace, e.g. in type names
     lines = [line.strip() for line in text.splitlines() if line.strip()]
     if len(lines) > 1 and lines[0].endswith(":"):  # e.g. "Cycle detected:" then the arcs of the cycle
         return re.sub(r",?@anon:[^@]*@,?", "", " ".join(lines))  # without psdbake's and USD's in-memory layers

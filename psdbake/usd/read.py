@@ -24,6 +24,8 @@ from ..posespace import undefined_rotations
 from .dependencies import layer_files, require_regular
 from .diagnostics import first_line as _first_line
 from .integrity import require_readable_crates
+from .schema import BlendShapeData, DriverData, read_blend_shape, read_groups
+from .valuetypes import check_value_types
 
 
 @dataclass(frozen=True)
@@ -92,61 +94,15 @@ def compose(files: Sequence[str | Sdf.Layer]) -> Usd.Stage:
     return stage
 
 
-def _matrices(values) -> NDArray[np.float64]:
+def matrices(values) -> NDArray[np.float64]:
     """Vt.Matrix4dArray (or a list of Gf.Matrix4d) -> (n, 4, 4) float64, row-vector convention."""
     return np.array(values, dtype=np.float64).reshape(-1, 4, 4)
 
 
-def _types(**names: str) -> dict[str, Sdf.ValueTypeName]:
-    return {name.replace("__", ":"): getattr(Sdf.ValueTypeNames, t) for name, t in names.items()}
 
 
-#: The value type of every attribute psdbake reads, per schema (roles ignored: a float3[]
-#: where point3f[] belongs is the same data). An attribute authored with another type (a
-#: DCC that retyped it, a damaged file) is refused naming it, before any of it is used.
-_SCHEMA_TYPES = {
-    "PointBased": _types(points="Point3fArray", normals="Normal3fArray", primvars__normals="Normal3fArray",
-                         faceVertexIndices="IntArray", faceVertexCounts="IntArray",
-                         primvars__skel__jointIndices="IntArray", primvars__skel__jointWeights="FloatArray",
-                         primvars__skel__geomBindTransform="Matrix4d", primvars__skel__skinningMethod="Token",
-                         skel__joints="TokenArray", skel__blendShapes="TokenArray"),
-    "Skeleton": _types(joints="TokenArray", bindTransforms="Matrix4dArray", restTransforms="Matrix4dArray"),
-    "SkelAnimation": _types(joints="TokenArray", translations="Float3Array", rotations="QuatfArray",
-                            scales="Half3Array", blendShapes="TokenArray", blendShapeWeights="FloatArray"),
-    "BlendShape": _types(offsets="Vector3fArray", normalOffsets="Vector3fArray", pointIndices="IntArray"),
-}
-#: psd: attributes (``psd:version``, ``psd:groups``, then ``psd:[GROUP:]NAME``): the schema's types.
-_PSD_TYPES = _types(
-    version="Int", groups="TokenArray", poseSpace="Token", twistAxis="Double3", clampWeights="Bool",
-    normalizeWeights="Bool", drivers="TokenArray", driverBindRotations="QuatdArray", kernel="Token", sigma="Double",
-    degree="Int", smoothing="Double", centers="DoubleArray", centerLabels="StringArray", shapes="TokenArray",
-    coefficients="DoubleArray", polyPowers="IntArray", dimensions="IntArray", polyShift="DoubleArray",
-    polyScale="DoubleArray", exampleTimes="DoubleArray", exampleSources="StringArray",
-)
 
 
-def check_value_types(stage: Usd.Stage, label: str) -> None:
-    """Refuse an attribute psdbake reads that is authored with the wrong value type."""
-    schemas = [(UsdGeom.PointBased, _SCHEMA_TYPES["PointBased"]), (UsdSkel.Skeleton, _SCHEMA_TYPES["Skeleton"]),
-               (UsdSkel.Animation, _SCHEMA_TYPES["SkelAnimation"]), (UsdSkel.BlendShape, _SCHEMA_TYPES["BlendShape"])]
-    for prim in stage.Traverse(Usd.TraverseInstanceProxies()):
-        expected: dict[str, Sdf.ValueTypeName] = {}
-        for schema, types in schemas:
-            if prim.IsA(schema):
-                expected.update(types)
-        if prim.IsA(UsdGeom.PointBased):
-            for name in prim.GetPropertyNames():
-                if name.startswith("psd:"):
-                    leaf = name.rsplit(":", 1)[-1]
-                    if leaf in _PSD_TYPES:
-                        expected[name] = _PSD_TYPES[leaf]
-        for name, want in expected.items():
-            attr = prim.GetAttribute(name)
-            # the authored opinions' types: for a schema attribute the composed type name is the schema's
-            for spec in attr.GetPropertyStack() if attr else []:
-                if isinstance(spec, Sdf.AttributeSpec) and spec.typeName.type != want.type:
-                    raise InputError(f"{where(spec.layer.identifier, str(prim.GetPath()), name)}: authored as "
-                                     f"{spec.typeName}, where UsdSkel and psdbake read {want}")
 
 
 class Scene:
@@ -276,6 +232,13 @@ class Scene:
     def prim(self, path: str) -> Usd.Prim:
         return self.stage.GetPrimAtPath(path)
 
+    def driver_groups(self, mesh: str) -> list[tuple[str, DriverData]]:
+        """Every correctives group's psd: driver data on mesh, validated against the bound
+        skeleton's joints, sorted by group name; empty if the mesh has none."""
+        _, skel_query = self.query(mesh)
+        joints = [str(j) for j in skel_query.GetJointOrder()]
+        return read_groups(self.prim(mesh), self.label, joints, str(skel_query.GetSkeleton().GetPrim().GetPath()))
+
     # -- values ---------------------------------------------------------------------
     def rest_points(self, mesh: str) -> NDArray[np.float64]:
         """The mesh's authored (default-time) points, float64 (n, 3)."""
@@ -300,6 +263,19 @@ class Scene:
         times = set(anim.GetJointTransformTimeSamples()) | set(anim.GetBlendShapeWeightTimeSamples())
         return sorted(float(t) for t in times)
 
+    def blend_shape_weights(self, mesh: str, times: NDArray[np.float64]) -> tuple[list[str], NDArray[np.float64]]:
+        """The bound animation's own blend-shape channels and their weights at times (f, c)."""
+        _, skel_query = self.query(mesh)
+        anim = skel_query.GetAnimQuery()
+        order = [str(c) for c in anim.GetBlendShapeOrder()] if anim else []
+        weights = np.zeros((len(times), len(order)))
+        if order:
+            for f, t in enumerate(times):
+                w = anim.ComputeBlendShapeWeights(float(t))
+                if w is not None and len(w) == len(order):
+                    weights[f] = np.array(w, dtype=np.float64)
+        return order, weights
+
     def animation_prim(self, mesh: str) -> str | None:
         _, skel_query = self.query(mesh)
         anim = skel_query.GetAnimQuery()
@@ -308,7 +284,7 @@ class Scene:
     def joint_local_transforms(self, mesh: str, time: float) -> NDArray[np.float64]:
         """Skeleton-order local joint transforms at time (UsdSkel's own computation)."""
         _, skel_query = self.query(mesh)
-        local = _matrices(skel_query.ComputeJointLocalTransforms(Usd.TimeCode(time)) or [])
+        local = matrices(skel_query.ComputeJointLocalTransforms(Usd.TimeCode(time)) or [])
         if len(local) != len(skel_query.GetJointOrder()):
             skel = str(skel_query.GetSkeleton().GetPrim().GetPath())
             raise InputError(
@@ -324,7 +300,7 @@ class Scene:
         """
         _, skel_query = self.query(mesh)
         skel = skel_query.GetSkeleton()
-        world = _matrices(skel.GetBindTransformsAttr().Get() or [])
+        world = matrices(skel.GetBindTransformsAttr().Get() or [])
         parents = np.array(skel_query.GetTopology().GetParentIndices(), dtype=np.int64)
         if len(world) != len(parents):
             raise InputError(
@@ -364,298 +340,31 @@ class Scene:
             ) from None
 
 
-#: psd: schema versions this psdbake reads (1: one flat group, read as group "main").
-READABLE_PSD_VERSIONS = (1, 2)
-#: The group a v1 layer's flat psd: data belongs to, and fit's group when none is named.
-DEFAULT_GROUP = "main"
 
 
-def read_driver_groups(scene: Scene, mesh: str) -> list[tuple[str, object]]:
-    """Every correctives group's psd: driver data on mesh, validated, sorted by group
-    name: [(group, DriverData)]; empty if the mesh has none."""
-    prim = scene.prim(mesh)
-    version_attr = prim.GetAttribute("psd:version")
-    if not version_attr or not version_attr.HasAuthoredValue():
-        return []
-    version = version_attr.Get()
-    if version not in READABLE_PSD_VERSIONS:
-        raise InputError(
-            f"{where(scene.label, mesh, 'psd:version')}: version {version} is not supported by this psdbake "
-            f"(reads {', '.join(map(str, READABLE_PSD_VERSIONS))}); upgrade psdbake or re-fit"
-        )
-    if version == 1:
-        return [(DEFAULT_GROUP, _read_group(scene, mesh, "psd:"))]
-    groups_attr = prim.GetAttribute("psd:groups")
-    names = [str(g) for g in (groups_attr.Get() if groups_attr else None) or []]
-    if not names:
-        raise InputError(f"{where(scene.label, mesh, 'psd:groups')}: missing or empty (the CORRECTIVES layer is incomplete)")
-    if len(set(names)) != len(names):
-        raise InputError(f"{where(scene.label, mesh, 'psd:groups')}: a group is listed twice")
-    return [(name, _read_group(scene, mesh, f"psd:{name}:")) for name in sorted(names)]
 
 
-def _read_group(scene: Scene, mesh: str, prefix: str):
-    """One group's psd: driver data, every number validated on read (finite, shapes,
-    positivity), each refusal naming its attribute: eval then never computes NaN weights."""
-    from ..posespace import WIDTH
-    from ..rbf import KERNELS
-    from .write import DriverData
-
-    prim = scene.prim(mesh)
-    label = scene.label
-
-    def at(name: str) -> str:
-        return where(label, mesh, prefix + name)
-
-    def get(name: str, required: bool = True):
-        attr = prim.GetAttribute(prefix + name)
-        value = attr.Get() if attr else None
-        if value is None and required:
-            raise InputError(f"{at(name)}: missing (the CORRECTIVES layer is incomplete)")
-        return value
-
-    def numbers(name: str, value=None) -> NDArray[np.float64]:
-        """An attribute's values as float64 (a scalar becomes one value), or refuse its type."""
-        value = get(name) if value is None else value
-        try:
-            return np.array(value, dtype=np.float64).reshape(-1)
-        except (TypeError, ValueError):
-            raise InputError(f"{at(name)}: {type(value).__name__} value is not numbers") from None
-
-    def finite(name: str, values: NDArray[np.float64], why: str = "NaN or inf would make the weights NaN"
-               ) -> NDArray[np.float64]:
-        bad = np.nonzero(~np.isfinite(values))[0]
-        if len(bad):
-            raise InputError(f"{at(name)}: value {int(bad[0])} is {float(values[bad[0]])!r}: every value must be "
-                             f"finite ({why})")
-        return values
-
-    def integers(name: str) -> NDArray[np.int64]:
-        values = numbers(name)
-        bad = np.nonzero(~np.isfinite(values) | (values != np.round(values)))[0]
-        if len(bad):
-            raise InputError(f"{at(name)}: value {int(bad[0])} is {float(values[bad[0]])!r}, not an integer")
-        return values.astype(np.int64)
-
-    def scalar(name: str) -> float:
-        values = numbers(name)
-        if len(values) != 1:
-            raise InputError(f"{at(name)}: {len(values)} values, expected one number")
-        return float(values[0])
-
-    drivers = [str(d) for d in get("drivers")]
-    dims = integers("dimensions")
-    dim = len(dims)
-    shapes = [str(s) for s in get("shapes")]
-    centers = numbers("centers")
-    powers = integers("polyPowers")
-    coefficients = numbers("coefficients")
-    quats = get("driverBindRotations")
-    try:
-        bind = np.array([[*q.GetImaginary(), q.GetReal()] for q in quats], dtype=np.float64).reshape(-1, 4)
-    except (AttributeError, TypeError, ValueError):
-        raise InputError(f"{at('driverBindRotations')}: not an array of quaternions") from None
-    space = str(get("poseSpace"))
-    if space not in WIDTH:
-        raise InputError(f"{at('poseSpace')}: unknown pose space {space!r}")
-    bad_dims = dim == 0 or dims.min() < 0 or dims.max() >= WIDTH[space] * len(drivers)
-    if bad_dims or centers.size % dim or powers.size % dim or len(bind) != len(drivers):
-        raise InputError(f"{where(label, mesh)}: {prefix} driver data sizes do not match {len(drivers)} drivers")
-    _, skel_query = scene.query(mesh)
-    joints = {str(j) for j in skel_query.GetJointOrder()}
-    missing = [d for d in drivers if d not in joints]
-    if missing:
-        skel = skel_query.GetSkeleton().GetPrim().GetPath()
-        raise InputError(f"{at('drivers')}: joint {missing[0]!r} is not in skeleton <{skel}>")
-    if str(get("kernel")) not in KERNELS:
-        raise InputError(f"{at('kernel')}: unknown kernel {get('kernel')!r}")
-    centers = centers.reshape(-1, dim)
-    powers = powers.reshape(-1, dim)
-    rows = len(centers) + len(powers)
-    if not shapes or coefficients.size != rows * len(shapes):
-        raise InputError(f"{at('coefficients')}: expected {rows} x {len(shapes)} values, got {coefficients.size}")
-    # -- every number finite, every shape consistent (README: "The psd: schema") --
-    finite("centers", centers.reshape(-1))
-    finite("coefficients", coefficients)
-    sigma = scalar("sigma")
-    if not (np.isfinite(sigma) and sigma > 0):
-        raise InputError(f"{at('sigma')}: {sigma!r} is not a finite number > 0 (the RBF width in radians)")
-    smoothing = scalar("smoothing")
-    if not (np.isfinite(smoothing) and smoothing >= 0):
-        raise InputError(f"{at('smoothing')}: {smoothing!r} is not a finite number >= 0")
-    degree = integers("degree")
-    if len(degree) != 1 or degree[0] < -1:
-        shown = int(degree[0]) if len(degree) == 1 else degree.tolist()
-        raise InputError(f"{at('degree')}: {shown!r} is not one integer >= -1 (-1: no polynomial term)")
-    degree = int(degree[0])
-    _check_powers(at("polyPowers"), powers, degree, dim)
-    shift = finite("polyShift", numbers("polyShift"))
-    scale = finite("polyScale", numbers("polyScale"))
-    for name, values in (("polyShift", shift), ("polyScale", scale)):
-        if len(values) != dim:
-            raise InputError(f"{at(name)}: {len(values)} values for {dim} psd:dimensions (one per dimension)")
-    if np.any(scale == 0):
-        raise InputError(f"{at('polyScale')}: value {int(np.argmax(scale == 0))} is zero (the polynomial term "
-                         "divides by it)")
-    with np.errstate(over="ignore", invalid="ignore"):
-        norms = np.linalg.norm(np.nan_to_num(bind, nan=0.0, posinf=0.0, neginf=0.0), axis=1)
-    # psdbake writes unit quaternions; 1e-3 leaves room for hand-authored or rounded ones
-    bad = np.nonzero(~np.all(np.isfinite(bind), axis=1) | ~(np.abs(norms - 1.0) < 1e-3))[0]
-    if len(bad):
-        raise InputError(f"{at('driverBindRotations')}: quaternion {int(bad[0])} (driver {drivers[bad[0]]!r}) is "
-                         f"{tuple(bind[bad[0]][[3, 0, 1, 2]].tolist())!r}: not a unit quaternion (a rotation)")
-    twist = get("twistAxis", required=False)
-    twist_axis = None
-    if space == "swingTwist":
-        if twist is None:
-            raise InputError(f"{at('twistAxis')}: missing: the swingTwist pose space needs the twist axis")
-        axis = numbers("twistAxis", twist)
-        if len(axis) != 3 or not np.all(np.isfinite(axis)) or np.linalg.norm(axis) == 0:
-            raise InputError(f"{at('twistAxis')}: {tuple(axis.tolist())!r} is not a finite non-zero 3-vector")
-        twist_axis = tuple(float(v) for v in axis)
-    elif twist is not None:
-        twist_axis = tuple(float(v) for v in numbers("twistAxis", twist))
-    example_times = finite("exampleTimes", numbers("exampleTimes"), "time codes are finite numbers")
-    return DriverData(
-        drivers=drivers,
-        bind_rotations=bind,
-        pose_space=space,
-        twist_axis=twist_axis,
-        clamp_weights=bool(get("clampWeights", required=False) or False),
-        normalize_weights=bool(get("normalizeWeights", required=False) or False),
-        kernel=str(get("kernel")),
-        sigma=sigma,
-        degree=degree,
-        smoothing=smoothing,
-        centers=centers,
-        center_labels=[str(s) for s in get("centerLabels")],
-        shapes=shapes,
-        coefficients=coefficients.reshape(rows, len(shapes)),
-        powers=powers,
-        shift=shift,
-        scale=scale,
-        dims=dims,
-        example_times=[float(t) for t in example_times],
-        example_sources=[str(s) for s in get("exampleSources")],
-    )
 
 
-def _check_powers(at: str, powers: NDArray[np.int64], degree: int, dim: int) -> None:
-    """psd:polyPowers must be the monomials of total degree <= psd:degree in dim variables
-    (scipy's RBFInterpolator's set, in any order): empty for degree -1."""
-    from math import comb
-
-    expected = comb(dim + degree, dim) if degree >= 0 else 0
-    sums = powers.sum(axis=1) if len(powers) else np.zeros(0, dtype=np.int64)
-    distinct = len({tuple(row) for row in powers.tolist()}) == len(powers)
-    if len(powers) != expected or np.any(powers < 0) or np.any(sums > degree) or not distinct:
-        raise InputError(
-            f"{at}: {len(powers)} monomials do not match psd:degree {degree} in {dim} dimensions (expected the "
-            f"{expected} distinct monomials of total degree <= {degree}{', none' if degree < 0 else ''})"
-        )
 
 
-#: What decides how UsdSkel skins a mesh: the binding (UsdSkelBindingAPI, inherited down
-#: namespace), and on Skeleton and BlendShape prims their joints, bind pose and offsets.
-_BINDING = frozenset({"skel:joints", "skel:skeleton", "skel:skinningMethod", "skel:blendShapes",
-                      "skel:blendShapeTargets"})
-_BINDING_ON = {"Skeleton": frozenset({"joints", "bindTransforms"}),
-               "BlendShape": frozenset({"offsets", "pointIndices", "normalOffsets", "inbetweens"})}
 
 
-def check_examples_binding(asset: Scene, examples: Scene, path: str) -> None:
-    """Refuse an EXAMPLES file (``examples``: the file composed over the asset) that changes
-    the skinning: the binding primvars and relationships of any prim, a Skeleton's joints or
-    bindTransforms, a BlendShape's offsets. fit would invert a skinning that eval and UsdSkel
-    (reading the asset's binding) never apply, and the correctives would miss the sculpts.
-    EXAMPLES may carry only the pose (the bound SkelAnimation) and the sculpted points."""
-    for prim in examples.stage.Traverse(Usd.TraverseInstanceProxies()):
-        original = asset.stage.GetPrimAtPath(prim.GetPath())
-        kinds = [kind for kind in _BINDING_ON if prim.IsA(getattr(UsdSkel, kind))
-                 or (original and original.IsA(getattr(UsdSkel, kind)))]
-        extra = frozenset().union(*(_BINDING_ON[k] for k in kinds))
-        for prop in prim.GetAuthoredProperties():
-            name = prop.GetName()
-            if not (name.startswith("primvars:skel:") or name in _BINDING or name in extra):
-                continue
-            before = original.GetProperty(name) if original else None
-            if not _same_property(prop, before):
-                raise InputError(
-                    f"{where(path, str(prim.GetPath()), name)}: the EXAMPLES layer re-authors the asset's skinning "
-                    "binding: EXAMPLES may only carry the pose (the bound SkelAnimation) and the sculpted points, "
-                    "because eval and UsdSkel skin with the asset's binding (change it in the asset and run "
-                    "psdbake pose again)"
-                )
 
 
-def require_finite_time_samples(scene: Scene, path: str, label: str) -> None:
-    """Refuse a time sample keyed at inf on the prim at path (in any layer of its prim stack).
-    USD lets a layer author one, but its composed queries skip it: a pose or weight keyed
-    there would be silently dropped, and no frame or example can live at inf."""
-    prim = scene.prim(path)
-    for spec in prim.GetPrimStack() if prim else []:
-        layer = spec.layer
-        file = label if layer.realPath and os.path.realpath(layer.realPath) == os.path.realpath(label) else \
-            (layer.realPath or label)
-        for attr in spec.attributes:
-            bad = [t for t in layer.ListTimeSamplesForPath(attr.path) if not np.isfinite(t)]
-            if bad:
-                raise InputError(f"{where(file, path, attr.name)}: time sample at time code {float(bad[0])!r}: "
-                                 "time codes must be finite numbers (USD's queries skip this one)")
 
 
-def require_psd_prims_skinned(scene: Scene, correctives: str, asset: str) -> None:
-    """Every prim on which the CORRECTIVES file authors psd:version must be a skinned mesh of
-    the stage: directly, or through a reference or instance of a corrected asset that
-    sublayers CORRECTIVES (the instanced-shot workflow). Anything else (CORRECTIVES fitted on
-    another asset) would be silently ignored by eval."""
-    layer = open_layer(correctives)
-    reached: set[str] = set()
-    for info in scene.skinned_meshes():
-        reached |= {str(s.path) for s in scene.prim(info.path).GetPrimStack() if s.layer.identifier == layer.identifier}
-    stray = [p for p in psd_prims(layer) if p not in reached]
-    if stray:
-        raise InputError(f"{where(correctives, stray[0])}: has correctives but is not a skinned mesh of {asset} "
-                         "(CORRECTIVES fitted on another asset?): eval would ignore them")
 
 
-def check_corrective_indices(scene: Scene, mesh: str, channels: Sequence[str], point_count: int) -> None:
-    """The BlendShapes behind channels must index only the mesh's points (a CORRECTIVES layer
-    fitted on a denser mesh at the same path would be silently clipped by UsdSkel)."""
-    for shape in read_corrective_shapes(scene, mesh, channels):
-        if len(shape.indices) and (shape.indices.min() < 0 or shape.indices.max() >= point_count):
-            raise InputError(f"{where(scene.label, mesh + '/' + shape.name, 'pointIndices')}: indices outside the "
-                             f"{point_count} points of the asset's mesh")
 
 
-def _same_property(prop: Usd.Property, other: Usd.Property | None) -> bool:
-    """Same composed value: relationship targets, or attribute default and time samples."""
-    if other is None or not other.IsValid():
-        return False
-    if isinstance(prop, Usd.Relationship) != isinstance(other, Usd.Relationship):
-        return False
-    if isinstance(prop, Usd.Relationship):
-        return list(prop.GetTargets()) == list(other.GetTargets())
-    times = list(prop.GetTimeSamples())
-    if times != list(other.GetTimeSamples()):
-        return False
-    return all(_same_value(prop.Get(t), other.Get(t)) for t in [Usd.TimeCode.Default(), *times])
 
 
-def _same_value(a, b) -> bool:
-    if a is None or b is None:
-        return a is None and b is None
-    try:
-        return bool(a == b)
-    except (TypeError, ValueError):
-        return False
 
 
-def read_corrective_shapes(scene: Scene, mesh: str, channels: Sequence[str]) -> list:
-    """The BlendShapes behind the given channels of mesh, as ``BlendShapeData`` (to carry
-    groups a fit does not touch into the updated CORRECTIVES layer unchanged)."""
-    from .write import BlendShapeData
-
+def read_corrective_shapes(scene: Scene, mesh: str, channels: Sequence[str]) -> list[BlendShapeData]:
+    """The BlendShapes behind the given channels of mesh (to carry groups a fit does not
+    touch into the updated CORRECTIVES layer unchanged)."""
     names, targets = existing_blend_shapes(scene, mesh)
     by_channel = dict(zip(names, targets, strict=True))
     out = []
@@ -664,27 +373,10 @@ def read_corrective_shapes(scene: Scene, mesh: str, channels: Sequence[str]) -> 
         prim = scene.prim(target) if target else None
         if not prim or not prim.IsA(UsdSkel.BlendShape):
             raise InputError(f"{where(scene.label, mesh, 'skel:blendShapeTargets')}: no BlendShape for channel {channel!r}")
-        shape = UsdSkel.BlendShape(prim)
-        offsets = np.array(shape.GetOffsetsAttr().Get() or [], dtype=np.float64).reshape(-1, 3)
-        indices = np.array(shape.GetPointIndicesAttr().Get() or [], dtype=np.int64)
-        normals = shape.GetNormalOffsetsAttr().Get()
-        out.append(BlendShapeData(
-            name=prim.GetName(), channel=channel, indices=indices, offsets=offsets,
-            normal_offsets=np.array(normals, dtype=np.float64).reshape(-1, 3) if normals else None,
-        ))
+        out.append(read_blend_shape(prim, channel))
     return out
 
 
-def psd_prims(layer: Sdf.Layer) -> list[str]:
-    """Prims on which layer itself authors psd:version (a CORRECTIVES layer's meshes), sorted."""
-    found: list[str] = []
-
-    def visit(path: Sdf.Path) -> None:
-        if path.IsPropertyPath() and path.name == "psd:version":
-            found.append(str(path.GetPrimPath()))
-
-    layer.Traverse(Sdf.Path.absoluteRootPath, visit)
-    return sorted(found)
 
 
 def stray_point_prims(layer: Sdf.Layer, skinned: set[str]) -> list[str]:
@@ -731,82 +423,5 @@ def animation_components(scene: Scene, mesh: str, times: Sequence[float]):
     return path, [str(j) for j in anim.GetJointOrder()], order, samples
 
 
-def validate_skinning(scene: Scene, mesh: str) -> list[str]:
-    """Refuse influences UsdSkel would mis-skin; return warnings (weights not summing to 1).
-
-    Checks: jointIndices/jointWeights authored, sizes agree with the points and the element
-    size, indices inside the joint list the mesh uses, weights finite, >= 0, not all zero."""
-    query, skel_query = scene.query(mesh)
-    label = where(scene.label, mesh)
-    binding = UsdSkel.BindingAPI(scene.prim(mesh))
-    ind_pv, w_pv = binding.GetJointIndicesPrimvar(), binding.GetJointWeightsPrimvar()
-    if not ind_pv or not ind_pv.HasAuthoredValue() or not w_pv or not w_pv.HasAuthoredValue():
-        raise InputError(f"{label}: no primvars:skel:jointIndices/jointWeights: the mesh has no skin influences")
-    indices = np.array(ind_pv.Get() or [], dtype=np.int64)
-    weights = np.array(w_pv.Get() or [], dtype=np.float64)
-    k = max(1, int(ind_pv.GetElementSize()))
-    k_weights, interp = max(1, int(w_pv.GetElementSize())), (ind_pv.GetInterpolation(), w_pv.GetInterpolation())
-    if k_weights != k or interp[0] != interp[1]:
-        raise InputError(
-            f"{label}: jointWeights has elementSize {k_weights} ({interp[1]}) and jointIndices {k} ({interp[0]}): "
-            "UsdSkel needs one weight per joint index, so it cannot skin these points"
-        )
-    n = len(scene.rest_points(mesh))
-    constant = ind_pv.GetInterpolation() == UsdGeom.Tokens.constant
-    expected = k if constant else n * k
-    if len(indices) != expected or len(weights) != len(indices):
-        raise InputError(
-            f"{label}: jointWeights has {len(weights)} values and jointIndices {len(indices)}, for {n} points "
-            f"with {k} influences each (expected {expected} of each)"
-        )
-    joints = query.GetJointOrder() or skel_query.GetJointOrder()
-    if len(indices) and (indices.min() < 0 or indices.max() >= len(joints)):
-        first = int(np.nonzero((indices < 0) | (indices >= len(joints)))[0][0])
-        raise InputError(
-            f"{label}: joint index {indices[first]} out of range at point {first // k} "
-            f"(the mesh uses {len(joints)} joints, indices 0..{len(joints) - 1})"
-        )
-    w = weights.reshape(-1, k)
-    if not np.all(np.isfinite(w)):
-        raise InputError(f"{label}: jointWeights contain NaN or inf (point {int(np.nonzero(~np.isfinite(w))[0][0])})")
-    if np.any(w < 0):
-        raise InputError(f"{label}: negative jointWeights (point {int(np.nonzero(w < 0)[0][0])})")
-    sums = w.sum(axis=1)
-    if np.any(sums <= 0):
-        raise InputError(f"{label}: all-zero jointWeights at point {int(np.nonzero(sums <= 0)[0][0])}: it follows no joint")
-    notes = []
-    off = np.abs(sums - 1.0) > 1e-3
-    if off.any():
-        notes.append(f"{label}: jointWeights of {int(off.sum())} point(s) do not sum to 1 (UsdSkel uses them as they are)")
-    skel = skel_query.GetSkeleton()
-    skel_joints = skel_query.GetJointOrder()
-    for name, attr in (("bindTransforms", skel.GetBindTransformsAttr()), ("restTransforms", skel.GetRestTransformsAttr())):
-        value = attr.Get()
-        if value is None and name == "restTransforms":
-            continue
-        where_attr = where(scene.label, str(skel.GetPrim().GetPath()), name)
-        if value is None or len(value) != len(skel_joints):
-            raise InputError(f"{where_attr}: {0 if value is None else len(value)} matrices for {len(skel_joints)} joints")
-        mats = _matrices(value)
-        finite = np.nan_to_num(mats)
-        singular = (np.abs(np.linalg.det(finite[:, :3, :3])) < 1e-12) | (np.abs(np.linalg.det(finite)) < 1e-12)
-        bad = ~np.all(np.isfinite(mats), axis=(1, 2)) | singular
-        if bad.any():
-            raise InputError(f"{where_attr}: joint {str(skel_joints[int(np.argmax(bad))])!r} has a NaN, infinite, "
-                             "zero-scale or singular matrix")
-    return notes
 
 
-def validate_animation(scene: Scene, mesh: str) -> None:
-    """The bound animation must name only joints of the skeleton (UsdSkel drops others silently)."""
-    _, skel_query = scene.query(mesh)
-    anim = skel_query.GetAnimQuery()
-    if not anim:
-        return
-    known = set(str(j) for j in skel_query.GetJointOrder())
-    unknown = [str(j) for j in anim.GetJointOrder() if str(j) not in known]
-    if unknown:
-        raise InputError(
-            f"{where(scene.label, str(anim.GetPrim().GetPath()), 'joints')}: joint {unknown[0]!r} is not in skeleton "
-            f"<{skel_query.GetSkeleton().GetPrim().GetPath()}>"
-        )

@@ -11,20 +11,18 @@ from __future__ import annotations
 
 import os
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass
 
 import numpy as np
-from numpy.typing import NDArray
-from pxr import Gf, Sdf, Tf, Usd, UsdGeom, Vt
+from pxr import Sdf, Tf, Usd, UsdGeom, Vt
 
 from .. import atomic
 from ..errors import InputError, OutputError
+from .author import apply_binding_api, attribute, define, float_array, int_array, over, relationship, vec3f_array
 from .dependencies import layer_files
 from .diagnostics import first_line
+from .schema import BlendShapeData
 
 FORMATS = (".usda", ".usdc", ".usd")
-#: Version of the psd: attribute schema written by this psdbake.
-PSD_VERSION = 2
 
 
 def files_read(inputs: Iterable[str | Sdf.Layer]) -> list[str]:
@@ -117,74 +115,26 @@ def new_layer(doc: str, times: Sequence[float] | None = None, fps: float | None 
     return layer
 
 
-def over(layer: Sdf.Layer, path: str) -> Sdf.PrimSpec:
-    """An ``over`` for path, its ancestors ``over`` too (Sdf.CreatePrimInLayer)."""
-    return Sdf.CreatePrimInLayer(layer, Sdf.Path(path))
 
 
-def define(layer: Sdf.Layer, path: str, type_name: str) -> Sdf.PrimSpec:
-    spec = over(layer, path)
-    spec.specifier = Sdf.SpecifierDef
-    spec.typeName = type_name
-    return spec
 
 
-def attribute(
-    prim: Sdf.PrimSpec, name: str, type_name: Sdf.ValueTypeName, value=None, *, uniform: bool = False,
-    custom: bool = False,
-) -> Sdf.AttributeSpec:
-    variability = Sdf.VariabilityUniform if uniform else Sdf.VariabilityVarying
-    attr = prim.properties.get(name) if name in prim.properties else None
-    if attr is None:
-        attr = Sdf.AttributeSpec(prim, name, type_name, variability, custom)
-    if value is not None:
-        attr.default = value
-    return attr
 
 
-def apply_binding_api(prim: Sdf.PrimSpec) -> None:
-    ops = prim.GetInfo("apiSchemas")
-    items = list(ops.prependedItems) if ops else []
-    if "SkelBindingAPI" not in items:
-        prim.SetInfo("apiSchemas", Sdf.TokenListOp.Create(prependedItems=[*items, "SkelBindingAPI"]))
 
 
-def relationship(prim: Sdf.PrimSpec, name: str, targets: Sequence[str]) -> None:
-    rel = Sdf.RelationshipSpec(prim, name, custom=False)
-    rel.targetPathList.explicitItems = [Sdf.Path(t) for t in targets]
 
 
-# --- value conversions ------------------------------------------------------------------
-
-def vec3f_array(values: NDArray[np.float64]) -> Vt.Vec3fArray:
-    return Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(values, dtype=np.float32).reshape(-1, 3))
 
 
-def double_array(values: NDArray[np.float64]) -> Vt.DoubleArray:
-    return Vt.DoubleArray.FromNumpy(np.ascontiguousarray(values, dtype=np.float64).reshape(-1))
 
 
-def int_array(values) -> Vt.IntArray:
-    return Vt.IntArray.FromNumpy(np.ascontiguousarray(values, dtype=np.int32).reshape(-1))
 
 
-def float_array(values) -> Vt.FloatArray:
-    return Vt.FloatArray.FromNumpy(np.ascontiguousarray(values, dtype=np.float32).reshape(-1))
 
 
-def quatd_array(xyzw: NDArray[np.float64]) -> Vt.QuatdArray:
-    return Vt.QuatdArray([Gf.Quatd(float(q[3]), Gf.Vec3d(float(q[0]), float(q[1]), float(q[2]))) for q in xyzw])
 
 
-@dataclass(frozen=True)
-class BlendShapeData:
-    """One corrective BlendShape: sparse rest-space offsets in the mesh's point space."""
-
-    name: str  # prim name under the mesh
-    channel: str  # skel:blendShapes token (SkelAnimation channel)
-    indices: NDArray[np.int64]
-    offsets: NDArray[np.float64]  # (k, 3)
-    normal_offsets: NDArray[np.float64] | None = None  # (k, 3) when the shading normals change too
 
 
 def author_blend_shapes(
@@ -212,72 +162,10 @@ def author_blend_shapes(
                       uniform=True)
 
 
-@dataclass(frozen=True)
-class DriverData:
-    """The RBF driver data of one correctives group on one mesh, as stored in the psd:
-    namespace (README: psd schema)."""
-
-    drivers: Sequence[str]  # joint paths, skeleton joint tokens
-    bind_rotations: NDArray[np.float64]  # (d, 4) xyzw, each driver's bind local rotation
-    pose_space: str
-    twist_axis: tuple[float, float, float] | None
-    clamp_weights: bool
-    normalize_weights: bool
-    kernel: str
-    sigma: float
-    degree: int
-    smoothing: float
-    centers: NDArray[np.float64]  # (k, m) over dims
-    center_labels: Sequence[str]
-    shapes: Sequence[str]  # channels, one per coefficient column
-    coefficients: NDArray[np.float64]  # (k + p, s)
-    powers: NDArray[np.int64]  # (p, m)
-    shift: NDArray[np.float64]  # (m,)
-    scale: NDArray[np.float64]  # (m,)
-    dims: NDArray[np.int64]  # (m,) pose coordinates used, indices into the 3 d vector
-    example_times: Sequence[float]
-    example_sources: Sequence[str]
 
 
-def author_driver_data(layer: Sdf.Layer, mesh: str, groups: Sequence[tuple[str, DriverData]]) -> None:
-    """psd: attributes on the mesh prim, every one uniform and custom: ``psd:version``,
-    ``psd:groups`` (sorted names) and each group's data under ``psd:<group>:``."""
-    spec = over(layer, mesh)
-    t = Sdf.ValueTypeNames
-
-    def put(name: str, type_name: Sdf.ValueTypeName, value) -> None:
-        attribute(spec, f"psd:{name}", type_name, value, uniform=True, custom=True)
-
-    put("version", t.Int, PSD_VERSION)
-    ordered = sorted(groups, key=lambda g: g[0])
-    put("groups", t.TokenArray, Vt.TokenArray([name for name, _ in ordered]))
-    for name, data in ordered:
-        _author_group(put, f"{name}:", data)
 
 
-def _author_group(put, prefix: str, data: DriverData) -> None:
-    t = Sdf.ValueTypeNames
-    put(f"{prefix}poseSpace", t.Token, data.pose_space)
-    if data.twist_axis is not None:
-        put(f"{prefix}twistAxis", t.Double3, Gf.Vec3d(*map(float, data.twist_axis)))
-    put(f"{prefix}clampWeights", t.Bool, bool(data.clamp_weights))
-    put(f"{prefix}normalizeWeights", t.Bool, bool(data.normalize_weights))
-    put(f"{prefix}drivers", t.TokenArray, Vt.TokenArray(list(data.drivers)))
-    put(f"{prefix}driverBindRotations", t.QuatdArray, quatd_array(data.bind_rotations))
-    put(f"{prefix}kernel", t.Token, data.kernel)
-    put(f"{prefix}sigma", t.Double, float(data.sigma))
-    put(f"{prefix}degree", t.Int, int(data.degree))
-    put(f"{prefix}smoothing", t.Double, float(data.smoothing))
-    put(f"{prefix}centers", t.DoubleArray, double_array(data.centers))
-    put(f"{prefix}centerLabels", t.StringArray, Vt.StringArray(list(data.center_labels)))
-    put(f"{prefix}shapes", t.TokenArray, Vt.TokenArray(list(data.shapes)))
-    put(f"{prefix}coefficients", t.DoubleArray, double_array(data.coefficients))
-    put(f"{prefix}polyPowers", t.IntArray, int_array(data.powers))
-    put(f"{prefix}dimensions", t.IntArray, int_array(data.dims))
-    put(f"{prefix}polyShift", t.DoubleArray, double_array(data.shift))
-    put(f"{prefix}polyScale", t.DoubleArray, double_array(data.scale))
-    put(f"{prefix}exampleTimes", t.DoubleArray, double_array(np.asarray(data.example_times, dtype=np.float64)))
-    put(f"{prefix}exampleSources", t.StringArray, Vt.StringArray(list(data.example_sources)))
 
 
 def weights_layer(doc: str, animations, fps: float | None, metadata: dict | None = None) -> Sdf.Layer:

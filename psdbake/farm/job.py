@@ -1,4 +1,4 @@
-"""One ``psdbake batch`` job: ``python -m psdbake._job PARENT_PID COMMAND ARGS...``.
+"""One ``psdbake batch`` task: ``python -m psdbake.farm.job PARENT_PID COMMAND ARGS...``.
 
 Exactly ``python -m psdbake COMMAND ARGS...``, except that the process dies with the one that
 started it (Linux ``PR_SET_PDEATHSIG``, delivered as SIGTERM, which psdbake unwinds, removing
@@ -13,6 +13,8 @@ import os
 import signal
 import sys
 
+from .._entry import main as entry
+
 _PR_SET_PDEATHSIG = 1  # <linux/prctl.h>
 
 
@@ -24,10 +26,9 @@ def _die_with_parent(parent: int) -> None:
 
 
 def main() -> None:
+    """Tie this process to its parent, then run the command as ``psdbake`` would."""
     _die_with_parent(int(sys.argv[1]))
     sys.argv = ["psdbake", *sys.argv[2:]]
-    from ._entry import main as entry
-
     entry()
 
 

@@ -9,6 +9,9 @@ For each frame x of an animation, with the *same* cardinal RBF weights b_j(x):
 
 so the comparison isolates the one thing the paper changes: the space in which the
 examples are interpolated. The correction vector of a vertex is the result minus SSD.
+
+The eval numerics (``frames_of``, ``driver_weights``, ``check_driver_transforms``) are
+the ones ``psdbake eval`` uses, so the weights here are the weights psdbake ships.
 """
 
 from __future__ import annotations
@@ -19,14 +22,17 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from . import api, posespace
-from . import tolerances as tol
-from .deformers import load_deformers
-from .errors import InputError, where
-from .usd.blackbox import SkinningBlackBox
-from .usd.read import Scene, open_layer
-
-Points = NDArray[np.float64]
+from .. import api, posespace
+from .. import tolerances as tol
+from ..arrays import Points
+from ..deformers import DeformerFactory, load_deformers
+from ..errors import InputError, where
+from ..frames import frames_of
+from ..results import FitResult, MeshFit
+from ..settings import FitSettings
+from ..usd.blackbox import SkinningBlackBox
+from ..usd.read import Scene, open_layer
+from ..weights import check_driver_transforms, driver_weights
 
 
 @dataclass(frozen=True)
@@ -46,12 +52,14 @@ class MeshComparison:
 
 @dataclass(frozen=True)
 class Comparison:
-    fit: api.FitResult
+    """A fit and, per fitted mesh, its three results over the animation anim."""
+
+    fit: FitResult
     anim: str
     meshes: tuple[MeshComparison, ...]
 
 
-def posed_deltas(fit_result: api.FitResult, mesh_fit: api.MeshFit) -> list[Points]:
+def posed_deltas(fit_result: FitResult, mesh_fit: MeshFit) -> list[Points]:
     """delta_j = sculpt_j - SKINNING_j(rest) per example (forward PSD's data), (n, 3) each."""
     asset = fit_result.asset
     rest = Scene([asset]).rest_points(mesh_fit.mesh)
@@ -68,55 +76,66 @@ def compare(
     asset: str,
     example_files: Sequence[str],
     anim: str,
-    settings: api.FitSettings | None = None,
+    settings: FitSettings | None = None,
     *,
     frames: tuple[float, float] | None = None,
-    fit_result: api.FitResult | None = None,
+    fit_result: FitResult | None = None,
 ) -> Comparison:
     """Fit (unless given) and evaluate SSD, forward PSD and inverse PSD at every frame."""
-    result = fit_result or api.fit(asset, example_files, settings or api.FitSettings())
+    result = fit_result or api.fit(asset, example_files, settings or FitSettings())
     chain = load_deformers(result.settings.deformers)
     scene = Scene([anim, asset], label=anim)
     infos = {i.path: i for i in scene.skinned_meshes()}
-    meshes = []
-    for m in result.meshes:
-        data = m.driver_data
-        info = infos[m.mesh]
-        idx = [info.joints.index(d) for d in data.drivers]
-        times = api.frames_of(scene, m.mesh, frames)
-        rest = scene.rest_points(m.mesh)
-        outputs = [j for j, ch in enumerate(m.channels) if ch]
-        d_rest = np.zeros((len(outputs), *rest.shape))
-        for k, j in enumerate(outputs):
-            inv = m.inverses[j]
-            d_rest[k, inv.indices] = inv.offsets
-        deltas = posed_deltas(result, m)
-        d_posed = np.stack([deltas[j] for j in outputs])
-        # forward PSD interpolates the same vertices psdbake corrects
-        corrected = np.unique(np.concatenate([m.inverses[j].indices for j in outputs]))
-        mask = np.zeros(len(rest), dtype=bool)
-        mask[corrected] = True
-        d_posed[:, ~mask] = 0.0
-        f = len(times)
-        ssd, fwd, inv_pts = (np.empty((f, *rest.shape)) for _ in range(3))
-        weights = np.empty((f, len(outputs)))
-        angles = np.empty((f, len(idx)))
-        for i, t in enumerate(times):
-            local = scene.joint_local_transforms(m.mesh, float(t))[idx]
-            api.check_driver_transforms(local[None], [t], data.drivers, where(anim, m.mesh))
-            angles[i] = posespace.relative_from_quaternions(data.bind_rotations, local).magnitude()
-            weights[i] = api.driver_weights(data, local[None])[0]
-            box = SkinningBlackBox(scene, m.mesh, float(t), chain)
-            ssd[i] = box(rest)
-            fwd[i] = ssd[i] + np.tensordot(weights[i], d_posed, axes=1)
-            inv_pts[i] = box(rest + np.tensordot(weights[i], d_rest, axes=1))
-        # the unit of the fit's tolerances: the skinned mesh's diagonal at the example poses
-        # (independent of --frames; rest points may sit in another space, see geomBindTransform)
-        diag = max(m.inverses[j].diagonal for j in outputs)
-        meshes.append(MeshComparison(m.mesh, times, angles, weights, ssd, fwd, inv_pts, corrected, diag))
+    meshes = [_compare_mesh(scene, result, m, infos[m.mesh].joints, anim, frames, chain) for m in result.meshes]
     if not meshes:
         raise InputError(f"{asset}: nothing was fitted, nothing to compare")
     return Comparison(result, anim, tuple(meshes))
+
+
+def _offsets(result: FitResult, m: MeshFit, rest: Points, outputs: list[int]
+             ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.int64]]:
+    """Per output channel the rest-space offsets (inverse PSD) and the posed-space deltas
+    (forward PSD), (s, n, 3) each, and the vertices psdbake corrects."""
+    d_rest = np.zeros((len(outputs), *rest.shape))
+    for k, j in enumerate(outputs):
+        inv = m.inverses[j]
+        d_rest[k, inv.indices] = inv.offsets
+    deltas = posed_deltas(result, m)
+    d_posed = np.stack([deltas[j] for j in outputs])
+    # forward PSD interpolates the same vertices psdbake corrects
+    corrected = np.unique(np.concatenate([m.inverses[j].indices for j in outputs]))
+    mask = np.zeros(len(rest), dtype=bool)
+    mask[corrected] = True
+    d_posed[:, ~mask] = 0.0
+    return d_rest, d_posed, corrected
+
+
+def _compare_mesh(scene: Scene, result: FitResult, m: MeshFit, joints: Sequence[str], anim: str,
+                  frames: tuple[float, float] | None, chain: Sequence[tuple[str, DeformerFactory]]) -> MeshComparison:
+    """SSD, forward and inverse PSD of one fitted mesh at every frame, with the same weights."""
+    data = m.driver_data
+    idx = [joints.index(d) for d in data.drivers]
+    times = frames_of(scene, m.mesh, frames)
+    rest = scene.rest_points(m.mesh)
+    outputs = [j for j, ch in enumerate(m.channels) if ch]
+    d_rest, d_posed, corrected = _offsets(result, m, rest, outputs)
+    f = len(times)
+    ssd, fwd, inv_pts = (np.empty((f, *rest.shape)) for _ in range(3))
+    weights = np.empty((f, len(outputs)))
+    angles = np.empty((f, len(idx)))
+    for i, t in enumerate(times):
+        local = scene.joint_local_transforms(m.mesh, float(t))[idx]
+        check_driver_transforms(local[None], [t], data.drivers, where(anim, m.mesh))
+        angles[i] = posespace.relative_from_quaternions(data.bind_rotations, local).magnitude()
+        weights[i] = driver_weights(data, local[None])[0]
+        box = SkinningBlackBox(scene, m.mesh, float(t), chain)
+        ssd[i] = box(rest)
+        fwd[i] = ssd[i] + np.tensordot(weights[i], d_posed, axes=1)
+        inv_pts[i] = box(rest + np.tensordot(weights[i], d_rest, axes=1))
+    # the unit of the fit's tolerances: the skinned mesh's diagonal at the example poses
+    # (independent of --frames; rest points may sit in another space, see geomBindTransform)
+    diag = max(m.inverses[j].diagonal for j in outputs)
+    return MeshComparison(m.mesh, times, angles, weights, ssd, fwd, inv_pts, corrected, diag)
 
 
 def correction_turn(comparison: MeshComparison, vertex: int, reference: int | None = None

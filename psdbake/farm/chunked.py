@@ -1,0 +1,192 @@
+"""Chunked ``psdbake eval``: evaluate the chunks of a plan, write them and their manifests.
+
+Each chunk is an ordinary WEIGHTS layer (and points cache) holding only its frames, so chunks
+can be computed by different processes or machines; the layer at the ``-o`` path is a
+*manifest* that stitches the chunks with USD value clips (``usd/clips.py``), so ASSET +
+CORRECTIVES + ANIM + manifest opens as one animation.
+
+Exactness: a frame's weights are computed from that frame alone (``rbf.row_independent_product``),
+so chunked and single evaluations give the same bits. The manifest is any chunk without its
+time samples plus clips over the plan's chunks: it never depends on sample values, so every
+farm task writes the identical manifest atomically and racing writers are harmless.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from .. import __version__, api, atomic
+from ..errors import InputError, where
+from ..results import Progress, WeightsResult
+from ..usd import clips
+from ..usd import write as usdwrite
+from .plan import Chunk, ChunkPlan, chunk_path, clip_manifest_path, plan_chunks, plan_frames
+
+FORMATS = (".usda", ".usdc", ".usd")
+
+
+@dataclass(frozen=True)
+class ChunkedWeights:
+    """The plan and the weights of the chunks this process computes."""
+
+    asset: str
+    correctives: str
+    anim: str
+    plan: ChunkPlan
+    results: tuple[tuple[Chunk, WeightsResult], ...]
+    animations: tuple[tuple[str, tuple[str, ...]], ...]  # (SkelAnimation, channels), for summaries
+    fps: float | None
+
+
+def _slice(result: WeightsResult, chunk: Chunk) -> WeightsResult:
+    """The frames of one chunk out of a whole-shot evaluation."""
+    animations = []
+    for a in result.animations:
+        keep = (a.times >= chunk.first) & (a.times <= chunk.last)
+        animations.append(dataclasses.replace(a, times=a.times[keep], weights=a.weights[keep]))
+    return dataclasses.replace(result, animations=tuple(animations))
+
+
+def _shared_times(result: WeightsResult, anim: str) -> NDArray[np.float64]:
+    """The authored time codes, which must be the same for every animation: a chunk's points
+    cache is computed from that chunk's weights only."""
+    first = result.animations[0]
+    for other in result.animations[1:]:
+        if not np.array_equal(other.times, first.times):
+            raise InputError(
+                f"{where(anim, other.animation)}: its time samples differ from <{first.animation}>'s: "
+                "give --frames to cut the shot into chunks"
+            )
+    return first.times
+
+
+def evaluate_chunks(
+    asset: str,
+    correctives: str,
+    anim: str,
+    size: int,
+    *,
+    frames: tuple[float, float] | None = None,
+    chunk: int | None = None,
+    progress: Progress | None = None,
+) -> ChunkedWeights:
+    """Weights of every chunk, or of chunk number ``chunk`` (1-based) only.
+
+    With ``frames`` each chunk is evaluated on its own (``api.evaluate`` over its frames), so
+    a farm task computes only its chunk. Without, the authored samples are only known after
+    reading the animation: the shot is evaluated (cheap: tens of microseconds a frame) and
+    cut; the expensive points cache is still per chunk.
+    """
+    if frames is not None:
+        plan = plan_frames(frames, size)
+        wanted = [plan.chunk(chunk)] if chunk is not None else list(plan.chunks)
+        results = []
+        for c in wanted:
+            r = api.evaluate(asset, correctives, anim, frames=(c.first, c.last), progress=progress)
+            for a in r.animations:
+                if not np.array_equal(a.times, c.times):
+                    raise RuntimeError(f"chunk {c.index}: api.evaluate's frames differ from the plan's")
+            results.append((c, r))
+    else:
+        full = api.evaluate(asset, correctives, anim, progress=progress)
+        plan = plan_chunks(_shared_times(full, anim), size)
+        wanted = [plan.chunk(chunk)] if chunk is not None else list(plan.chunks)
+        results = [(c, _slice(full, c)) for c in wanted]
+    some = results[0][1]
+    animations = tuple((a.animation, tuple(a.channels)) for a in some.animations)
+    return ChunkedWeights(asset, correctives, anim, plan, tuple(results), animations, some.fps)
+
+
+def _relative(path: str, anchor: str) -> str:
+    """An asset path relative to the layer at anchor (``./name``), so the folder can move."""
+    rel = os.path.relpath(os.path.abspath(path), os.path.dirname(os.path.abspath(anchor)))
+    rel = rel.replace(os.sep, "/")
+    return rel if rel.startswith("../") else "./" + rel
+
+
+def manifest_layers(template: Any, plan: ChunkPlan, output: str, what: str) -> tuple[Any, Any]:
+    """(manifest layer for ``output``, its clip manifest), from one chunk layer written for ``output``:
+    that chunk without its time samples, plus clips over every chunk of the plan."""
+    assets = [_relative(chunk_path(output, plan, c), output) for c in plan.chunks]
+    return clips.stitching_layers(
+        template, assets, [c.first for c in plan.chunks], (plan.first, plan.last),
+        _relative(clip_manifest_path(output), output),
+        f"psdbake {__version__} eval: {what}, stitched from farm chunks with value clips",
+    )
+
+
+@dataclass(frozen=True)
+class ChunkFiles:
+    """The files of one chunk this run wrote."""
+
+    chunk: int
+    first: float
+    last: float
+    frames: int
+    weights: str
+    points_cache: str | None
+
+
+@dataclass(frozen=True)
+class WrittenChunks:
+    """Every file one run wrote (the manifests are written by every run)."""
+
+    manifest: str
+    clip_manifest: str
+    points_cache: str | None
+    points_clip_manifest: str | None
+    chunks: tuple[ChunkFiles, ...]
+    chunk_count: int
+
+
+def _targets(ev: ChunkedWeights, output: str, points_cache: str | None) -> tuple[list[ChunkFiles], list[str]]:
+    """(the chunks' files, every path this run writes), for checking before anything is computed."""
+    files = []
+    for c, _ in ev.results:
+        cache = chunk_path(points_cache, ev.plan, c) if points_cache else None
+        files.append(ChunkFiles(c.index, c.first, c.last, len(c.times), chunk_path(output, ev.plan, c), cache))
+    targets = [output, clip_manifest_path(output), *(f.weights for f in files)]
+    if points_cache:
+        targets += [points_cache, clip_manifest_path(points_cache), *(f.points_cache for f in files if f.points_cache)]
+    return files, targets
+
+
+def write_chunks(
+    ev: ChunkedWeights,
+    output: str,
+    *,
+    points_cache: str | None = None,
+    deformers: Sequence[str] = (),
+    progress: Progress | None = None,
+) -> WrittenChunks:
+    """Write the computed chunks and the manifests in one commit (``usdwrite.export_all``):
+    all checks and all computing (points caches included) happen before the first file is
+    written, and a failure leaves every old file in place."""
+    inputs = api.files_read([ev.asset, ev.correctives, ev.anim], deformers)
+    files, targets = _targets(ev, output, points_cache)
+    atomic.check_outputs([(t, FORMATS) for t in targets], inputs)
+    layers = []
+    for (_, result), f in zip(ev.results, files, strict=True):
+        layers.append((f.weights, api.weights_layer(result)))
+        if f.points_cache:
+            layers.append((f.points_cache, api.points_cache_layer(result, deformers, progress=progress)))
+    # The manifests from the first chunk computed here: any chunk gives the same bytes.
+    manifest, clip_manifest = manifest_layers(layers[0][1], ev.plan, output, "corrective blend-shape weights")
+    layers += [(clip_manifest_path(output), clip_manifest), (output, manifest)]
+    if points_cache:
+        cache_manifest, cache_clip_manifest = manifest_layers(layers[1][1], ev.plan, points_cache,
+                                                              "points cache (no UsdSkel needed)")
+        layers += [(clip_manifest_path(points_cache), cache_clip_manifest), (points_cache, cache_manifest)]
+    usdwrite.export_all(layers, inputs)
+    return WrittenChunks(
+        manifest=output, clip_manifest=clip_manifest_path(output), points_cache=points_cache,
+        points_clip_manifest=clip_manifest_path(points_cache) if points_cache else None,
+        chunks=tuple(files), chunk_count=len(ev.plan.chunks),
+    )

@@ -1,0 +1,114 @@
+"""The order of a batch's tasks, from the files they read and write.
+
+A task that reads a file other jobs write runs after all of them (and is skipped if one
+fails: ``needs``); tasks writing the same file run in file order (``after``: ``fit --group``
+updates of one CORRECTIVES layer are read-modify-write); otherwise file order. Keys are
+deterministic (a digest of the folder and every command line), so a rerun of the same jobs
+file has the same Dask keys.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import heapq
+import json
+import os
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+from ..errors import InputError
+from .tasks import Task
+
+
+@dataclass(frozen=True)
+class Part:
+    """One task of a job, before ordering: the job itself, or one chunk of it."""
+
+    label: str
+    slug: str  # names the task's key
+    args: list[str]
+    writes: tuple[str, ...]  # as written in the jobs file
+
+
+@dataclass(frozen=True)
+class Job:
+    """One checked table of the jobs file."""
+
+    label: str  # "[[fit]] #2"
+    command: str
+    reads: tuple[str, ...]  # as written in the jobs file
+    writes: tuple[str, ...]
+    parts: list[Part]
+
+
+def _tasks(folder: str, jobs: Sequence[Job]) -> list[Task]:
+    """One task per part, with real paths for ordering and a key unique to this jobs file."""
+
+    def real(p: str) -> str:
+        return os.path.realpath(os.path.join(folder, p))
+
+    digest = hashlib.sha256(json.dumps([folder, [p.args for j in jobs for p in j.parts]]).encode()).hexdigest()[:12]
+    return [
+        Task(key=f"psdbake-{p.slug}-{digest}", label=p.label, job=j.label, command=j.command, args=tuple(p.args),
+             cwd=folder, reads=tuple(dict.fromkeys(real(r) for r in j.reads)),
+             writes=tuple(dict.fromkeys(real(w) for w in p.writes)), outputs=p.writes)
+        for j in jobs for p in j.parts
+    ]
+
+
+def _link(path: str, folder: str, tasks: Sequence[Task]) -> list[Task]:
+    """Each task with what it needs (the writers of what it reads) and what it waits for (earlier
+    writers of what it writes); only jobs of one command may write the same file."""
+    writers: dict[str, list[Task]] = {}
+    for t in tasks:
+        for p in t.writes:
+            first = writers.setdefault(p, [t])[0]
+            if first.command != t.command:
+                raise InputError(f"{path} {t.job}: writes {os.path.relpath(p, folder)}, as {first.job} does: "
+                                 "only jobs of one command may write the same file")
+            if t is not first:
+                writers[p].append(t)
+    linked = []
+    for t in tasks:
+        needs = {w.key for p in t.reads for w in writers.get(p, ()) if w.job != t.job}
+        after = set()
+        for p in t.writes:
+            ws = writers[p]
+            mine = next(i for i, w in enumerate(ws) if w.job == t.job)
+            after |= {w.key for w in ws[:mine]}
+        linked.append(dataclasses.replace(t, needs=tuple(needs), after=tuple(after - needs)))
+    return linked
+
+
+def _sort(path: str, linked: Sequence[Task]) -> list[Task]:
+    """Topological order, file order among the tasks free to run."""
+    position = {t.key: i for i, t in enumerate(linked)}
+    waiting = {t.key: set(t.needs) | set(t.after) for t in linked}
+    users: dict[str, list[str]] = {}
+    for key, deps in waiting.items():
+        for d in deps:
+            users.setdefault(d, []).append(key)
+    ready = [position[k] for k, deps in waiting.items() if not deps]
+    heapq.heapify(ready)
+    ordered = []
+    while ready:
+        t = linked[heapq.heappop(ready)]
+        ordered.append(t)
+        for u in users.get(t.key, ()):
+            waiting[u].discard(t.key)
+            if not waiting[u]:
+                heapq.heappush(ready, position[u])
+    if len(ordered) < len(linked):
+        stuck = sorted({linked[position[k]].job for k, deps in waiting.items() if deps})
+        raise InputError(f"{path}: jobs read each other's outputs in a cycle: {', '.join(stuck)}")
+    return ordered
+
+
+def order(path: str, folder: str, jobs: Sequence[Job]) -> tuple[Task, ...]:
+    """Tasks with their dependencies, topologically sorted, file order among the free ones."""
+    ordered = _sort(path, _link(path, folder, _tasks(folder, jobs)))
+    final = {t.key: i for i, t in enumerate(ordered)}
+    return tuple(dataclasses.replace(t, needs=tuple(sorted(t.needs, key=final.__getitem__)),
+                                     after=tuple(sorted(t.after, key=final.__getitem__)))
+                 for t in ordered)

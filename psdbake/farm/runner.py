@@ -1,0 +1,113 @@
+"""One task as one psdbake process, on whatever machine calls ``run_job``.
+
+Every task runs as its own process, ``python -m psdbake.farm.job`` (= ``python -m psdbake``):
+USD's global state stays per job, a crashing job cannot take its worker down, and exit codes
+come for free. The commands write their outputs atomically, so a job killed mid-way leaves no
+partial file and is simply run again (they are deterministic). Back ends decide where and when
+``run_job`` runs; this module decides how.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+
+from ..errors import OutputError
+from .tasks import Batch, JobResult, Task
+
+_KILLED = (130, 143)  # psdbake's exit after SIGINT/SIGTERM (unwound, temporary file removed)
+_STOP = threading.Event()  # set on Ctrl-C/SIGTERM of a local batch: no new attempts
+_RUNNING: set[subprocess.Popen[bytes]] = set()
+_RUNNING_LOCK = threading.Lock()
+
+
+def _worker_name() -> str:
+    return f"{socket.gethostname()}:{os.getpid()}"
+
+
+def _attempts(task: Task, signal_retries: int, started: float) -> tuple[int, int | None, str] | JobResult:
+    """(attempts, exit code, stderr) of the last run, rerun while killed by a signal; or the
+    failed result when the process cannot start."""
+    argv = [sys.executable, "-m", "psdbake.farm.job", str(os.getpid()), task.command, *task.args]
+    attempts, code, err = 0, None, ""
+    while attempts <= signal_retries and not _STOP.is_set():
+        attempts += 1
+        try:
+            proc = subprocess.Popen(argv, cwd=task.cwd, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+                                    stderr=subprocess.PIPE, start_new_session=True)
+        except OSError as exc:
+            return JobResult(task.key, task.label, "failed", None, time.perf_counter() - started, attempts,
+                             f"cannot start in {task.cwd}: {exc.strerror or exc}", worker=_worker_name())
+        with _RUNNING_LOCK:
+            _RUNNING.add(proc)
+            if _STOP.is_set():  # stopped between the check above and the start: no job outlives the batch
+                proc.send_signal(signal.SIGTERM)
+        try:
+            _, raw = proc.communicate()
+        finally:
+            with _RUNNING_LOCK:
+                _RUNNING.discard(proc)
+        code, err = proc.returncode, raw.decode("utf-8", "replace")
+        if code >= 0 and code not in _KILLED:
+            break
+    return attempts, code, err
+
+
+def run_job(task: Task, *deps: JobResult, signal_retries: int = 2) -> JobResult:
+    """Run one task as a psdbake process in task.cwd (on whatever machine calls this).
+
+    deps: the results of task.needs and task.after. A process killed by a signal (or
+    psdbake's own exit after SIGINT/SIGTERM) is run again, up to signal_retries times: its
+    outputs are atomic and the commands deterministic. A psdbake exit code is final.
+    """
+    blocked = [d.label for d in deps if d.key in task.needs and d.status != "ok"]
+    if blocked:
+        return JobResult(task.key, task.label, "skipped", None, 0.0, 0, f"needs {blocked[0]}, which did not succeed",
+                         worker=_worker_name())
+    started = time.perf_counter()
+    ran = _attempts(task, signal_retries, started)
+    if isinstance(ran, JobResult):
+        return ran
+    attempts, code, err = ran
+    seconds = time.perf_counter() - started
+    lines = [ln.strip() for ln in err.splitlines() if ln.strip()]
+    warns = tuple(ln.removeprefix("psdbake: warning: ") for ln in lines if ln.startswith("psdbake: warning: "))
+    if code == 0:
+        return JobResult(task.key, task.label, "ok", 0, seconds, attempts, "", warns, _worker_name())
+    if code is None:
+        message = "interrupted before it started"
+    elif code < 0:
+        message = f"killed by {signal.Signals(-code).name}" + (f" after: {lines[-1]}" if lines else "")
+    else:
+        message = lines[-1].removeprefix("psdbake: error: ") if lines else f"exit {code} with no message"
+    return JobResult(task.key, task.label, "failed", code, seconds, attempts, message, warns, _worker_name())
+
+
+def stop_running() -> None:
+    """No new attempts; SIGTERM the running jobs, which unwind and remove their temporary files."""
+    _STOP.set()
+    with _RUNNING_LOCK:
+        for proc in _RUNNING:
+            with contextlib.suppress(ProcessLookupError):
+                proc.send_signal(signal.SIGTERM)
+
+
+def allow_running() -> None:
+    """A new local batch starts: attempts are allowed again after an earlier one was stopped."""
+    _STOP.clear()
+
+
+def make_output_folders(batch: Batch) -> None:
+    """Create the outputs' folders before the first job starts: a farm writes into new shot
+    folders, and the commands themselves refuse a missing one."""
+    for folder in sorted({os.path.dirname(p) for t in batch.tasks for p in t.writes}):
+        try:
+            os.makedirs(folder, exist_ok=True)
+        except OSError as exc:
+            raise OutputError(f"{batch.path}: cannot create output folder {folder} ({exc.strerror or exc})") from None

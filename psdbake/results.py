@@ -1,0 +1,90 @@
+"""What the pipeline returns: frozen data, never printed by the library (the CLI renders it)."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+from .inverse import InverseResult
+from .normals import CorrectiveNormals
+from .settings import FitSettings
+from .usd.schema import DEFAULT_GROUP, DriverData
+
+Progress = Callable[[int, int, str], None]  # (done, total, what)
+
+
+@dataclass(frozen=True)
+class Example:
+    """One sculpted example of one mesh."""
+
+    label: str  # "file.usda@t" for messages and reports
+    source: str  # EXAMPLES file path
+    time: float
+    pose: NDArray[np.float64]  # (j, 4) every joint's rotation away from the bind pose, quaternions xyzw
+
+
+@dataclass(frozen=True)
+class MeshFit:
+    """Everything fitted for one mesh."""
+
+    mesh: str
+    skeleton: str
+    point_count: int
+    examples: tuple[Example, ...]
+    inverses: tuple[InverseResult, ...]
+    channels: tuple[str, ...]  # blend-shape channel per example ("" when it has no corrective)
+    drivers: tuple[str, ...]
+    driver_data: DriverData
+    existing_channels: tuple[str, ...]
+    existing_targets: tuple[str, ...]
+    group: str = DEFAULT_GROUP
+    joints: tuple[str, ...] = ()  # skeleton order, as the example poses
+    normals: tuple[CorrectiveNormals | None, ...] = ()  # per example, when the mesh authors normals
+
+
+@dataclass(frozen=True)
+class FitResult:
+    asset: str
+    example_files: tuple[str, ...]
+    settings: FitSettings
+    meshes: tuple[MeshFit, ...]
+    warnings: tuple[str, ...] = field(default_factory=tuple)
+    seconds: float = 0.0
+
+    @property
+    def missed(self) -> int:
+        return int(sum(len(inv.missed) for m in self.meshes for inv in m.inverses))
+
+
+@dataclass(frozen=True)
+class AnimWeights:
+    """Blend-shape channels and weights to author on one SkelAnimation."""
+
+    animation: str
+    channels: tuple[str, ...]  # existing channels first, then psdbake's
+    times: NDArray[np.float64]  # (f,)
+    weights: NDArray[np.float64]  # (f, c)
+    psd_channels: int  # how many of the channels are psdbake's
+
+
+@dataclass(frozen=True)
+class WeightsResult:
+    asset: str
+    correctives: str
+    anim: str
+    animations: tuple[AnimWeights, ...]
+    fps: float | None
+    seconds: float = 0.0
+
+
+@dataclass(frozen=True)
+class PoseResult:
+    asset: str
+    poses: str
+    times: tuple[float, ...]
+    meshes: tuple[str, ...]
+    layer: object  # Sdf.Layer
+    deformers: tuple[str, ...] = ()

@@ -1,0 +1,58 @@
+"""What a fit is asked to do: the options of ``psdbake fit``, validated in parameter names.
+
+The library speaks in its own parameter names (``rtol``, ``sigma``); the CLI maps them to
+its flags (``--tolerance``, ``--sigma``) when it shows a refusal.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+
+import numpy as np
+
+from . import tolerances as tol
+from .errors import SettingError
+from .posespace import POSE_SPACES
+from .rbf import KERNELS
+from .usd.schema import DEFAULT_GROUP, RESERVED_GROUP_NAMES
+
+
+@dataclass(frozen=True)
+class FitSettings:
+    """Options of ``psdbake fit``; defaults are the documented ones."""
+
+    drivers: tuple[str, ...] = ()  # empty: every joint rotated in any example
+    kernel: str = "gaussian"
+    sigma: float | None = None  # None: automatic (rbf.auto_sigma)
+    degree: int | None = None  # None: rbf.default_degree(kernel)
+    smoothing: float = 0.0
+    rest_example: bool = True
+    pose_space: str = "rotationVector"  # a key of posespace.POSE_SPACES
+    twist_axis: tuple[float, float, float] | None = None  # swingTwist: axis in each driver's bind frame
+    clamp_weights: bool = False  # clamp b(x) to [0, 1] at eval time (stored, off by default)
+    normalize_weights: bool = False  # divide b(x) by max(1, sum) at eval time (stored, off by default)
+    rtol: float = tol.INVERSE_RTOL
+    meshes: tuple[str, ...] = ()  # empty: every mesh with examples
+    deformers: tuple[str, ...] = ()
+    group: str = DEFAULT_GROUP  # correctives group: its own examples, drivers, kernel and sigma
+
+    def __post_init__(self) -> None:
+        for name, allow_zero in (("sigma", False), ("smoothing", True), ("rtol", False)):
+            value = getattr(self, name)
+            if value is not None and not (np.isfinite(value) and (value >= 0 if allow_zero else value > 0)):
+                raise SettingError(name, value, f"must be a {'non-negative' if allow_zero else 'positive'} number")
+        if not re.fullmatch(r"[A-Za-z_][A-Za-z0-9_]*", self.group) or self.group in RESERVED_GROUP_NAMES:
+            raise SettingError("group", self.group, "must be an identifier (letters, digits, _; not "
+                               f"{' or '.join(repr(n) for n in RESERVED_GROUP_NAMES)})")
+        if self.kernel not in KERNELS:
+            raise SettingError("kernel", self.kernel, f"choose one of {', '.join(sorted(KERNELS))}")
+        if self.pose_space not in POSE_SPACES:
+            raise SettingError("pose_space", self.pose_space, f"choose one of {', '.join(POSE_SPACES)}")
+        if self.twist_axis is not None and not (
+            np.all(np.isfinite(self.twist_axis)) and np.linalg.norm(self.twist_axis) > 0
+        ):
+            raise SettingError("twist_axis", self.twist_axis, "must be a non-zero finite vector")
+        if POSE_SPACES[self.pose_space].needs_twist_axis and self.twist_axis is None:
+            raise SettingError("pose_space", self.pose_space, "needs twist_axis (the twist axis in each driver's "
+                               "bind frame)")

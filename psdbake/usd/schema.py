@@ -1,0 +1,348 @@
+"""The ``psd:`` schema, in one place: names, version, data classes, read and write.
+
+Authored on each corrected mesh of a CORRECTIVES layer, all ``custom uniform`` (README:
+"The psd: schema"): ``psd:version``, ``psd:groups`` (sorted) and each correctives group's
+RBF driver data under ``psd:<group>:``. Version 1 (psdbake 0.1) held one flat group,
+read as group ``main``. Readers refuse larger versions and validate every value on read,
+naming the attribute, so evaluation never computes NaN weights from a tampered layer.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from math import comb
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+from pxr import Gf, Sdf, Usd, UsdSkel, Vt
+
+from ..errors import InputError, where
+from ..posespace import POSE_SPACES
+from ..rbf import KERNELS
+from .author import attribute, double_array, int_array, over, quatd_array
+
+#: Version of the psd: attribute schema written by this psdbake.
+PSD_VERSION = 2
+#: psd: schema versions this psdbake reads (1: one flat group, read as group "main").
+READABLE_PSD_VERSIONS = (1, 2)
+#: The group a v1 layer's flat psd: data belongs to, and fit's group when none is named.
+DEFAULT_GROUP = "main"
+#: Group names become attribute namespaces: identifiers, and not the schema's own names.
+RESERVED_GROUP_NAMES = ("version", "groups")
+
+
+def _type_names(**names: str) -> dict[str, Sdf.ValueTypeName]:
+    return {name: getattr(Sdf.ValueTypeNames, t) for name, t in names.items()}
+
+
+#: Every psd: attribute and its value type (``psd:version``, ``psd:groups``, then per group).
+PSD_TYPES = _type_names(
+    version="Int", groups="TokenArray", poseSpace="Token", twistAxis="Double3", clampWeights="Bool",
+    normalizeWeights="Bool", drivers="TokenArray", driverBindRotations="QuatdArray", kernel="Token", sigma="Double",
+    degree="Int", smoothing="Double", centers="DoubleArray", centerLabels="StringArray", shapes="TokenArray",
+    coefficients="DoubleArray", polyPowers="IntArray", dimensions="IntArray", polyShift="DoubleArray",
+    polyScale="DoubleArray", exampleTimes="DoubleArray", exampleSources="StringArray",
+)
+
+
+@dataclass(frozen=True)
+class BlendShapeData:
+    """One corrective BlendShape: sparse rest-space offsets in the mesh's point space."""
+
+    name: str  # prim name under the mesh
+    channel: str  # skel:blendShapes token (SkelAnimation channel)
+    indices: NDArray[np.int64]
+    offsets: NDArray[np.float64]  # (k, 3)
+    normal_offsets: NDArray[np.float64] | None = None  # (k, 3) when the shading normals change too
+
+
+@dataclass(frozen=True)
+class DriverData:
+    """The RBF driver data of one correctives group on one mesh, as stored in the psd:
+    namespace (README: psd schema)."""
+
+    drivers: Sequence[str]  # joint paths, skeleton joint tokens
+    bind_rotations: NDArray[np.float64]  # (d, 4) xyzw, each driver's bind local rotation
+    pose_space: str
+    twist_axis: tuple[float, ...] | None
+    clamp_weights: bool
+    normalize_weights: bool
+    kernel: str
+    sigma: float
+    degree: int
+    smoothing: float
+    centers: NDArray[np.float64]  # (k, m) over dims
+    center_labels: Sequence[str]
+    shapes: Sequence[str]  # channels, one per coefficient column
+    coefficients: NDArray[np.float64]  # (k + p, s)
+    powers: NDArray[np.int64]  # (p, m)
+    shift: NDArray[np.float64]  # (m,)
+    scale: NDArray[np.float64]  # (m,)
+    dims: NDArray[np.int64]  # (m,) pose coordinates used, indices into the 3 d vector
+    example_times: Sequence[float]
+    example_sources: Sequence[str]
+
+
+# --- read ----------------------------------------------------------------------------------
+
+def group_prefixes(prim: Usd.Prim, label: str) -> list[tuple[str, str]]:
+    """[(group, attribute prefix)] of the correctives groups on prim, sorted by name; empty
+    when prim has no psd: data. Refuses versions this psdbake cannot read."""
+    mesh = str(prim.GetPath())
+    version_attr = prim.GetAttribute("psd:version")
+    if not version_attr or not version_attr.HasAuthoredValue():
+        return []
+    version = version_attr.Get()
+    if version not in READABLE_PSD_VERSIONS:
+        raise InputError(
+            f"{where(label, mesh, 'psd:version')}: version {version} is not supported by this psdbake "
+            f"(reads {', '.join(map(str, READABLE_PSD_VERSIONS))}); upgrade psdbake or re-fit"
+        )
+    if version == 1:
+        return [(DEFAULT_GROUP, "psd:")]
+    groups_attr = prim.GetAttribute("psd:groups")
+    names = [str(g) for g in (groups_attr.Get() if groups_attr else None) or []]
+    if not names:
+        raise InputError(f"{where(label, mesh, 'psd:groups')}: missing or empty (the CORRECTIVES layer is incomplete)")
+    if len(set(names)) != len(names):
+        raise InputError(f"{where(label, mesh, 'psd:groups')}: a group is listed twice")
+    return [(name, f"psd:{name}:") for name in sorted(names)]
+
+
+def read_groups(prim: Usd.Prim, label: str, joints: Sequence[str] | None = None, skeleton: str = ""
+                ) -> list[tuple[str, DriverData]]:
+    """Every correctives group's driver data on prim, validated, sorted by group name.
+    With ``joints`` (the bound skeleton's joint order), drivers must be among them."""
+    return [(g, _GroupReader(prim, label, prefix).read(joints, skeleton)) for g, prefix in group_prefixes(prim, label)]
+
+
+class _GroupReader:
+    """Reads one group's attributes, each refusal naming ``FILE <MESH.psd:G:attr>``."""
+
+    def __init__(self, prim: Usd.Prim, label: str, prefix: str) -> None:
+        self.prim, self.label, self.prefix, self.mesh = prim, label, prefix, str(prim.GetPath())
+
+    def at(self, name: str) -> str:
+        return where(self.label, self.mesh, self.prefix + name)
+
+    def get(self, name: str, required: bool = True) -> Any:
+        attr = self.prim.GetAttribute(self.prefix + name)
+        value = attr.Get() if attr else None
+        if value is None and required:
+            raise InputError(f"{self.at(name)}: missing (the CORRECTIVES layer is incomplete)")
+        return value
+
+    def numbers(self, name: str, value: Any = None) -> NDArray[np.float64]:
+        """An attribute's values as float64 (a scalar becomes one value), or refuse its type."""
+        value = self.get(name) if value is None else value
+        try:
+            return np.array(value, dtype=np.float64).reshape(-1)
+        except (TypeError, ValueError):
+            raise InputError(f"{self.at(name)}: {type(value).__name__} value is not numbers") from None
+
+    def finite(self, name: str, values: NDArray[np.float64], why: str = "NaN or inf would make the weights NaN"
+               ) -> NDArray[np.float64]:
+        bad = np.nonzero(~np.isfinite(values))[0]
+        if len(bad):
+            raise InputError(f"{self.at(name)}: value {int(bad[0])} is {float(values[bad[0]])!r}: every value must be "
+                             f"finite ({why})")
+        return values
+
+    def integers(self, name: str) -> NDArray[np.int64]:
+        values = self.numbers(name)
+        bad = np.nonzero(~np.isfinite(values) | (values != np.round(values)))[0]
+        if len(bad):
+            raise InputError(f"{self.at(name)}: value {int(bad[0])} is {float(values[bad[0]])!r}, not an integer")
+        return values.astype(np.int64)
+
+    def scalar(self, name: str) -> float:
+        values = self.numbers(name)
+        if len(values) != 1:
+            raise InputError(f"{self.at(name)}: {len(values)} values, expected one number")
+        return float(values[0])
+
+    # -- the group ----------------------------------------------------------------------
+    def read(self, joints: Sequence[str] | None, skeleton: str) -> DriverData:
+        drivers = [str(d) for d in self.get("drivers")]
+        space = str(self.get("poseSpace"))
+        if space not in POSE_SPACES:
+            raise InputError(f"{self.at('poseSpace')}: unknown pose space {space!r}")
+        if joints is not None:
+            missing = [d for d in drivers if d not in set(joints)]
+            if missing:
+                raise InputError(f"{self.at('drivers')}: joint {missing[0]!r} is not in skeleton <{skeleton}>")
+        if str(self.get("kernel")) not in KERNELS:
+            raise InputError(f"{self.at('kernel')}: unknown kernel {self.get('kernel')!r}")
+        dims, centers, powers, coefficients, shapes = self._rbf_arrays(drivers, space)
+        degree = self._degree(powers, len(dims))
+        shift, scale = self._polynomial_frame(len(dims))
+        return DriverData(
+            drivers=drivers, bind_rotations=self._bind_rotations(drivers), pose_space=space,
+            twist_axis=self._twist_axis(space), clamp_weights=bool(self.get("clampWeights", required=False) or False),
+            normalize_weights=bool(self.get("normalizeWeights", required=False) or False),
+            kernel=str(self.get("kernel")), sigma=self._sigma(), degree=degree, smoothing=self._smoothing(),
+            centers=centers, center_labels=[str(s) for s in self.get("centerLabels")], shapes=shapes,
+            coefficients=coefficients, powers=powers, shift=shift, scale=scale, dims=dims,
+            example_times=[float(t) for t in self.finite("exampleTimes", self.numbers("exampleTimes"),
+                                                         "time codes are finite numbers")],
+            example_sources=[str(s) for s in self.get("exampleSources")],
+        )
+
+    def _rbf_arrays(self, drivers: list[str], space: str):
+        """dimensions, centers (k, m), polyPowers (p, m), coefficients (k + p, s), shapes."""
+        dims = self.integers("dimensions")
+        dim = len(dims)
+        shapes = [str(s) for s in self.get("shapes")]
+        centers, powers, coefficients = self.numbers("centers"), self.integers("polyPowers"), self.numbers("coefficients")
+        width = POSE_SPACES[space].width * len(drivers)
+        if dim == 0 or dims.min() < 0 or dims.max() >= width or centers.size % dim or powers.size % dim:
+            raise InputError(f"{where(self.label, self.mesh)}: {self.prefix} driver data sizes do not match "
+                             f"{len(drivers)} drivers")
+        centers, powers = centers.reshape(-1, dim), powers.reshape(-1, dim)
+        rows = len(centers) + len(powers)
+        if not shapes or coefficients.size != rows * len(shapes):
+            raise InputError(f"{self.at('coefficients')}: expected {rows} x {len(shapes)} values, got {coefficients.size}")
+        self.finite("centers", centers.reshape(-1))
+        self.finite("coefficients", coefficients)
+        return dims, centers, powers, coefficients.reshape(rows, len(shapes)), shapes
+
+    def _sigma(self) -> float:
+        sigma = self.scalar("sigma")
+        if not (np.isfinite(sigma) and sigma > 0):
+            raise InputError(f"{self.at('sigma')}: {sigma!r} is not a finite number > 0 (the RBF width in radians)")
+        return sigma
+
+    def _smoothing(self) -> float:
+        smoothing = self.scalar("smoothing")
+        if not (np.isfinite(smoothing) and smoothing >= 0):
+            raise InputError(f"{self.at('smoothing')}: {smoothing!r} is not a finite number >= 0")
+        return smoothing
+
+    def _degree(self, powers: NDArray[np.int64], dim: int) -> int:
+        """psd:degree, consistent with psd:polyPowers: the monomials of total degree <=
+        degree in dim variables (scipy's RBFInterpolator's set, in any order), none for -1."""
+        values = self.integers("degree")
+        if len(values) != 1 or values[0] < -1:
+            shown = int(values[0]) if len(values) == 1 else values.tolist()
+            raise InputError(f"{self.at('degree')}: {shown!r} is not one integer >= -1 (-1: no polynomial term)")
+        degree = int(values[0])
+        expected = comb(dim + degree, dim) if degree >= 0 else 0
+        sums = powers.sum(axis=1) if len(powers) else np.zeros(0, dtype=np.int64)
+        distinct = len({tuple(row) for row in powers.tolist()}) == len(powers)
+        if len(powers) != expected or np.any(powers < 0) or np.any(sums > degree) or not distinct:
+            raise InputError(
+                f"{self.at('polyPowers')}: {len(powers)} monomials do not match psd:degree {degree} in {dim} dimensions "
+                f"(expected the {expected} distinct monomials of total degree <= {degree}{', none' if degree < 0 else ''})"
+            )
+        return degree
+
+    def _polynomial_frame(self, dim: int) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        shift = self.finite("polyShift", self.numbers("polyShift"))
+        scale = self.finite("polyScale", self.numbers("polyScale"))
+        for name, values in (("polyShift", shift), ("polyScale", scale)):
+            if len(values) != dim:
+                raise InputError(f"{self.at(name)}: {len(values)} values for {dim} psd:dimensions (one per dimension)")
+        if np.any(scale == 0):
+            raise InputError(f"{self.at('polyScale')}: value {int(np.argmax(scale == 0))} is zero (the polynomial term "
+                             "divides by it)")
+        return shift, scale
+
+    def _bind_rotations(self, drivers: list[str]) -> NDArray[np.float64]:
+        quats = self.get("driverBindRotations")
+        try:
+            bind = np.array([[*q.GetImaginary(), q.GetReal()] for q in quats], dtype=np.float64).reshape(-1, 4)
+        except (AttributeError, TypeError, ValueError):
+            raise InputError(f"{self.at('driverBindRotations')}: not an array of quaternions") from None
+        if len(bind) != len(drivers):
+            raise InputError(f"{where(self.label, self.mesh)}: {self.prefix} driver data sizes do not match "
+                             f"{len(drivers)} drivers")
+        with np.errstate(over="ignore", invalid="ignore"):
+            norms = np.linalg.norm(np.nan_to_num(bind, nan=0.0, posinf=0.0, neginf=0.0), axis=1)
+        # psdbake writes unit quaternions; 1e-3 leaves room for hand-authored or rounded ones
+        bad = np.nonzero(~np.all(np.isfinite(bind), axis=1) | ~(np.abs(norms - 1.0) < 1e-3))[0]
+        if len(bad):
+            raise InputError(f"{self.at('driverBindRotations')}: quaternion {int(bad[0])} (driver {drivers[bad[0]]!r}) "
+                             f"is {tuple(bind[bad[0]][[3, 0, 1, 2]].tolist())!r}: not a unit quaternion (a rotation)")
+        return bind
+
+    def _twist_axis(self, space: str) -> tuple[float, ...] | None:
+        twist = self.get("twistAxis", required=False)
+        if space != "swingTwist":
+            return None if twist is None else tuple(float(v) for v in self.numbers("twistAxis", twist))
+        if twist is None:
+            raise InputError(f"{self.at('twistAxis')}: missing: the swingTwist pose space needs the twist axis")
+        axis = self.numbers("twistAxis", twist)
+        if len(axis) != 3 or not np.all(np.isfinite(axis)) or np.linalg.norm(axis) == 0:
+            raise InputError(f"{self.at('twistAxis')}: {tuple(axis.tolist())!r} is not a finite non-zero 3-vector")
+        return tuple(float(v) for v in axis)
+
+
+def read_blend_shape(prim: Usd.Prim, channel: str) -> BlendShapeData:
+    """A BlendShape prim's data (to carry groups a fit does not touch into an updated layer)."""
+    shape = UsdSkel.BlendShape(prim)
+    offsets = np.array(shape.GetOffsetsAttr().Get() or [], dtype=np.float64).reshape(-1, 3)
+    indices = np.array(shape.GetPointIndicesAttr().Get() or [], dtype=np.int64)
+    normals = shape.GetNormalOffsetsAttr().Get()
+    return BlendShapeData(
+        name=prim.GetName(), channel=channel, indices=indices, offsets=offsets,
+        normal_offsets=np.array(normals, dtype=np.float64).reshape(-1, 3) if normals else None,
+    )
+
+
+def psd_prims(layer: Sdf.Layer) -> list[str]:
+    """Prims on which layer itself authors psd:version (a CORRECTIVES layer's meshes), sorted."""
+    found: list[str] = []
+
+    def visit(path: Sdf.Path) -> None:
+        if path.IsPropertyPath() and path.name == "psd:version":
+            found.append(str(path.GetPrimPath()))
+
+    layer.Traverse(Sdf.Path.absoluteRootPath, visit)
+    return sorted(found)
+
+
+# --- write ---------------------------------------------------------------------------------
+
+Put = Callable[[str, Sdf.ValueTypeName, Any], None]
+
+
+def author_driver_data(layer: Sdf.Layer, mesh: str, groups: Sequence[tuple[str, DriverData]]) -> None:
+    """psd: attributes on the mesh prim, every one uniform and custom: ``psd:version``,
+    ``psd:groups`` (sorted names) and each group's data under ``psd:<group>:``."""
+    spec = over(layer, mesh)
+
+    def put(name: str, type_name: Sdf.ValueTypeName, value: Any) -> None:
+        attribute(spec, f"psd:{name}", type_name, value, uniform=True, custom=True)
+
+    put("version", Sdf.ValueTypeNames.Int, PSD_VERSION)
+    ordered = sorted(groups, key=lambda g: g[0])
+    put("groups", Sdf.ValueTypeNames.TokenArray, Vt.TokenArray([name for name, _ in ordered]))
+    for name, data in ordered:
+        _author_group(put, f"{name}:", data)
+
+
+def _author_group(put: Put, prefix: str, data: DriverData) -> None:
+    t = Sdf.ValueTypeNames
+    put(f"{prefix}poseSpace", t.Token, data.pose_space)
+    if data.twist_axis is not None:
+        put(f"{prefix}twistAxis", t.Double3, Gf.Vec3d(*map(float, data.twist_axis)))
+    put(f"{prefix}clampWeights", t.Bool, bool(data.clamp_weights))
+    put(f"{prefix}normalizeWeights", t.Bool, bool(data.normalize_weights))
+    put(f"{prefix}drivers", t.TokenArray, Vt.TokenArray(list(data.drivers)))
+    put(f"{prefix}driverBindRotations", t.QuatdArray, quatd_array(data.bind_rotations))
+    put(f"{prefix}kernel", t.Token, data.kernel)
+    put(f"{prefix}sigma", t.Double, float(data.sigma))
+    put(f"{prefix}degree", t.Int, int(data.degree))
+    put(f"{prefix}smoothing", t.Double, float(data.smoothing))
+    put(f"{prefix}centers", t.DoubleArray, double_array(data.centers))
+    put(f"{prefix}centerLabels", t.StringArray, Vt.StringArray(list(data.center_labels)))
+    put(f"{prefix}shapes", t.TokenArray, Vt.TokenArray(list(data.shapes)))
+    put(f"{prefix}coefficients", t.DoubleArray, double_array(data.coefficients))
+    put(f"{prefix}polyPowers", t.IntArray, int_array(data.powers))
+    put(f"{prefix}dimensions", t.IntArray, int_array(data.dims))
+    put(f"{prefix}polyShift", t.DoubleArray, double_array(data.shift))
+    put(f"{prefix}polyScale", t.DoubleArray, double_array(data.scale))
+    put(f"{prefix}exampleTimes", t.DoubleArray, double_array(np.asarray(data.example_times, dtype=np.float64)))
+    put(f"{prefix}exampleSources", t.StringArray, Vt.StringArray(list(data.example_sources)))

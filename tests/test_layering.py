@@ -1,0 +1,149 @@
+"""The package's layering, checked from its source: who may import what.
+
+- Only ``psdbake/usd/`` imports ``pxr``: USD stays at the edge, the numerics are testable
+  without it.
+- No import cycles between psdbake's modules, counting imports inside functions too (a cycle
+  held together by a function-level import is still a cycle); only ``if TYPE_CHECKING:``
+  blocks are left out, since they never run.
+- Nothing in the package imports the CLI (it is a thin shell over the library), except the
+  entry points that start it.
+"""
+
+from __future__ import annotations
+
+import ast
+import os
+
+from conftest import ROOT
+
+PACKAGE = os.path.join(ROOT, "psdbake")
+ENTRY_POINTS = {"psdbake.__main__", "psdbake._entry"}
+
+
+def _modules() -> dict[str, str]:
+    """module name -> file, for every module of the package."""
+    found = {}
+    for here, dirs, files in os.walk(PACKAGE):
+        dirs[:] = [d for d in dirs if d != "__pycache__"]
+        for name in files:
+            if name.endswith(".py"):
+                rel = os.path.relpath(os.path.join(here, name), ROOT)[:-3].replace(os.sep, ".")
+                found[rel.removesuffix(".__init__")] = os.path.join(here, name)
+    return found
+
+
+MODULES = _modules()
+
+
+def _is_type_checking(node: ast.If) -> bool:
+    test = node.test
+    return (isinstance(test, ast.Name) and test.id == "TYPE_CHECKING") or (
+        isinstance(test, ast.Attribute) and test.attr == "TYPE_CHECKING")
+
+
+def _imports(module: str, path: str) -> list[tuple[str, int]]:
+    """(imported module, line) for every import that can run, resolved to package modules
+    where it names one (``from .usd import write`` -> psdbake.usd.write)."""
+    package = module if path.endswith("__init__.py") else module.rpartition(".")[0]
+    out: list[tuple[str, int]] = []
+
+    def visit(node: ast.AST) -> None:
+        for child in ast.iter_child_nodes(node):
+            if isinstance(child, ast.If) and _is_type_checking(child):
+                for other in child.orelse:
+                    visit(other)
+                continue
+            if isinstance(child, ast.Import):
+                out.extend((alias.name, child.lineno) for alias in child.names)
+            elif isinstance(child, ast.ImportFrom):
+                base = child.module or ""
+                if child.level:
+                    parts = package.split(".")
+                    parts = parts[: len(parts) - (child.level - 1)]
+                    base = ".".join(parts + ([child.module] if child.module else []))
+                for alias in child.names:
+                    full = f"{base}.{alias.name}"
+                    out.append((full if full in MODULES else base, child.lineno))
+            visit(child)
+
+    with open(path, encoding="utf-8") as fh:
+        visit(ast.parse(fh.read(), path))
+    return out
+
+
+GRAPH = {m: _imports(m, p) for m, p in MODULES.items()}
+
+
+def test_only_psdbake_usd_imports_pxr():
+    offenders = [f"{MODULES[m]}:{line} imports {target}" for m, edges in GRAPH.items()
+                 if not m.startswith("psdbake.usd") for target, line in edges if target.split(".")[0] == "pxr"]
+    assert not offenders, "\n".join(offenders)
+
+
+def test_the_cli_is_imported_by_no_library_module():
+    offenders = [f"{MODULES[m]}:{line}" for m, edges in GRAPH.items() if m not in ENTRY_POINTS
+                 for target, line in edges if target == "psdbake.cli"]
+    assert not offenders, "psdbake.cli is imported by: " + ", ".join(offenders)
+
+
+def _cycles() -> list[list[str]]:
+    """Strongly connected components of more than one module (Tarjan)."""
+    edges = {m: sorted({t for t, _ in GRAPH[m] if t in MODULES and t != m}) for m in MODULES}
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on_stack: set[str] = set()
+    found: list[list[str]] = []
+
+    def strong(v: str) -> None:
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        on_stack.add(v)
+        for w in edges[v]:
+            if w not in index:
+                strong(w)
+                low[v] = min(low[v], low[w])
+            elif w in on_stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            component = []
+            while True:
+                w = stack.pop()
+                on_stack.discard(w)
+                component.append(w)
+                if w == v:
+                    break
+            if len(component) > 1:
+                found.append(sorted(component))
+
+    for v in sorted(MODULES):
+        if v not in index:
+            strong(v)
+    return found
+
+
+def test_no_import_cycles():
+    assert not _cycles(), f"import cycles: {_cycles()}"
+
+
+def test_the_checks_see_the_package():
+    """The checks above are only as good as the graph: it must hold the pipeline's modules and
+    resolve relative imports to them (a parser regression would make every check pass)."""
+    assert {"psdbake.api", "psdbake.cli", "psdbake.usd.read", "psdbake.usd.blackbox", "psdbake.powell"} <= set(MODULES)
+    assert "psdbake.api" in {t for t, _ in GRAPH["psdbake.cli"]}
+    assert "psdbake.usd.read" in {t for t, _ in GRAPH["psdbake.api"]}
+    assert any(t.startswith("pxr") for t, _ in GRAPH["psdbake.usd.read"])
+
+
+def test_one_public_surface():
+    """``psdbake.__all__`` is the one export list: every name resolves to the object its
+    module defines, and the eager imports type checkers read name exactly the same set."""
+    import psdbake
+
+    for name in psdbake.__all__:
+        assert getattr(psdbake, name) is not None, name
+    with open(os.path.join(PACKAGE, "__init__.py"), encoding="utf-8") as fh:
+        tree = ast.parse(fh.read())
+    eager = {alias.asname or alias.name for node in ast.walk(tree) if isinstance(node, ast.If) and _is_type_checking(node)
+             for stmt in node.body if isinstance(stmt, ast.ImportFrom) for alias in stmt.names}
+    assert eager == set(psdbake.__all__) - {"__version__"}
