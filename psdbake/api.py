@@ -29,9 +29,10 @@ from .settings import FitSettings, SettingError
 from .solve import cached_scene, solve_all
 from .usd import write as usdwrite
 from .usd.author import Layer
+from .usd.compose import compose
 from .usd.describe import describe as describe_file
 from .usd.normalbox import read_mesh_shading
-from .usd.read import Scene, animation_components, compose
+from .usd.read import Scene, animation_components
 from .usd.validate import require_finite_time_samples, require_psd_prims_skinned, validate_animation, validate_skinning
 
 __all__ = [  # noqa: RUF022 - in pipeline order; the public surface is psdbake/__init__.py

@@ -17,15 +17,15 @@ import os
 import re
 import signal
 import sys
-import warnings
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Sequence
 
 import click
 
-from . import __version__, api, atomic, farm, report
+from . import __version__, api, atomic, console, farm, report
 from . import tolerances as tol
+from .console import Ui
 from .deformers import load_deformers
-from .errors import PsdError, PsdWarning, SettingError, StrictError, UsdDataError
+from .errors import PsdError, SettingError, StrictError, UsdDataError
 from .farm import chunked
 from .farm.plan import ChunkUsageError
 from .frames import parse_frames
@@ -33,7 +33,6 @@ from .groups import read_correctives
 from .posespace import POSE_SPACES
 from .rbf import KERNELS
 from .report import compare as compare_meshes
-from .results import FitResult
 from .settings import FitSettings
 from .usd.diagnostics import usd_diagnostics, usd_errors
 from .usd.schema import DEFAULT_GROUP
@@ -41,70 +40,17 @@ from .usd.schema import DEFAULT_GROUP
 EXIT_INTERNAL, EXIT_USAGE, EXIT_INTERRUPTED = 1, 2, 130
 
 
-class _Ui:
-    """Where the CLI talks: summaries to stdout, progress and warnings to stderr."""
-
-    def __init__(self, quiet: bool, verbose: int, as_json: bool) -> None:
-        self.quiet, self.verbose, self.as_json = quiet, verbose, as_json
-
-    def say(self, text: str = "") -> None:
-        if not self.quiet and not self.as_json:
-            click.echo(text)
-
-    @contextlib.contextmanager
-    def progress(self, label: str) -> Iterator:
-        if self.quiet or self.as_json or not sys.stderr.isatty():
-            yield None
-            return
-        bar = None
-
-        def update(done: int, total: int, what: str) -> None:
-            nonlocal bar
-            if bar is None:
-                bar = click.progressbar(length=total, label=label, file=sys.stderr, show_pos=True)
-                bar.__enter__()
-            bar.update(done - bar.pos)
-
-        try:
-            yield update
-        finally:
-            if bar is not None:
-                bar.__exit__(None, None, None)
-
-
-@contextlib.contextmanager
-def _collect_warnings(ui: _Ui) -> Iterator[list[str]]:
-    found: list[str] = []
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always", PsdWarning)
-        yield found
-    for w in caught:
-        if issubclass(w.category, PsdWarning):
-            found.append(str(w.message))
-            if not ui.quiet:
-                click.echo(f"psdbake: warning: {w.message}", err=True)
-
-
-def _json_text(payload: dict) -> str:
-    """A JSON side file (``--report``), committed with the command's other outputs."""
-    return json.dumps(payload, indent=2, sort_keys=True) + "\n"
-
-
 LAYER_FORMATS = (".usda", ".usdc", ".usd")
 REPORT_FORMATS = (".json",)
 
 
-common = [
+_COMMON = [
     click.option("-q", "--quiet", is_flag=True, help="Print nothing but errors."),
     click.option("-v", "--verbose", count=True, help="More detail in the summary."),
     click.option("--json", "as_json", is_flag=True, help="Print a machine-readable summary on stdout."),
 ]
 
 
-def _common(fn):
-    for option in reversed(common):
-        fn = option(fn)
-    return fn
 
 
 deformer_option = click.option(
@@ -112,6 +58,41 @@ deformer_option = click.option(
     help="A studio deformer applied after skinning (repeatable, chained in order): "
          "package.module:factory or file.py:factory. This runs your code.",
 )
+
+
+_RBF_OPTIONS = [
+    click.option("--driver", "drivers", multiple=True, metavar="JOINT",
+                 help="Driver joint (path or unique name; repeatable). Default: every joint rotated in any example."),
+    click.option("--kernel", type=click.Choice(sorted(KERNELS)), default="gaussian", show_default=True),
+    click.option("--sigma", type=float, default=None,
+                 help="Kernel width in radians. Default: mean distance between example poses."),
+    click.option("--degree", type=int, default=None,
+                 help="Polynomial degree (-1: none). Default: the kernel's minimum (none for gaussian)."),
+    click.option("--smoothing", type=float, default=0.0, show_default=True, help="RBF smoothing (0 interpolates exactly)."),
+    click.option("--no-rest-example", is_flag=True, help="Do not add the bind pose as an implicit zero example."),
+    click.option("--pose-space", type=click.Choice(list(POSE_SPACES)),
+                 default="rotationVector", show_default=True, help="Pose coordinates of each driver joint (README)."),
+    click.option("--twist-axis", type=(float, float, float), default=None, metavar="X Y Z",
+                 help="swingTwist: the twist axis in each driver's bind frame, e.g. 1 0 0 for a bone along x."),
+    click.option("--clamp-weights", is_flag=True, help="Clamp weights to [0, 1] at eval time (stored in psd:)."),
+    click.option("--normalize-weights", is_flag=True, help="Scale weights so they sum to at most 1 (stored in psd:)."),
+]
+
+
+def _stacked(options: Sequence[Callable]) -> Callable[[Callable], Callable]:
+    """One decorator applying several click options, in the order listed."""
+
+    def apply(fn: Callable) -> Callable:
+        for option in reversed(options):
+            fn = option(fn)
+        return fn
+
+    return apply
+
+
+#: The pose-space and RBF options, shared by ``fit`` and ``compare`` (which fits too).
+rbf_options = _stacked(_RBF_OPTIONS)
+_common = _stacked(_COMMON)
 
 
 @click.group(context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100})
@@ -148,6 +129,16 @@ class _Command(click.Command):
 cli.command_class = _Command
 
 
+def _settings(drivers, kernel, sigma, degree, smoothing, no_rest_example, pose_space, twist_axis, clamp_weights,
+              normalize_weights, deformers, **more) -> FitSettings:
+    """FitSettings from the shared RBF options (``rbf_options``) and a command's own."""
+    return FitSettings(
+        drivers=tuple(drivers), kernel=kernel, sigma=sigma, degree=degree, smoothing=smoothing,
+        rest_example=not no_rest_example, pose_space=pose_space, twist_axis=twist_axis,
+        clamp_weights=clamp_weights, normalize_weights=normalize_weights, deformers=tuple(deformers), **more,
+    )
+
+
 @cli.command("pose")
 @click.argument("asset", type=str)
 @click.option("--anim", "poses", required=True, type=str, help="POSES layer: one pose per time code.")
@@ -156,9 +147,9 @@ cli.command_class = _Command
 @_common
 def pose_cmd(asset, poses, output, deformers, quiet, verbose, as_json) -> None:
     """Write the skinned character at every time code of POSES, for artists to sculpt."""
-    ui = _Ui(quiet, verbose, as_json)
+    ui = Ui(quiet, verbose, as_json)
     atomic.check_outputs([(output, LAYER_FORMATS)], api.files_read([asset, poses], deformers))
-    with _collect_warnings(ui), ui.progress("posing") as progress:
+    with ui.warnings(), ui.progress("posing") as progress:
         result = api.pose(asset, poses, deformers, progress=progress)
         api.write_pose(result, output)
     summary = {"output": output, "times": list(result.times), "meshes": list(result.meshes)}
@@ -172,21 +163,7 @@ def pose_cmd(asset, poses, output, deformers, quiet, verbose, as_json) -> None:
 @click.argument("asset", type=str)
 @click.argument("examples", nargs=-1, required=True, type=str)
 @click.option("-o", "--output", required=True, type=str, help="CORRECTIVES layer to write.")
-@click.option("--driver", "drivers", multiple=True, metavar="JOINT",
-              help="Driver joint (path or unique name; repeatable). Default: every joint rotated in any example.")
-@click.option("--kernel", type=click.Choice(sorted(KERNELS)), default="gaussian", show_default=True)
-@click.option("--sigma", type=float, default=None,
-              help="Kernel width in radians. Default: mean distance between example poses.")
-@click.option("--degree", type=int, default=None,
-              help="Polynomial degree (-1: none). Default: the kernel's minimum (none for gaussian).")
-@click.option("--smoothing", type=float, default=0.0, show_default=True, help="RBF smoothing (0 interpolates exactly).")
-@click.option("--no-rest-example", is_flag=True, help="Do not add the bind pose as an implicit zero example.")
-@click.option("--pose-space", type=click.Choice(list(POSE_SPACES)),
-              default="rotationVector", show_default=True, help="Pose coordinates of each driver joint (README).")
-@click.option("--twist-axis", type=(float, float, float), default=None, metavar="X Y Z",
-              help="swingTwist: the twist axis in each driver's bind frame, e.g. 1 0 0 for a bone along x.")
-@click.option("--clamp-weights", is_flag=True, help="Clamp weights to [0, 1] at eval time (stored in psd:).")
-@click.option("--normalize-weights", is_flag=True, help="Scale weights so they sum to at most 1 (stored in psd:).")
+@rbf_options
 @click.option("--tolerance", type=float, default=tol.INVERSE_RTOL, show_default=True,
               help="Inverse residual tolerance, fraction of the mesh's bounding-box diagonal.")
 @click.option("--mesh", "meshes", multiple=True, metavar="PATH", help="Only fit this mesh (repeatable).")
@@ -204,78 +181,24 @@ def fit_cmd(asset, examples, output, drivers, kernel, sigma, degree, smoothing, 
             twist_axis, clamp_weights, normalize_weights, tolerance, meshes, group, report, strict, jobs, deformers,
             quiet, verbose, as_json) -> None:
     """Fit rest-space corrective BlendShapes and their RBF drivers from sculpted EXAMPLES."""
-    ui = _Ui(quiet, verbose, as_json)
-    settings = FitSettings(
-        drivers=tuple(drivers), kernel=kernel, sigma=sigma, degree=degree, smoothing=smoothing,
-        rest_example=not no_rest_example, pose_space=pose_space, twist_axis=twist_axis,
-        clamp_weights=clamp_weights, normalize_weights=normalize_weights, rtol=tolerance,
-        meshes=tuple(meshes), deformers=tuple(deformers), group=group or DEFAULT_GROUP,
-    )
+    ui = Ui(quiet, verbose, as_json)
+    settings = _settings(drivers, kernel, sigma, degree, smoothing, no_rest_example, pose_space, twist_axis,
+                         clamp_weights, normalize_weights, deformers, rtol=tolerance, meshes=tuple(meshes),
+                         group=group or DEFAULT_GROUP)
     reads = api.files_read([asset, *examples], deformers)
     atomic.check_outputs([(output, LAYER_FORMATS), *([(report, REPORT_FORMATS)] if report else [])], reads)
     if group and os.path.exists(output):
         read_correctives(asset, output)  # refuse a bad layer to update before the long fit
-    with _collect_warnings(ui):
+    with ui.warnings():
         with ui.progress("fitting examples") as progress:
             result = api.fit(asset, examples, settings, jobs=jobs, progress=progress)
-        payload = fit_report(result, output)
+        payload = console.fit_report(result, output)
         if strict and result.missed:
             raise StrictError(f"{output}: not written: {result.missed} vertices missed the tolerance (--strict)")
-        side = [(report, _json_text(payload))] if report else []
+        side = [(report, console.json_text(payload))] if report else []
         api.write_correctives(result, output, update=bool(group), side_files=side)
-    if as_json:
-        click.echo(json.dumps(payload, sort_keys=True))
-    _render_fit(ui, result, output)
-
-
-def fit_report(result: FitResult, output: str) -> dict:
-    """The --report / --json payload: per mesh and example, what was solved and how well."""
-    meshes = []
-    for m in result.meshes:
-        examples = []
-        for ex, inv, channel in zip(m.examples, m.inverses, m.channels, strict=True):
-            diag = inv.diagonal or 1.0
-            examples.append({
-                "example": ex.label, "source": ex.source, "time": ex.time, "blend_shape": channel or None,
-                "vertices_solved": len(inv.indices), "evaluations": inv.evaluations,
-                "max_residual": inv.max_residual, "rms_residual": inv.rms_residual,
-                "max_residual_rel": inv.max_residual / diag, "rms_residual_rel": inv.rms_residual / diag,
-                "tolerance": inv.atol, "missed": len(inv.missed),
-                "missed_vertices": [int(i) for i in inv.missed[:100]], "seconds": round(inv.seconds, 6),
-            })
-        d = m.driver_data
-        meshes.append({
-            "mesh": m.mesh, "group": m.group, "skeleton": m.skeleton, "points": m.point_count, "drivers": list(m.drivers),
-            "kernel": d.kernel, "sigma": d.sigma, "degree": d.degree, "examples": examples,
-        })
-    return {
-        "psdbake": __version__, "command": "fit", "asset": result.asset, "output": output,
-        "examples": list(result.example_files), "meshes": meshes, "missed": result.missed,
-        "warnings": list(result.warnings), "seconds": round(result.seconds, 6),
-    }
-
-
-def _render_fit(ui: _Ui, result: FitResult, output: str) -> None:
-    n_ex = sum(len(m.examples) for m in result.meshes)
-    solved = sum(len(inv.indices) for m in result.meshes for inv in m.inverses)
-    ui.say(f"psdbake fit: {len(result.meshes)} mesh(es), {n_ex} example(s), {solved} vertices solved in {result.seconds:.2f} s")
-    for m in result.meshes:
-        d = m.driver_data
-        drivers = ", ".join(j.split("/")[-1] for j in m.drivers)
-        ui.say(f"  <{m.mesh}>  group: {m.group}  drivers: {drivers}  kernel: {d.kernel}  sigma: {d.sigma:.4g} rad  "
-               f"degree: {d.degree}")
-        width = max(28, *(len(ex.label) for ex in m.examples))
-        ui.say(f"    {'example':<{width}} {'solved':>7} {'evals':>6} {'max/diag':>10} {'rms/diag':>10} {'missed':>7} "
-               f"{'seconds':>8}")
-        for ex, inv in zip(m.examples, m.inverses, strict=True):
-            diag = inv.diagonal or 1.0
-            ui.say(
-                f"    {ex.label:<{width}} {len(inv.indices):>7} {inv.evaluations:>6} {inv.max_residual / diag:>10.2e} "
-                f"{inv.rms_residual / diag:>10.2e} {len(inv.missed):>7} {inv.seconds:>8.3f}"
-            )
-    if result.missed:
-        ui.say(f"  DEGRADED: {result.missed} vertices missed the tolerance (see --report; --strict makes this fatal)")
-    ui.say(f"wrote {output}")
+    ui.payload(payload)
+    console.say_fit(ui, result, output)
 
 
 @cli.command("eval")
@@ -297,11 +220,11 @@ def _render_fit(ui: _Ui, result: FitResult, output: str) -> None:
 def eval_cmd(asset, correctives, anim, output, frames, points_cache, chunk_size, chunk, deformers, quiet, verbose,
              as_json) -> None:
     """Compute the correctives' weights over ANIM and write them as a WEIGHTS layer."""
-    ui = _Ui(quiet, verbose, as_json)
+    ui = Ui(quiet, verbose, as_json)
     if chunk_size is not None or chunk is not None:
         _eval_chunked(ui, asset, correctives, anim, output, frames, points_cache, chunk_size, chunk, deformers)
         return
-    with _collect_warnings(ui):
+    with ui.warnings():
         reads = api.files_read([asset, correctives, anim], deformers)
         atomic.check_outputs([(output, LAYER_FORMATS), *([(points_cache, LAYER_FORMATS)] if points_cache else [])],
                              reads)
@@ -314,24 +237,10 @@ def eval_cmd(asset, correctives, anim, output, frames, points_cache, chunk_size,
             with ui.progress("points cache") as progress:
                 cache = (points_cache, api.points_cache_layer(result, deformers, progress=progress))
         api.write_weights(result, output, points_cache=cache, deformers=deformers)
-    frames_n = sum(len(a.times) for a in result.animations)
-    summary = {
-        "output": output, "points_cache": points_cache, "seconds": round(result.seconds, 6),
-        "animations": [
-            {"animation": a.animation, "frames": len(a.times), "channels": list(a.channels),
-             "psd_channels": a.psd_channels, "first": float(a.times[0]), "last": float(a.times[-1])}
-            for a in result.animations
-        ],
-    }
-    if as_json:
-        click.echo(json.dumps(summary, sort_keys=True))
-    ui.say(f"psdbake eval: {frames_n} frame(s) on {len(result.animations)} animation(s) in {result.seconds:.2f} s")
-    for a in result.animations:
-        ui.say(f"  <{a.animation}>  {a.psd_channels} corrective channel(s), frames {a.times[0]:g}..{a.times[-1]:g}")
-    ui.say(f"wrote {output}" + (f" and {points_cache}" if points_cache else ""))
+    console.say_eval(ui, result, output, points_cache)
 
 
-def _eval_chunked(ui: _Ui, asset, correctives, anim, output, frames, points_cache, chunk_size, chunk,
+def _eval_chunked(ui: Ui, asset, correctives, anim, output, frames, points_cache, chunk_size, chunk,
                   deformers) -> None:
     """eval --chunk-size N [--chunk K]: chunk layers plus the value-clip manifest(s) (psdbake.farm.chunked)."""
     if chunk_size is None:
@@ -341,32 +250,14 @@ def _eval_chunked(ui: _Ui, asset, correctives, anim, output, frames, points_cach
     reads = api.files_read([asset, correctives, anim], deformers)
     atomic.check_outputs([(output, chunked.FORMATS), *([(points_cache, chunked.FORMATS)] if points_cache else [])],
                          reads)
-    with _collect_warnings(ui):
+    with ui.warnings():
         load_deformers(deformers)
         with ui.progress("weights") as progress:
             ev = chunked.evaluate_chunks(asset, correctives, anim, chunk_size, frames=parse_frames(frames),
                                          chunk=chunk, progress=progress)
         with ui.progress("points cache") as progress:
             written = chunked.write_chunks(ev, output, points_cache=points_cache, deformers=deformers, progress=progress)
-    summary = {
-        "output": written.manifest, "clip_manifest": written.clip_manifest, "points_cache": written.points_cache,
-        "points_cache_clip_manifest": written.points_clip_manifest, "chunk_size": ev.plan.size,
-        "chunk_count": written.chunk_count, "first": ev.plan.first, "last": ev.plan.last,
-        "chunks": [{"chunk": f.chunk, "first": f.first, "last": f.last, "frames": f.frames, "weights": f.weights,
-                    "points_cache": f.points_cache} for f in written.chunks],
-        "animations": [{"animation": path, "channels": list(channels)} for path, channels in ev.animations],
-    }
-    if ui.as_json:
-        click.echo(json.dumps(summary, sort_keys=True))
-    frames_n = sum(f.frames for f in written.chunks)
-    ui.say(f"psdbake eval: {len(written.chunks)} of {written.chunk_count} chunk(s) of {ev.plan.size} frame(s), "
-           f"{frames_n} frame(s) on {len(ev.animations)} animation(s)")
-    for f in written.chunks:
-        ui.say(f"  chunk {f.chunk}: frames {f.first:g}..{f.last:g}: wrote {f.weights}"
-               + (f" and {f.points_cache}" if f.points_cache else ""))
-    ui.say(f"wrote the manifest {written.manifest} (+ {written.clip_manifest})"
-           + (f" and {written.points_cache} (+ {written.points_clip_manifest})" if written.points_cache else "")
-           + ": open it once every chunk is written")
+    console.say_chunks(ui, ev, written)
 
 
 @cli.command("compare")
@@ -382,17 +273,7 @@ def _eval_chunked(ui: _Ui, asset, correctives, anim, output, frames, points_cach
 @click.option("--mesh", default=None, metavar="PATH", help="Only fit and report this mesh.")
 @click.option("--frames", metavar="START:END", help="Whole frames START..END (inclusive). Default: the animation's samples.")
 @click.option("--views", metavar="F1,F2,...", help="Frames to draw the mesh at. Default: three chosen frames.")
-@click.option("--driver", "drivers", multiple=True, metavar="JOINT", help="Driver joint, as for fit (repeatable).")
-@click.option("--kernel", type=click.Choice(sorted(KERNELS)), default="gaussian", show_default=True)
-@click.option("--sigma", type=float, default=None, help="Kernel width in radians, as for fit.")
-@click.option("--degree", type=int, default=None, help="Polynomial degree, as for fit.")
-@click.option("--smoothing", type=float, default=0.0, show_default=True, help="RBF smoothing, as for fit.")
-@click.option("--no-rest-example", is_flag=True, help="As for fit.")
-@click.option("--pose-space", type=click.Choice(list(POSE_SPACES)),
-              default="rotationVector", show_default=True, help="As for fit.")
-@click.option("--twist-axis", type=(float, float, float), default=None, metavar="X Y Z", help="As for fit.")
-@click.option("--clamp-weights", is_flag=True, help="As for fit.")
-@click.option("--normalize-weights", is_flag=True, help="As for fit.")
+@rbf_options
 @deformer_option
 @_common
 def compare_cmd(asset, examples, anim, report_dir, vertex, mesh, frames, views, drivers, kernel, sigma, degree,
@@ -400,16 +281,12 @@ def compare_cmd(asset, examples, anim, report_dir, vertex, mesh, frames, views, 
                 deformers, quiet, verbose, as_json) -> None:
     """Fit EXAMPLES, then compare plain skinning, forward PSD and inverse PSD (same RBF weights)
     at every frame of ANIM; write an HTML report with figures and per-frame statistics."""
-    ui = _Ui(quiet, verbose, as_json)
-    settings = FitSettings(
-        drivers=tuple(drivers), kernel=kernel, sigma=sigma, degree=degree, smoothing=smoothing,
-        rest_example=not no_rest_example, pose_space=pose_space, twist_axis=twist_axis,
-        clamp_weights=clamp_weights, normalize_weights=normalize_weights,
-        meshes=(mesh,) if mesh else (), deformers=tuple(deformers),
-    )
+    ui = Ui(quiet, verbose, as_json)
+    settings = _settings(drivers, kernel, sigma, degree, smoothing, no_rest_example, pose_space, twist_axis,
+                         clamp_weights, normalize_weights, deformers, meshes=(mesh,) if mesh else ())
     span, view_frames = parse_frames(frames), report.parse_views(views)
     report.check_report_dir(report_dir, api.files_read([asset, *examples, anim], deformers))  # before the fit
-    with _collect_warnings(ui), ui.progress("fitting examples") as progress:
+    with ui.warnings(), ui.progress("fitting examples") as progress:
         result = compare_meshes(asset, examples, anim, settings, frames=span,
                                 fit_result=api.fit(asset, examples, settings, progress=progress))
         prepared = report.prepare(result, asset_label=asset, mesh=mesh, vertex=vertex, views=view_frames)
@@ -428,27 +305,8 @@ def inspect_cmd(file, as_json) -> None:
     info = api.describe(file)
     if as_json:
         click.echo(json.dumps(info, indent=2, sort_keys=True))
-        return
-    click.echo(f"{file}")
-    for root in info["skel_roots"]:
-        click.echo(f"  SkelRoot <{root}>")
-    for skel in info["skeletons"]:
-        click.echo(f"  Skeleton <{skel['path']}>: {skel['joints']} joints, animation {skel['animation'] or '-'}")
-    for m in info["meshes"]:
-        shapes = f", blend shapes: {', '.join(m['blend_shapes'])}" if m["blend_shapes"] else ""
-        click.echo(f"  skinned <{m['path']}>: {m['points']} points, {m['influences']} influences, "
-                   f"{m['skinning_method'] or 'classicLinear'}{shapes}")
-    for a in info["animations"]:
-        span = f"{a['first']:g}..{a['last']:g}" if a["samples"] else "static"
-        click.echo(f"  SkelAnimation <{a['path']}>: {a['joints']} joints, {a['samples']} samples ({span})")
-    for e in info["examples"]:
-        click.echo(f"  examples of <{e['mesh']}> at time codes {', '.join(f'{t:g}' for t in e['time_codes'])}")
-    for c in info["correctives"]:
-        click.echo(f"  correctives on <{c['mesh']}> group {c['group']} (psd: v{c['version']}): {len(c['shapes'])} shapes from "
-                   f"{c['examples']} examples; drivers {', '.join(d.split('/')[-1] for d in c['drivers'])}; "
-                   f"{c['pose_space']}, {c['kernel']}, sigma {c['sigma']:.4g}, degree {c['degree']}")
-        for name, count in sorted(c["offsets"].items()):
-            click.echo(f"    BlendShape {name}: {count} points")
+    else:
+        console.say_inspect(file, info)
 
 
 @cli.command("stack")
@@ -477,7 +335,7 @@ def batch_cmd(jobs_file, workers, scheduler, retries, dry_run, quiet, verbose, a
     A job reading a file other jobs write runs after them; jobs writing one file run in file
     order. One line per finished job on stderr; the exit code is the first failed job's.
     """
-    ui = _Ui(quiet, verbose, as_json)
+    ui = Ui(quiet, verbose, as_json)
     jobs = farm.load_jobs(jobs_file, {name: cli.commands[name] for name in farm.COMMANDS})  # the CLI is the job schema
     if dry_run:
         if as_json:
@@ -489,20 +347,9 @@ def batch_cmd(jobs_file, workers, scheduler, retries, dry_run, quiet, verbose, a
             ui.say(f"{t.label:<24} {t.command_line}" + (f"   (after {waits})" if waits else ""))
         return
 
-    def done(r: farm.JobResult, n: int, total: int) -> None:
-        if r.status in ("failed", "lost"):
-            code = f"exit {r.exit_code}" if r.exit_code is not None else r.status
-            click.echo(f"psdbake: error: {jobs_file} {r.label} failed ({code}): {r.error}", err=True)
-        elif not quiet:
-            extra = f" ({r.error})" if r.status == "skipped" else f" {r.seconds:.2f} s" + (f" on {r.worker}" if verbose else "")
-            click.echo(f"psdbake batch: [{n}/{total}] {r.status:<7} {r.label}{extra}", err=True)
-        if not quiet:
-            for w in r.warnings:
-                click.echo(f"psdbake: warning: {jobs_file} {r.label}: {w}", err=True)
-
-    result = farm.run_batch(jobs, scheduler=scheduler, workers=workers, signal_retries=retries, on_done=done)
-    if as_json:
-        click.echo(json.dumps(result.summary(), sort_keys=True))
+    result = farm.run_batch(jobs, scheduler=scheduler, workers=workers, signal_retries=retries,
+                            on_done=console.batch_lines(jobs_file, quiet, verbose))
+    ui.payload(result.summary())
     where = f"on {scheduler} ({result.workers} workers)" if scheduler else f"on {result.workers} local worker(s)"
     ui.say(f"psdbake batch: {len(result.results)} job(s) {where}: {result.count('ok')} ok, {result.count('failed')} failed, "
            f"{result.count('skipped')} skipped" + (f", {result.count('lost')} lost" if result.count("lost") else "")

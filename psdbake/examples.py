@@ -19,7 +19,8 @@ from .errors import FitError, InputError, where
 from .results import Example
 from .settings import FitSettings
 from .solve import InverseTask, cached_scene
-from .usd.read import Scene, SkinnedMesh, open_layer, stray_point_prims
+from .usd.compose import open_layer
+from .usd.read import Scene, SkinnedMesh, stray_point_prims
 from .usd.validate import check_examples_binding, require_finite_time_samples, validate_animation
 
 Sculpt = tuple[Scene, str, float, NDArray[np.float64]]  # (stage, EXAMPLES file, time code, points (n, 3))

@@ -14,7 +14,8 @@ from scipy.spatial.transform import Rotation
 from .errors import InputError, PsdWarning, where
 from .results import FitResult, MeshFit
 from .usd import write as usdwrite
-from .usd.read import Scene, existing_blend_shapes, open_layer, read_corrective_shapes
+from .usd.compose import open_layer
+from .usd.read import Scene, existing_blend_shapes, read_corrective_shapes
 from .usd.schema import BlendShapeData, DriverData, author_driver_data, psd_prims
 from .weights import weights_of_rotations
 

@@ -98,6 +98,19 @@ def _conjugate_start(
     return directions, start, ok
 
 
+def _sculpted(rest: Points, posed_rest: Points, sculpt: Points) -> tuple[float, float, NDArray[np.int64]]:
+    """(bounding-box diagonal of the posed rest shape, float32 floor of the data, the vertices
+    the sculpt moved); refuses a vertex absurdly far from its skinned position."""
+    diagonal = tol.bbox_diagonal(posed_rest)
+    moved_by = np.linalg.norm(sculpt - posed_rest, axis=1)
+    worst = int(np.argmax(moved_by)) if len(moved_by) else 0
+    if len(moved_by) and moved_by[worst] > tol.ABSURD_SCULPT_DIAGONALS * diagonal:
+        raise SculptOutOfRangeError(worst, float(moved_by[worst]), diagonal)
+    floor = tol.float32_floor(np.concatenate([posed_rest, rest]))
+    unmoved = max(tol.UNMOVED_RTOL * diagonal, floor)
+    return diagonal, floor, np.nonzero(moved_by > unmoved)[0].astype(np.int64)
+
+
 def invert_example(
     blackbox: BlackBox,
     rest: Points,
@@ -123,15 +136,8 @@ def invert_example(
         return blackbox(points)
 
     posed_rest = call(rest)
-    diagonal = tol.bbox_diagonal(posed_rest)
-    moved_by = np.linalg.norm(sculpt - posed_rest, axis=1)
-    worst = int(np.argmax(moved_by)) if len(moved_by) else 0
-    if len(moved_by) and moved_by[worst] > tol.ABSURD_SCULPT_DIAGONALS * diagonal:
-        raise SculptOutOfRangeError(worst, float(moved_by[worst]), diagonal)
-    floor = tol.float32_floor(np.concatenate([posed_rest, rest]))
+    diagonal, floor, idx = _sculpted(rest, posed_rest, sculpt)
     atol = max(rtol * diagonal, floor)
-    unmoved = max(tol.UNMOVED_RTOL * diagonal, floor)
-    idx = np.nonzero(moved_by > unmoved)[0].astype(np.int64)
     if len(idx) == 0:
         return InverseResult(
             indices=idx, offsets=np.zeros((0, 3)), residual=np.zeros(0), status=np.zeros(0, np.int8),

@@ -224,6 +224,23 @@ class CorrectiveNormals:
     rest_space: int  # vertices given the pose-free rest-space offset (no pose, or a singular normal map)
 
 
+def _checked_arrays(rest_points: ArrayLike, topology: Topology, indices: ArrayLike, offsets: ArrayLike,
+                    rest_normals: ArrayLike) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.int64],
+                                                      NDArray[np.float64]]:
+    """rest points, authored normals (n, 3), point indices and offsets, shapes checked."""
+    rest = np.asarray(rest_points, dtype=np.float64)
+    authored = np.asarray(rest_normals, dtype=np.float64)
+    idx = np.asarray(indices, dtype=np.int64).reshape(-1)
+    off = np.asarray(offsets, dtype=np.float64).reshape(-1, 3)
+    if rest.shape != (topology.point_count, 3) or authored.shape != rest.shape:
+        raise ValueError(f"rest points {rest.shape} and normals {authored.shape}: expected ({topology.point_count}, 3)")
+    if off.shape[0] != idx.size:
+        raise ValueError(f"offsets: {off.shape[0]} rows for {idx.size} point indices")
+    if idx.size and (idx.min() < 0 or idx.max() >= topology.point_count or np.unique(idx).size != idx.size):
+        raise ValueError("point indices: out of range or repeated")
+    return rest, authored, idx, off
+
+
 def corrective_normals(
     rest_points: ArrayLike,
     topology: Topology,
@@ -253,16 +270,7 @@ def corrective_normals(
     """
     if rest_normals is None or interpolation not in PER_POINT_INTERPOLATIONS:
         return None
-    rest = np.asarray(rest_points, dtype=np.float64)
-    authored = np.asarray(rest_normals, dtype=np.float64)
-    idx = np.asarray(indices, dtype=np.int64).reshape(-1)
-    off = np.asarray(offsets, dtype=np.float64).reshape(-1, 3)
-    if rest.shape != (topology.point_count, 3) or authored.shape != rest.shape:
-        raise ValueError(f"rest points {rest.shape} and normals {authored.shape}: expected ({topology.point_count}, 3)")
-    if off.shape[0] != idx.size:
-        raise ValueError(f"offsets: {off.shape[0]} rows for {idx.size} point indices")
-    if idx.size and (idx.min() < 0 or idx.max() >= topology.point_count or np.unique(idx).size != idx.size):
-        raise ValueError("point indices: out of range or repeated")
+    rest, authored, idx, off = _checked_arrays(rest_points, topology, indices, offsets, rest_normals)
     ring = topology.ring(idx)
     mine = authored[ring]
     target = np.empty_like(mine)

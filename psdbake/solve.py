@@ -21,8 +21,9 @@ from .inverse import InverseResult, SculptOutOfRangeError, invert_example
 from .normals import CorrectiveNormals, PosedNormals, corrective_normals
 from .results import Progress
 from .usd.blackbox import SkinningBlackBox
+from .usd.compose import open_layer
 from .usd.normalbox import NormalBlackBox, read_mesh_shading
-from .usd.read import Scene, open_layer
+from .usd.read import Scene
 
 
 @dataclass(frozen=True)

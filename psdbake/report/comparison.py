@@ -31,7 +31,8 @@ from ..frames import frames_of
 from ..results import FitResult, MeshFit
 from ..settings import FitSettings
 from ..usd.blackbox import SkinningBlackBox
-from ..usd.read import Scene, open_layer
+from ..usd.compose import open_layer
+from ..usd.read import Scene
 from ..weights import check_driver_transforms, driver_weights
 
 

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 from pxr import Sdf, Usd, UsdGeom, UsdSkel
 
-from .read import compose, open_layer
+from .compose import compose, open_layer
 from .schema import read_groups
 
 

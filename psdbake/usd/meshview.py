@@ -15,7 +15,8 @@ from numpy.typing import NDArray
 from pxr import Usd, UsdGeom, UsdSkel
 
 from .. import posespace
-from .read import Scene, open_layer
+from .compose import open_layer
+from .read import Scene
 
 #: customLayerData key an input layer may carry to be credited on the report page
 #: (e.g. ``customLayerData = {string attribution = "Model: CC-BY 4.0, its author"}``).

@@ -15,7 +15,8 @@ import numpy as np
 from pxr import Usd, UsdGeom, UsdSkel
 
 from ..errors import InputError, where
-from .read import Scene, matrices, open_layer, read_corrective_shapes
+from .compose import open_layer
+from .read import Scene, matrices, read_corrective_shapes
 from .schema import psd_prims
 
 #: What decides how UsdSkel skins a mesh: the binding (UsdSkelBindingAPI, inherited down
@@ -163,6 +164,12 @@ def validate_skinning(scene: Scene, mesh: str) -> list[str]:
     off = np.abs(sums - 1.0) > 1e-3
     if off.any():
         notes.append(f"{label}: jointWeights of {int(off.sum())} point(s) do not sum to 1 (UsdSkel uses them as they are)")
+    _check_skeleton_matrices(scene, skel_query)
+    return notes
+
+
+def _check_skeleton_matrices(scene: Scene, skel_query: UsdSkel.SkeletonQuery) -> None:
+    """bindTransforms (and restTransforms when authored): one finite, non-singular matrix per joint."""
     skel = skel_query.GetSkeleton()
     skel_joints = skel_query.GetJointOrder()
     for name, attr in (("bindTransforms", skel.GetBindTransformsAttr()), ("restTransforms", skel.GetRestTransformsAttr())):
@@ -179,7 +186,6 @@ def validate_skinning(scene: Scene, mesh: str) -> list[str]:
         if bad.any():
             raise InputError(f"{where_attr}: joint {str(skel_joints[int(np.argmax(bad))])!r} has a NaN, infinite, "
                              "zero-scale or singular matrix")
-    return notes
 
 
 def validate_animation(scene: Scene, mesh: str) -> None:

@@ -1,0 +1,211 @@
+"""What the ``psdbake`` command shows: summaries on stdout, progress, warnings and batch
+lines on stderr, and the ``--json``/``--report`` payloads. Only the CLI imports this: the
+library returns data and never prints.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import sys
+import warnings
+from collections.abc import Callable, Iterator
+from typing import Any
+
+import click
+
+from . import __version__
+from .errors import PsdWarning
+from .farm import JobResult
+from .farm.chunked import ChunkedWeights, WrittenChunks
+from .results import FitResult, WeightsResult
+
+Progress = Callable[[int, int, str], None]
+
+
+class Ui:
+    """Where the CLI talks: summaries to stdout, progress and warnings to stderr."""
+
+    def __init__(self, quiet: bool, verbose: int, as_json: bool) -> None:
+        self.quiet, self.verbose, self.as_json = quiet, verbose, as_json
+
+    def say(self, text: str = "") -> None:
+        if not self.quiet and not self.as_json:
+            click.echo(text)
+
+    def payload(self, data: Any) -> None:
+        """The --json summary, on stdout."""
+        if self.as_json:
+            click.echo(json.dumps(data, sort_keys=True))
+
+    @contextlib.contextmanager
+    def progress(self, label: str) -> Iterator[Progress | None]:
+        """A progress bar on a terminal (none when quiet, in --json mode or piped); it is
+        closed, and the cursor shown again, when the block ends."""
+        if self.quiet or self.as_json or not sys.stderr.isatty():
+            yield None
+            return
+        bar: Any = None
+
+        def update(done: int, total: int, what: str) -> None:
+            nonlocal bar
+            if bar is None:
+                bar = click.progressbar(length=total, label=label, file=sys.stderr, show_pos=True)
+                bar.__enter__()
+            bar.update(done - bar.pos)
+
+        try:
+            yield update
+        finally:
+            if bar is not None:
+                bar.__exit__(None, None, None)
+
+    @contextlib.contextmanager
+    def warnings(self) -> Iterator[list[str]]:
+        """psdbake's warnings raised meanwhile, each shown as one ``psdbake: warning:`` line."""
+        found: list[str] = []
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always", PsdWarning)
+            yield found
+        for w in caught:
+            if issubclass(w.category, PsdWarning):
+                found.append(str(w.message))
+                if not self.quiet:
+                    click.echo(f"psdbake: warning: {w.message}", err=True)
+
+
+def json_text(payload: dict) -> str:
+    """A JSON side file (``--report``), committed with the command's other outputs."""
+    return json.dumps(payload, indent=2, sort_keys=True) + "\n"
+
+
+# --- fit -----------------------------------------------------------------------------------
+
+def fit_report(result: FitResult, output: str) -> dict:
+    """The --report / --json payload: per mesh and example, what was solved and how well."""
+    meshes = []
+    for m in result.meshes:
+        examples = []
+        for ex, inv, channel in zip(m.examples, m.inverses, m.channels, strict=True):
+            diag = inv.diagonal or 1.0
+            examples.append({
+                "example": ex.label, "source": ex.source, "time": ex.time, "blend_shape": channel or None,
+                "vertices_solved": len(inv.indices), "evaluations": inv.evaluations,
+                "max_residual": inv.max_residual, "rms_residual": inv.rms_residual,
+                "max_residual_rel": inv.max_residual / diag, "rms_residual_rel": inv.rms_residual / diag,
+                "tolerance": inv.atol, "missed": len(inv.missed),
+                "missed_vertices": [int(i) for i in inv.missed[:100]], "seconds": round(inv.seconds, 6),
+            })
+        d = m.driver_data
+        meshes.append({
+            "mesh": m.mesh, "group": m.group, "skeleton": m.skeleton, "points": m.point_count, "drivers": list(m.drivers),
+            "kernel": d.kernel, "sigma": d.sigma, "degree": d.degree, "examples": examples,
+        })
+    return {
+        "psdbake": __version__, "command": "fit", "asset": result.asset, "output": output,
+        "examples": list(result.example_files), "meshes": meshes, "missed": result.missed,
+        "warnings": list(result.warnings), "seconds": round(result.seconds, 6),
+    }
+
+
+def say_fit(ui: Ui, result: FitResult, output: str) -> None:
+    n_ex = sum(len(m.examples) for m in result.meshes)
+    solved = sum(len(inv.indices) for m in result.meshes for inv in m.inverses)
+    ui.say(f"psdbake fit: {len(result.meshes)} mesh(es), {n_ex} example(s), {solved} vertices solved in {result.seconds:.2f} s")
+    for m in result.meshes:
+        d = m.driver_data
+        drivers = ", ".join(j.split("/")[-1] for j in m.drivers)
+        ui.say(f"  <{m.mesh}>  group: {m.group}  drivers: {drivers}  kernel: {d.kernel}  sigma: {d.sigma:.4g} rad  "
+               f"degree: {d.degree}")
+        width = max(28, *(len(ex.label) for ex in m.examples))
+        ui.say(f"    {'example':<{width}} {'solved':>7} {'evals':>6} {'max/diag':>10} {'rms/diag':>10} {'missed':>7} "
+               f"{'seconds':>8}")
+        for ex, inv in zip(m.examples, m.inverses, strict=True):
+            diag = inv.diagonal or 1.0
+            ui.say(
+                f"    {ex.label:<{width}} {len(inv.indices):>7} {inv.evaluations:>6} {inv.max_residual / diag:>10.2e} "
+                f"{inv.rms_residual / diag:>10.2e} {len(inv.missed):>7} {inv.seconds:>8.3f}"
+            )
+    if result.missed:
+        ui.say(f"  DEGRADED: {result.missed} vertices missed the tolerance (see --report; --strict makes this fatal)")
+    ui.say(f"wrote {output}")
+
+
+# --- eval ----------------------------------------------------------------------------------
+
+def say_eval(ui: Ui, result: WeightsResult, output: str, points_cache: str | None) -> None:
+    ui.payload({
+        "output": output, "points_cache": points_cache, "seconds": round(result.seconds, 6),
+        "animations": [
+            {"animation": a.animation, "frames": len(a.times), "channels": list(a.channels),
+             "psd_channels": a.psd_channels, "first": float(a.times[0]), "last": float(a.times[-1])}
+            for a in result.animations
+        ],
+    })
+    frames_n = sum(len(a.times) for a in result.animations)
+    ui.say(f"psdbake eval: {frames_n} frame(s) on {len(result.animations)} animation(s) in {result.seconds:.2f} s")
+    for a in result.animations:
+        ui.say(f"  <{a.animation}>  {a.psd_channels} corrective channel(s), frames {a.times[0]:g}..{a.times[-1]:g}")
+    ui.say(f"wrote {output}" + (f" and {points_cache}" if points_cache else ""))
+
+
+def say_chunks(ui: Ui, ev: ChunkedWeights, written: WrittenChunks) -> None:
+    ui.payload({
+        "output": written.manifest, "clip_manifest": written.clip_manifest, "points_cache": written.points_cache,
+        "points_cache_clip_manifest": written.points_clip_manifest, "chunk_size": ev.plan.size,
+        "chunk_count": written.chunk_count, "first": ev.plan.first, "last": ev.plan.last,
+        "chunks": [{"chunk": f.chunk, "first": f.first, "last": f.last, "frames": f.frames, "weights": f.weights,
+                    "points_cache": f.points_cache} for f in written.chunks],
+        "animations": [{"animation": path, "channels": list(channels)} for path, channels in ev.animations],
+    })
+    frames_n = sum(f.frames for f in written.chunks)
+    ui.say(f"psdbake eval: {len(written.chunks)} of {written.chunk_count} chunk(s) of {ev.plan.size} frame(s), "
+           f"{frames_n} frame(s) on {len(ev.animations)} animation(s)")
+    for f in written.chunks:
+        ui.say(f"  chunk {f.chunk}: frames {f.first:g}..{f.last:g}: wrote {f.weights}"
+               + (f" and {f.points_cache}" if f.points_cache else ""))
+    ui.say(f"wrote the manifest {written.manifest} (+ {written.clip_manifest})"
+           + (f" and {written.points_cache} (+ {written.points_clip_manifest})" if written.points_cache else "")
+           + ": open it once every chunk is written")
+
+
+# --- inspect and batch -----------------------------------------------------------------------
+
+def say_inspect(file: str, info: dict) -> None:
+    click.echo(f"{file}")
+    for root in info["skel_roots"]:
+        click.echo(f"  SkelRoot <{root}>")
+    for skel in info["skeletons"]:
+        click.echo(f"  Skeleton <{skel['path']}>: {skel['joints']} joints, animation {skel['animation'] or '-'}")
+    for m in info["meshes"]:
+        shapes = f", blend shapes: {', '.join(m['blend_shapes'])}" if m["blend_shapes"] else ""
+        click.echo(f"  skinned <{m['path']}>: {m['points']} points, {m['influences']} influences, "
+                   f"{m['skinning_method'] or 'classicLinear'}{shapes}")
+    for a in info["animations"]:
+        span = f"{a['first']:g}..{a['last']:g}" if a["samples"] else "static"
+        click.echo(f"  SkelAnimation <{a['path']}>: {a['joints']} joints, {a['samples']} samples ({span})")
+    for e in info["examples"]:
+        click.echo(f"  examples of <{e['mesh']}> at time codes {', '.join(f'{t:g}' for t in e['time_codes'])}")
+    for c in info["correctives"]:
+        click.echo(f"  correctives on <{c['mesh']}> group {c['group']} (psd: v{c['version']}): {len(c['shapes'])} shapes from "
+                   f"{c['examples']} examples; drivers {', '.join(d.split('/')[-1] for d in c['drivers'])}; "
+                   f"{c['pose_space']}, {c['kernel']}, sigma {c['sigma']:.4g}, degree {c['degree']}")
+        for name, count in sorted(c["offsets"].items()):
+            click.echo(f"    BlendShape {name}: {count} points")
+
+
+def batch_lines(jobs_file: str, quiet: bool, verbose: int) -> Callable[[JobResult, int, int], None]:
+    """The per-job line on stderr as each job ends (failures always, the rest unless quiet)."""
+
+    def done(r: JobResult, n: int, total: int) -> None:
+        if r.status in ("failed", "lost"):
+            code = f"exit {r.exit_code}" if r.exit_code is not None else r.status
+            click.echo(f"psdbake: error: {jobs_file} {r.label} failed ({code}): {r.error}", err=True)
+        elif not quiet:
+            extra = f" ({r.error})" if r.status == "skipped" else f" {r.seconds:.2f} s" + (f" on {r.worker}" if verbose else "")
+            click.echo(f"psdbake batch: [{n}/{total}] {r.status:<7} {r.label}{extra}", err=True)
+        if not quiet:
+            for w in r.warnings:
+                click.echo(f"psdbake: warning: {jobs_file} {r.label}: {w}", err=True)
+
+    return done
