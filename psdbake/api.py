@@ -138,7 +138,7 @@ def write_correctives(result: FitResult, path: str, *, update: bool = False,
     if not update:
         usdwrite.export_all([(path, correctives_layer(result)), *side_files], inputs)
         return path
-    atomic.check_output(path, inputs, usdwrite.FORMATS)
+    atomic.check_output(path, inputs, tuple(usdwrite.FORMATS))
     with atomic.updating(path):
         base = path if os.path.exists(path) else None
         usdwrite.export_all([(path, correctives_layer(result, update=base)), *side_files], inputs)

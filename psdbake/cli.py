@@ -34,13 +34,14 @@ from .posespace import POSE_SPACES
 from .rbf import KERNELS
 from .report import compare as compare_meshes
 from .settings import FitSettings
+from .usd import write as usdwrite
 from .usd.diagnostics import usd_diagnostics, usd_errors
 from .usd.schema import DEFAULT_GROUP
 
 EXIT_INTERNAL, EXIT_USAGE, EXIT_INTERRUPTED = 1, 2, 130
 
 
-LAYER_FORMATS = (".usda", ".usdc", ".usd")
+LAYER_FORMATS = tuple(usdwrite.FORMATS)
 REPORT_FORMATS = (".json",)
 
 
@@ -248,7 +249,7 @@ def _eval_chunked(ui: Ui, asset, correctives, anim, output, frames, points_cache
     if chunk_size < 1:
         raise ChunkUsageError(f"--chunk-size {chunk_size}: must be at least 1 frame")
     reads = api.files_read([asset, correctives, anim], deformers)
-    atomic.check_outputs([(output, chunked.FORMATS), *([(points_cache, chunked.FORMATS)] if points_cache else [])],
+    atomic.check_outputs([(output, LAYER_FORMATS), *([(points_cache, LAYER_FORMATS)] if points_cache else [])],
                          reads)
     with ui.warnings():
         load_deformers(deformers)

@@ -29,7 +29,7 @@ from ..usd import clips
 from ..usd import write as usdwrite
 from .plan import Chunk, ChunkPlan, chunk_path, clip_manifest_path, plan_chunks, plan_frames
 
-FORMATS = (".usda", ".usdc", ".usd")
+FORMATS = tuple(usdwrite.FORMATS)
 
 
 @dataclass(frozen=True)

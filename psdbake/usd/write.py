@@ -22,7 +22,9 @@ from .dependencies import layer_files
 from .diagnostics import first_line
 from .schema import BlendShapeData
 
-FORMATS = (".usda", ".usdc", ".usd")
+#: Output layer formats by extension, with the arguments USD's ``Export`` needs for each
+#: (``.usd`` is written as a binary crate): a new output format is one entry here.
+FORMATS: dict[str, dict[str, str]] = {".usda": {}, ".usdc": {}, ".usd": {"format": "usdc"}}
 
 
 def files_read(inputs: Iterable[str | Sdf.Layer]) -> list[str]:
@@ -47,7 +49,7 @@ def export_all(outputs: Sequence[tuple[str, Sdf.Layer | str]], inputs: Iterable[
                     raise OutputError(f"{path}: cannot write ({exc.strerror or exc})") from None
                 continue
             tmp = tx.path(path, FORMATS)
-            args = {"format": "usdc"} if os.path.splitext(path)[1].lower() == ".usd" else {}
+            args = FORMATS[os.path.splitext(path)[1].lower()]
             try:
                 written, detail = layer.Export(tmp, args=args), ""
             except Tf.ErrorException as exc:
