@@ -10,15 +10,14 @@ prints. ``write_*`` export layers atomically.
 
 from __future__ import annotations
 
-import dataclasses
 import os
 import time as _time
 import warnings
 from collections.abc import Sequence
 
 from . import __version__, atomic
+from .correctives import fit_regions, plan_mesh
 from .deformers import deformer_files, load_deformers
-from .drivers import fit_drivers
 from .errors import InputError, PsdWarning, where
 from .evaluate import animation_weights, correctives_by_animation, posed_points
 from .examples import gather_examples
@@ -85,21 +84,34 @@ def fit(
     asset_scene = open_asset(asset, notes)
     infos = asset_scene.skinned_meshes()
     meshes = _meshes_to_fit(asset, [m.path for m in infos], settings.meshes)
+    skipped: list[str] = []
+    layout: list[str] = []  # why a mesh's correctives are one global group, when they are
     try:
         per_mesh, tasks = gather_examples(asset, asset_scene, infos, meshes, example_files, settings)  # checked
-        solved = iter(solve_all(tasks, jobs, progress))  # the black-box inverses, in task (mesh, file) order
-        fits = []
+        plans = {}
         for info in [i for i in infos if i.path in per_mesh]:
+            regions, unused, why = plan_mesh(asset, info, per_mesh[info.path], settings)  # who drives what
+            plans[info.path] = regions
+            skipped += [f"{per_mesh[info.path][i].label} <{info.path}>" for i in unused]
+            if why:
+                layout.append(f"{where(asset, info.path)}: one global correctives group 'main': {why} (local, "
+                              "additive correctives need every joint an example moves sculpted on its own too)")
+        used = {(p, per_mesh[p][i].source, per_mesh[p][i].time) for p, regions in plans.items() for r in regions
+                for i in r.examples}
+        wanted = [t for t in tasks if (t.mesh, t.source, t.time) in used]
+        solved = dict(zip([(t.mesh, t.source, t.time) for t in wanted], solve_all(wanted, jobs, progress), strict=True))
+        fits = []
+        for info in [i for i in infos if i.path in plans]:  # the RBFs, each mesh's regions in turn
             examples = per_mesh[info.path]
-            mine = [next(solved) for _ in examples]
-            bind_local = asset_scene.bind_local_transforms(info.path)
-            fitted = fit_drivers(asset, asset_scene, info, examples, [s[0] for s in mine], bind_local, settings, notes)
-            fits.append(dataclasses.replace(fitted, normals=tuple(s[1] for s in mine)))
+            mine = {i: solved[(info.path, e.source, e.time)] for i, e in enumerate(examples)
+                    if (info.path, e.source, e.time) in solved}
+            fits += fit_regions(asset, asset_scene, info, examples, mine, plans[info.path], settings, notes)
             _note_normals(asset, asset_scene, info.path, notes)
     finally:
         cached_scene.cache_clear()  # the example stages die with the fit
     return FitResult(asset=asset, example_files=tuple(example_files), settings=settings, meshes=tuple(fits),
-                     warnings=tuple(notes), seconds=_time.perf_counter() - started)
+                     warnings=tuple(notes), seconds=_time.perf_counter() - started, skipped=tuple(skipped),
+                     layout=tuple(layout))
 
 
 def _meshes_to_fit(asset: str, skinned: list[str], wanted: Sequence[str]) -> list[str]:

@@ -170,7 +170,8 @@ def pose_cmd(asset, poses, output, deformers, quiet, verbose, as_json) -> None:
 @click.option("--mesh", "meshes", multiple=True, metavar="PATH", help="Only fit this mesh (repeatable).")
 @click.option("--group", default=None, metavar="NAME",
               help="Fit one correctives group (its own examples, drivers, kernel and sigma) and write or update it "
-                   "inside OUTPUT, keeping OUTPUT's other groups. Without it, OUTPUT is replaced by one group 'main'.")
+                   "inside OUTPUT, keeping OUTPUT's other groups. Without it, OUTPUT is replaced by local, additive "
+                   "groups: one per joint the examples move, plus combinations (README).")
 @click.option("--report", type=str, help="Write a JSON report here.")
 @click.option("--strict", is_flag=True, help="Fail (exit 7, nothing written) if any vertex misses tolerance.")
 @click.option("--jobs", "-j", type=click.IntRange(min=1), default=None,
@@ -185,7 +186,7 @@ def fit_cmd(asset, examples, output, drivers, kernel, sigma, degree, smoothing, 
     ui = Ui(quiet, verbose, as_json)
     settings = _settings(drivers, kernel, sigma, degree, smoothing, no_rest_example, pose_space, twist_axis,
                          clamp_weights, normalize_weights, deformers, rtol=tolerance, meshes=tuple(meshes),
-                         group=group or DEFAULT_GROUP)
+                         group=group)
     reads = api.files_read([asset, *examples], deformers)
     atomic.check_outputs([(output, LAYER_FORMATS), *([(report, REPORT_FORMATS)] if report else [])], reads)
     if group and os.path.exists(output):
@@ -284,7 +285,8 @@ def compare_cmd(asset, examples, anim, report_dir, vertex, mesh, frames, views, 
     at every frame of ANIM; write an HTML report with figures and per-frame statistics."""
     ui = Ui(quiet, verbose, as_json)
     settings = _settings(drivers, kernel, sigma, degree, smoothing, no_rest_example, pose_space, twist_axis,
-                         clamp_weights, normalize_weights, deformers, meshes=(mesh,) if mesh else ())
+                         clamp_weights, normalize_weights, deformers, meshes=(mesh,) if mesh else (),
+                         group=DEFAULT_GROUP)  # the paper's comparison: one RBF, the same weights for both
     span, view_frames = parse_frames(frames), report.parse_views(views)
     report.check_report_dir(report_dir, api.files_read([asset, *examples, anim], deformers))  # before the fit
     with ui.warnings(), ui.progress("fitting examples") as progress:

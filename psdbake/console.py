@@ -98,6 +98,7 @@ def fit_report(result: FitResult, output: str) -> dict:
             })
         d = m.driver_data
         meshes.append({
+            "gates": list(d.gates),
             "mesh": m.mesh, "group": m.group, "skeleton": m.skeleton, "points": m.point_count, "drivers": list(m.drivers),
             "kernel": d.kernel, "sigma": d.sigma, "degree": d.degree, "examples": examples,
         })
@@ -105,6 +106,7 @@ def fit_report(result: FitResult, output: str) -> dict:
         "psdbake": __version__, "command": "fit", "asset": result.asset, "output": output,
         "examples": list(result.example_files), "meshes": meshes, "missed": result.missed,
         "warnings": list(result.warnings), "seconds": round(result.seconds, 6),
+        "skipped_examples": list(result.skipped), "layout": list(result.layout),
     }
 
 
@@ -126,6 +128,12 @@ def say_fit(ui: Ui, result: FitResult, output: str) -> None:
                 f"    {ex.label:<{width}} {len(inv.indices):>7} {inv.evaluations:>6} {inv.max_residual / diag:>10.2e} "
                 f"{inv.rms_residual / diag:>10.2e} {len(inv.missed):>7} {inv.seconds:>8.3f}"
             )
+    if result.skipped:
+        ui.say(f"  skipped {len(result.skipped)} example(s) that move other joints than the drivers: "
+               + ", ".join(result.skipped))
+    if ui.verbose:
+        for line in result.layout:
+            ui.say(f"  {line}")
     if result.missed:
         ui.say(f"  DEGRADED: {result.missed} vertices missed the tolerance (see --report; --strict makes this fatal)")
     ui.say(f"wrote {output}")

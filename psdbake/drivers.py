@@ -20,6 +20,7 @@ from . import posespace, rbf
 from . import tolerances as tol
 from .errors import FitError, PsdWarning, SettingError, where
 from .inverse import InverseResult
+from .regions import Region
 from .results import Example, MeshFit
 from .settings import FitSettings
 from .usd.read import Scene, SkinnedMesh, existing_blend_shapes
@@ -30,7 +31,7 @@ def _safe_token(text: str) -> str:
     return re.sub(r"[^A-Za-z0-9_]", "_", text).strip("_") or "mesh"
 
 
-def _resolve_drivers(requested: Sequence[str], joints: Sequence[str], label: str) -> list[int]:
+def resolve_drivers(requested: Sequence[str], joints: Sequence[str], label: str) -> list[int]:
     """Joint indices for requested driver names: a full joint path or an unambiguous leaf name."""
     out = []
     for name in requested:
@@ -44,10 +45,10 @@ def _resolve_drivers(requested: Sequence[str], joints: Sequence[str], label: str
     return sorted(set(out))
 
 
-def _drivers(asset: str, info: SkinnedMesh, examples: Sequence[Example], settings: FitSettings) -> list[int]:
-    """The driver joints: the requested ones, else every joint an example rotates."""
-    if settings.drivers:
-        return _resolve_drivers(settings.drivers, info.joints, where(asset, info.skeleton))
+def _drivers(info: SkinnedMesh, examples: Sequence[Example], region: Region) -> list[int]:
+    """The region's driver joints, else every joint an example rotates."""
+    if region.joints:
+        return list(region.joints)
     poses = np.array([e.pose for e in examples])
     found = [int(j) for j in np.nonzero(posespace.rotated_joints(poses, tol.DRIVER_ANGLE_ATOL))[0]]
     if not found:
@@ -72,7 +73,8 @@ def _warn(notes: list[str], msg: str) -> None:
 
 
 def _centers(info: SkinnedMesh, examples: Sequence[Example], inverses: Sequence[InverseResult], driver_idx: list[int],
-             settings: FitSettings, notes: list[str]) -> tuple[list[NDArray[np.float64]], list[str], list[int], list[str]]:
+             settings: FitSettings, region: Region, notes: list[str]
+             ) -> tuple[list[NDArray[np.float64]], list[str], list[int], list[str]]:
     """RBF centres (bind pose first when used), their labels, the rows that carry a corrective,
     and each example's channel ("" for an example equal to plain skinning: a zero example)."""
 
@@ -80,10 +82,10 @@ def _centers(info: SkinnedMesh, examples: Sequence[Example], inverses: Sequence[
         return posespace.features(Rotation.from_quat(pose[driver_idx]), settings.pose_space, settings.twist_axis)
 
     centers, labels, outputs, channels = [], [], [], []
-    if settings.rest_example:
+    if settings.rest_example and not region.gated:  # a combination is gated off at bind instead
         centers.append(coordinates(np.tile([0.0, 0.0, 0.0, 1.0], (len(info.joints), 1))))
         labels.append("bind")
-    prefix = channel_prefix(info, settings.group)
+    prefix = channel_prefix(info, region.group)
     for k, (example, inverse) in enumerate(zip(examples, inverses, strict=True)):
         if len(inverse.indices) == 0:
             _warn(notes, f"{where(example.source, info.path)}: example at time {example.time:g} equals plain "
@@ -113,19 +115,43 @@ def _check_model(model: rbf.CardinalRbf, centers: NDArray[np.float64], outputs: 
         _warn(notes, f"{where_}: examples {a} and {b} are only {d:.3g} rad apart in pose space")
 
 
+def _model(full_centers: NDArray[np.float64], outputs: list[int], labels: list[str], settings: FitSettings,
+           region: Region) -> rbf.CardinalRbf:
+    """The group's cardinal RBF. A combination with one example is the constant 1 (its gates
+    shape it: the product of its joints' activations, as a facial rig's combination shape)."""
+    if region.gated and len(full_centers) == 1:
+        return rbf.constant_one(full_centers)
+    return rbf.fit_cardinal(
+        full_centers, outputs, labels, kernel=settings.kernel, sigma=settings.sigma,
+        degree=max(0, settings.degree if settings.degree is not None else 0) if region.gated else settings.degree,
+        smoothing=settings.smoothing,
+    )
+
+
+def _gates(info: SkinnedMesh, examples: Sequence[Example], driver_idx: list[int], settings: FitSettings
+           ) -> tuple[list[str], NDArray[np.float64]]:
+    """Each driver of a combination is a gate; its gate pose is its least-bent pose among the
+    combination's examples (the activation reaches 1 there)."""
+    width = posespace.POSE_SPACES[settings.pose_space].width
+    poses = []
+    for j in driver_idx:
+        coords = [posespace.features(Rotation.from_quat(e.pose[[j]]), settings.pose_space, settings.twist_axis)
+                  for e in examples]
+        poses.append(min(coords, key=lambda c: float(c @ c)).reshape(width))
+    return [info.joints[j] for j in driver_idx], np.array(poses)
+
+
 def fit_drivers(asset: str, asset_scene: Scene, info: SkinnedMesh, examples: Sequence[Example],
                 inverses: Sequence[InverseResult], bind_local: NDArray[np.float64], settings: FitSettings,
-                notes: list[str]) -> MeshFit:
-    """One mesh's fit for one group: its drivers, the RBF over its examples' poses, and the
-    MeshFit that carries them with the inverses."""
-    driver_idx = _drivers(asset, info, examples, settings)
-    centers, labels, outputs, channels = _centers(info, examples, inverses, driver_idx, settings, notes)
+                region: Region, notes: list[str]) -> MeshFit:
+    """One mesh's fit for one group (``region``): its drivers, the RBF over its examples'
+    poses, and the MeshFit that carries them with the inverses."""
+    driver_idx = _drivers(info, examples, region)
+    centers, labels, outputs, channels = _centers(info, examples, inverses, driver_idx, settings, region, notes)
     full_centers = np.array(centers)
-    model = rbf.fit_cardinal(
-        full_centers, outputs, labels,
-        kernel=settings.kernel, sigma=settings.sigma, degree=settings.degree, smoothing=settings.smoothing,
-    )
+    model = _model(full_centers, outputs, labels, settings, region)
     _check_model(model, full_centers, outputs, labels, where(asset, info.path), settings.smoothing, notes)
+    gates, gate_poses = _gates(info, examples, driver_idx, settings) if region.gated else ([], np.zeros((0, 0)))
     data = DriverData(
         drivers=[info.joints[j] for j in driver_idx],
         bind_rotations=posespace.rotations(bind_local[driver_idx]).as_quat(),
@@ -134,11 +160,12 @@ def fit_drivers(asset: str, asset_scene: Scene, info: SkinnedMesh, examples: Seq
         smoothing=model.smoothing, centers=model.centers, center_labels=labels, shapes=[c for c in channels if c],
         coefficients=model.coefficients, powers=model.powers, shift=model.shift, scale=model.scale, dims=model.dims,
         example_times=[e.time for e in examples], example_sources=[os.path.basename(e.source) for e in examples],
+        gates=gates, gate_poses=gate_poses,
     )
     existing, targets = existing_blend_shapes(asset_scene, info.path)
     return MeshFit(
         mesh=info.path, skeleton=info.skeleton, point_count=info.point_count, examples=tuple(examples),
         inverses=tuple(inverses), channels=tuple(channels), drivers=tuple(data.drivers), driver_data=data,
-        existing_channels=tuple(existing), existing_targets=tuple(targets), group=settings.group,
+        existing_channels=tuple(existing), existing_targets=tuple(targets), group=region.group,
         joints=tuple(info.joints),
     )

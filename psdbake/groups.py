@@ -22,6 +22,8 @@ from .weights import weights_of_rotations
 
 def shapes_of(m: MeshFit) -> list[BlendShapeData]:
     """The corrective BlendShapes of one fitted mesh (examples equal to plain skinning have none)."""
+    if m.shapes is not None:
+        return list(m.shapes)
     out = []
     for k, (ch, inv) in enumerate(zip(m.channels, m.inverses, strict=True)):
         if not ch:
@@ -100,13 +102,13 @@ def correctives_layer(result: FitResult, update: str | None = None):
     groups: Groups = read_correctives(result.asset, update) if update else {}
     for note in cross_talk(result, groups):
         warnings.warn(note, PsdWarning, stacklevel=2)
-    group = result.settings.group
     fitted = {m.mesh for m in result.meshes}
     for mesh, per_group in groups.items():
         if not result.settings.meshes or mesh in fitted:
-            per_group.pop(group, None)
+            for group in {m.group for m in result.meshes}:
+                per_group.pop(group, None)
     for m in result.meshes:
-        groups.setdefault(m.mesh, {})[group] = (m.driver_data, shapes_of(m))
+        groups.setdefault(m.mesh, {})[m.group] = (m.driver_data, shapes_of(m))
     asset_scene = Scene([result.asset])
     layer = usdwrite.new_layer(
         f"psdbake {__version__} fit: rest-space correctives (inverse PSD)", metadata=usdwrite.asset_metadata(result.asset)

@@ -112,6 +112,17 @@ def row_independent_product(a: NDArray[np.float64], b: NDArray[np.float64]) -> N
     return out
 
 
+def constant_one(centers: NDArray[np.float64]) -> CardinalRbf:
+    """b(x) = 1 everywhere, in the documented formula's terms (degree 0: one constant monomial,
+    no kernel weight): a combination corrective with one example, shaped by its gates."""
+    dims = np.arange(np.asarray(centers).shape[1], dtype=np.int64)
+    return CardinalRbf(
+        centers=np.asarray(centers, dtype=np.float64), kernel="gaussian", sigma=tol.DEFAULT_SIGMA, degree=0,
+        smoothing=0.0, coefficients=np.array([[0.0], [1.0]]), powers=np.zeros((1, len(dims)), dtype=np.int64),
+        shift=np.zeros(len(dims)), scale=np.ones(len(dims)), dims=dims,
+    )
+
+
 def default_degree(kernel: str) -> int:
     """No polynomial term unless the kernel needs one (Gaussian: none)."""
     return MIN_DEGREE.get(kernel, -1)

@@ -11,7 +11,7 @@ from numpy.typing import NDArray
 from .inverse import InverseResult
 from .normals import CorrectiveNormals
 from .settings import FitSettings
-from .usd.schema import DEFAULT_GROUP, DriverData
+from .usd.schema import DEFAULT_GROUP, BlendShapeData, DriverData
 
 Progress = Callable[[int, int, str], None]  # (done, total, what)
 
@@ -43,6 +43,9 @@ class MeshFit:
     group: str = DEFAULT_GROUP
     joints: tuple[str, ...] = ()  # skeleton order, as the example poses
     normals: tuple[CorrectiveNormals | None, ...] = ()  # per example, when the mesh authors normals
+    #: the BlendShapes to write when they are not the inverses themselves: a combination's
+    #: carry what its joints' own correctives do not already give at its poses
+    shapes: tuple[BlendShapeData, ...] | None = None
 
 
 @dataclass(frozen=True)
@@ -53,6 +56,8 @@ class FitResult:
     meshes: tuple[MeshFit, ...]
     warnings: tuple[str, ...] = field(default_factory=tuple)
     seconds: float = 0.0
+    skipped: tuple[str, ...] = ()  # examples the explicit drivers do not move (labels, with the mesh)
+    layout: tuple[str, ...] = ()  # why a mesh's correctives are one global group instead of local ones
 
     @property
     def missed(self) -> int:

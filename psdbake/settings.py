@@ -15,7 +15,7 @@ from . import tolerances as tol
 from .errors import SettingError
 from .posespace import POSE_SPACES
 from .rbf import KERNELS
-from .usd.schema import DEFAULT_GROUP, RESERVED_GROUP_NAMES
+from .usd.schema import RESERVED_GROUP_NAMES
 
 
 @dataclass(frozen=True)
@@ -35,14 +35,16 @@ class FitSettings:
     rtol: float = tol.INVERSE_RTOL
     meshes: tuple[str, ...] = ()  # empty: every mesh with examples
     deformers: tuple[str, ...] = ()
-    group: str = DEFAULT_GROUP  # correctives group: its own examples, drivers, kernel and sigma
+    group: str | None = None  # one named correctives group; None: local, additive groups (regions.py)
 
     def __post_init__(self) -> None:
         for name, allow_zero in (("sigma", False), ("smoothing", True), ("rtol", False)):
             value = getattr(self, name)
             if value is not None and not (np.isfinite(value) and (value >= 0 if allow_zero else value > 0)):
                 raise SettingError(name, value, f"must be a {'non-negative' if allow_zero else 'positive'} number")
-        if not re.fullmatch(r"[A-Za-z_][A-Za-z0-9_]*", self.group) or self.group in RESERVED_GROUP_NAMES:
+        if self.group is not None and (
+            not re.fullmatch(r"[A-Za-z_][A-Za-z0-9_]*", self.group) or self.group in RESERVED_GROUP_NAMES
+        ):
             raise SettingError("group", self.group, "must be an identifier (letters, digits, _; not "
                                f"{' or '.join(repr(n) for n in RESERVED_GROUP_NAMES)})")
         if self.kernel not in KERNELS:

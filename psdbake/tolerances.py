@@ -57,6 +57,12 @@ NEAR_DUPLICATE_POSE_ATOL = 1e-2
 #: float32 quaternions carry ~1e-7 rad of noise.
 DRIVER_ANGLE_ATOL = 1e-5
 
+#: A joint "moves" in an example (for local correctives: which joints drive which sculpt)
+#: when it turns more than this from the bind pose (radians, 0.57 degrees): sculpt poses are
+#: set deliberately, degrees at least, while float32 export noise is ~1e-7 rad and a rig's
+#: tiny secondary motion (a spine settling by a tenth of a degree) is not what was sculpted.
+ACTIVE_JOINT_ANGLE = 1e-2
+
 #: A sculpted vertex farther than this many diagonals from where skinning puts it is
 #: not a sculpt but broken data (1e30 coordinates, a unit mix-up): refused, never fitted.
 ABSURD_SCULPT_DIAGONALS = 10.0

@@ -45,11 +45,24 @@ def driver_weights(data: DriverData, local: NDArray[np.float64]) -> NDArray[np.f
     return weights_of_rotations(data, delta, f)
 
 
+def gate_activation(data: DriverData, x: NDArray[np.float64]) -> NDArray[np.float64]:
+    """(f,) product over the group's gates of clamp(x_j . g_j / g_j . g_j, 0, 1): x_j the gate
+    driver's pose coordinates, g_j its gate pose. 1 without gates; 0 whenever a gate driver
+    is at its bind pose (x_j = 0), 1 once every gate driver reaches its gate pose."""
+    width = posespace.POSE_SPACES[data.pose_space].width
+    out = np.ones(len(x))
+    for gate, pose in zip(data.gates, data.gate_poses, strict=True):
+        j = list(data.drivers).index(gate)
+        xj = x[:, j * width : (j + 1) * width]
+        out = out * np.clip(xj @ pose / float(pose @ pose), 0.0, 1.0)
+    return out
+
+
 def weights_of_rotations(data: DriverData, delta: Rotation, f: int) -> NDArray[np.float64]:
     """Weights (f, s) for the drivers' rotations away from their bind pose (f * d rotations)."""
     width = posespace.POSE_SPACES[data.pose_space].width
     x = posespace.features(delta, data.pose_space, data.twist_axis).reshape(f, width * len(data.drivers))
-    w = rbf_from_driver_data(data).weights(x)
+    w = rbf_from_driver_data(data).weights(x) * gate_activation(data, x)[:, None]
     if data.clamp_weights:
         w = np.clip(w, 0.0, 1.0)
     if data.normalize_weights:

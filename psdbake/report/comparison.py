@@ -16,6 +16,7 @@ the ones ``psdbake eval`` uses, so the weights here are the weights psdbake ship
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -33,6 +34,7 @@ from ..settings import FitSettings
 from ..usd.blackbox import SkinningBlackBox
 from ..usd.compose import open_layer
 from ..usd.read import Scene
+from ..usd.schema import DEFAULT_GROUP
 from ..weights import check_driver_transforms, driver_weights
 
 
@@ -82,8 +84,14 @@ def compare(
     frames: tuple[float, float] | None = None,
     fit_result: FitResult | None = None,
 ) -> Comparison:
-    """Fit (unless given) and evaluate SSD, forward PSD and inverse PSD at every frame."""
-    result = fit_result or api.fit(asset, example_files, settings or FitSettings())
+    """Fit (unless given) and evaluate SSD, forward PSD and inverse PSD at every frame.
+
+    The comparison is the paper's set-up: one RBF over the drivers (one correctives group,
+    ``main`` unless ``settings.group`` names another), so forward and inverse PSD share
+    exactly the same weights; ``psdbake fit``'s local, additive groups are not used here."""
+    settings = settings or FitSettings()
+    settings = dataclasses.replace(settings, group=settings.group or DEFAULT_GROUP)
+    result = fit_result or api.fit(asset, example_files, settings)
     chain = load_deformers(result.settings.deformers)
     scene = Scene([anim, asset], label=anim)
     infos = {i.path: i for i in scene.skinned_meshes()}

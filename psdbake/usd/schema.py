@@ -10,7 +10,7 @@ naming the attribute, so evaluation never computes NaN weights from a tampered l
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from math import comb
 from typing import Any
 
@@ -24,9 +24,10 @@ from ..rbf import KERNELS
 from .author import attribute, double_array, int_array, over, quatd_array
 
 #: Version of the psd: attribute schema written by this psdbake.
-PSD_VERSION = 2
-#: psd: schema versions this psdbake reads (1: one flat group, read as group "main").
-READABLE_PSD_VERSIONS = (1, 2)
+PSD_VERSION = 3
+#: psd: schema versions this psdbake reads (1: one flat group, read as group "main"; 2: groups;
+#: 3: groups with optional gates, for combination correctives).
+READABLE_PSD_VERSIONS = (1, 2, 3)
 #: The group a v1 layer's flat psd: data belongs to, and fit's group when none is named.
 DEFAULT_GROUP = "main"
 #: Group names become attribute namespaces: identifiers, and not the schema's own names.
@@ -43,7 +44,8 @@ PSD_TYPES = _type_names(
     normalizeWeights="Bool", drivers="TokenArray", driverBindRotations="QuatdArray", kernel="Token", sigma="Double",
     degree="Int", smoothing="Double", centers="DoubleArray", centerLabels="StringArray", shapes="TokenArray",
     coefficients="DoubleArray", polyPowers="IntArray", dimensions="IntArray", polyShift="DoubleArray",
-    polyScale="DoubleArray", exampleTimes="DoubleArray", exampleSources="StringArray",
+    polyScale="DoubleArray", exampleTimes="DoubleArray", exampleSources="StringArray", gates="TokenArray",
+    gatePoses="DoubleArray",
 )
 
 
@@ -83,6 +85,8 @@ class DriverData:
     dims: NDArray[np.int64]  # (m,) pose coordinates used, indices into the 3 d vector
     example_times: Sequence[float]
     example_sources: Sequence[str]
+    gates: Sequence[str] = ()  # combination groups: driver joints whose activation multiplies the weights
+    gate_poses: NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, 0)))  # (g, width) coordinates
 
 
 # --- read ----------------------------------------------------------------------------------
@@ -188,6 +192,7 @@ class _GroupReader:
             example_times=[float(t) for t in self.finite("exampleTimes", self.numbers("exampleTimes"),
                                                          "time codes are finite numbers")],
             example_sources=[str(s) for s in self.get("exampleSources")],
+            **self._gates(drivers, space),
         )
 
     def _rbf_arrays(self, drivers: list[str], space: str):
@@ -207,6 +212,26 @@ class _GroupReader:
         self.finite("centers", centers.reshape(-1))
         self.finite("coefficients", coefficients)
         return dims, centers, powers, coefficients.reshape(rows, len(shapes)), shapes
+
+    def _gates(self, drivers: list[str], space: str) -> dict[str, Any]:
+        """psd:gates (driver joints) and psd:gatePoses (g x width): each gate's activation
+        clamp(x_j . g_j / g_j . g_j, 0, 1) multiplies the group's weights (README)."""
+        gates = [str(g) for g in self.get("gates", required=False) or []]
+        if not gates:
+            return {}
+        unknown = [g for g in gates if g not in drivers]
+        if unknown or len(set(gates)) != len(gates):
+            raise InputError(f"{self.at('gates')}: {unknown[0] if unknown else 'a gate'!r} is not one of psd:drivers "
+                             "(listed once each)")
+        width = POSE_SPACES[space].width
+        poses = self.finite("gatePoses", self.numbers("gatePoses"))
+        if poses.size != len(gates) * width:
+            raise InputError(f"{self.at('gatePoses')}: {poses.size} values for {len(gates)} gates of {width} "
+                             f"{space} coordinates")
+        poses = poses.reshape(len(gates), width)
+        if np.any(np.einsum("ij,ij->i", poses, poses) <= 0):
+            raise InputError(f"{self.at('gatePoses')}: a gate pose is the bind pose (zero): its activation is undefined")
+        return {"gates": gates, "gate_poses": poses}
 
     def _sigma(self) -> float:
         sigma = self.scalar("sigma")
@@ -346,3 +371,6 @@ def _author_group(put: Put, prefix: str, data: DriverData) -> None:
     put(f"{prefix}polyScale", t.DoubleArray, double_array(data.scale))
     put(f"{prefix}exampleTimes", t.DoubleArray, double_array(np.asarray(data.example_times, dtype=np.float64)))
     put(f"{prefix}exampleSources", t.StringArray, Vt.StringArray(list(data.example_sources)))
+    if len(data.gates):
+        put(f"{prefix}gates", t.TokenArray, Vt.TokenArray(list(data.gates)))
+        put(f"{prefix}gatePoses", t.DoubleArray, double_array(data.gate_poses))

@@ -1,0 +1,93 @@
+"""One mesh's correctives: its regions planned, each fitted, combinations on top.
+
+``regions.plan_regions`` decides which examples drive which group; here every group is
+fitted (``drivers.fit_drivers``) and each combination's BlendShapes are made to carry only
+what the single-joint groups of its joints do not already give at its pose: rest-space
+offsets add before skinning, so at a combination's pose the stack's total offset is
+sum_g w_g d'_g + 1 * d'_c, and d'_c = d'_total - sum_g w_g d'_g reproduces the sculpt.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Sequence
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.spatial.transform import Rotation
+
+from .drivers import fit_drivers, resolve_drivers
+from .errors import InputError, where
+from .groups import shapes_of
+from .inverse import InverseResult
+from .normals import CorrectiveNormals
+from .regions import Region, plan_regions
+from .results import Example, MeshFit
+from .settings import FitSettings
+from .usd.read import Scene, SkinnedMesh
+from .usd.schema import BlendShapeData
+from .weights import weights_of_rotations
+
+Solved = tuple[InverseResult, CorrectiveNormals | None]
+
+
+def plan_mesh(asset: str, info: SkinnedMesh, examples: Sequence[Example], settings: FitSettings
+              ) -> tuple[list[Region], list[int], str]:
+    """The mesh's regions, the examples no region uses, and why regions are global (or "")."""
+    drivers = resolve_drivers(settings.drivers, info.joints, where(asset, info.skeleton)) if settings.drivers else []
+    regions, skipped, why = plan_regions(np.array([e.pose for e in examples]), [e.label for e in examples],
+                                         info.joints, settings.group, drivers)
+    if not all(r.examples for r in regions):
+        joints = ", ".join(info.joints[j].split("/")[-1] for j in drivers)
+        raise InputError(f"{where(asset, info.path)}: no example moves only the drivers {joints} "
+                         f"(of {len(examples)} examples): nothing to fit for them")
+    return regions, skipped, why
+
+
+def fit_regions(asset: str, asset_scene: Scene, info: SkinnedMesh, examples: Sequence[Example],
+                solved: dict[int, Solved], regions: Sequence[Region], settings: FitSettings,
+                notes: list[str]) -> list[MeshFit]:
+    """Every region of one mesh fitted; combinations (gated) after the groups they sit on."""
+    bind_local = asset_scene.bind_local_transforms(info.path)
+    fits: list[MeshFit] = []
+    for region in sorted(regions, key=lambda r: r.gated):
+        mine = [solved[i] for i in region.examples]
+        fitted = fit_drivers(asset, asset_scene, info, [examples[i] for i in region.examples], [s[0] for s in mine],
+                             bind_local, settings, region, notes)
+        fitted = dataclasses.replace(fitted, normals=tuple(s[1] for s in mine))
+        if region.gated:
+            below = [f for f in fits if set(f.drivers) <= set(fitted.drivers)]
+            fitted = dataclasses.replace(fitted, shapes=tuple(_combination_shapes(fitted, below)))
+        fits.append(fitted)
+    return sorted(fits, key=lambda f: f.group)
+
+
+def _dense(shape: BlendShapeData, n: int) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    offsets, normals = np.zeros((n, 3)), np.zeros((n, 3))
+    offsets[shape.indices] = shape.offsets
+    if shape.normal_offsets is not None:
+        normals[shape.indices] = shape.normal_offsets
+    return offsets, normals
+
+
+def _combination_shapes(combo: MeshFit, below: Sequence[MeshFit]) -> list[BlendShapeData]:
+    """The combination's BlendShapes minus what the groups below give at each of its poses."""
+    n = combo.point_count
+    out = []
+    for shape, example in zip(shapes_of(dataclasses.replace(combo, shapes=None)),
+                              [e for e, c in zip(combo.examples, combo.channels, strict=True) if c], strict=True):
+        offsets, normals = _dense(shape, n)
+        has_normals = shape.normal_offsets is not None
+        for group in below:
+            data = group.driver_data
+            idx = [group.joints.index(d) for d in data.drivers]
+            weights = weights_of_rotations(data, Rotation.from_quat(example.pose[idx]), 1)[0]
+            for w, other in zip(weights, shapes_of(group), strict=True):
+                o, nrm = _dense(other, n)
+                offsets -= w * o
+                normals -= w * nrm
+                has_normals |= other.normal_offsets is not None
+        keep = np.nonzero(np.any(offsets != 0, axis=1) | np.any(normals != 0, axis=1))[0]
+        out.append(BlendShapeData(name=shape.name, channel=shape.channel, indices=keep, offsets=offsets[keep],
+                                  normal_offsets=normals[keep] if has_normals else None))
+    return out
