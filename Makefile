@@ -44,6 +44,7 @@ lint: $(STAMP)
 
 fidelity: $(STAMP)
 	$(BIN)/python -m benchmarks.fidelity
+	$(BIN)/python -m benchmarks.humanoid
 	@mkdir -p $(OUT)
 	$(BIN)/psdbake compare fixtures/hinge/hinge.usda fixtures/hinge/hinge_examples.usda --anim fixtures/hinge/hinge_anim.usda -o $(OUT)/hinge_report
 	$(BIN)/psdbake compare fixtures/arm_lbs.usda fixtures/arm_lbs_examples.usda --anim fixtures/arm_anim.usda -o $(OUT)/arm_report

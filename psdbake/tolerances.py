@@ -70,6 +70,42 @@ ABSURD_SCULPT_DIAGONALS = 10.0
 #: Automatic sigma falls back to this (radians) with only one example pose.
 DEFAULT_SIGMA = 1.0
 
+#: Automatic sigma keeps the RBF system's 2-norm condition number at or below this. The
+#: weights are stored as float32 (UsdSkel ``blendShapeWeights``, ulp 1.2e-7 at 1); round-off
+#: of a float64 solve and evaluation grows like eps64 x cond = 2.2e-8 here, below half a
+#: float32 ulp, so conditioning costs nothing a user can see. (Measured on the bench rig's
+#: example poses: the mean-pairwise-distance sigma gives 6.8e8 at 32 examples, 2.4e18 at 128.)
+RBF_COND_TARGET = 1e8
+
+#: Candidate automatic sigmas: the mean pairwise distance times RBF_SIGMA_STEP**j, j = 0, 1, ...
+#: (quarter octaves). A quarter octave changes the Gaussian condition number by about 10x at
+#: 32-500 bench examples, fine enough to stay within a decade of RBF_COND_TARGET.
+RBF_SIGMA_STEP = 2.0**-0.25
+
+#: The automatic-sigma search stops at this fraction of the closest two poses' distance:
+#: there the Gaussian between them is exp(-64) ~ 1e-28, the kernel matrix is the identity to
+#: float64 precision and a smaller sigma cannot improve the condition number.
+RBF_SIGMA_FLOOR_SPACINGS = 0.125
+
+#: An RBF system whose condition number reaches 1/eps64 (4.5e15) is numerically singular: no
+#: digit of its solution is reliable, so it is refused before anything is solved.
+RBF_COND_MAX = 1.0 / float(np.finfo(np.float64).eps)
+
+#: The stored formula's weights at the example poses must be the cardinal delta
+#: (b_s(c_i) = [i == s]) within this, and their round-off (eps64 x sum |phi| |C|, the
+#: noise of any evaluation, at the examples or between them) must stay below it too.
+#: 1e-6 is 8 float32 ulps of a weight of 1 (UsdSkel stores weights as float32); a weight
+#: error e moves a posed point by e times its corrective, so for correctives up to a tenth of
+#: the diagonal the error stays 100x inside the 1e-5-of-the-diagonal round-trip guarantee.
+CARDINAL_ATOL = 1e-6
+
+#: The stored formula and scipy's evaluation sum the same terms in a different order and
+#: compute the kernel from eps|x - c| versus |eps x - eps c|: they may differ by about
+#: (terms + this) x eps64 x sum |phi| |C| (a dot product's rounding bound, which grows with
+#: the coefficients, i.e. with the condition number), plus the kernel's own sensitivity
+#: |r phi'(r)| times this many eps64. Beyond that bound the two are different formulas.
+FORMULA_ULPS = 16.0
+
 #: The RBF must give each example a weight of at least this at its own pose.
 SELF_WEIGHT_MIN = 0.99
 
