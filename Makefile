@@ -53,6 +53,7 @@ fidelity: $(STAMP)
 bench: $(STAMP)
 	$(BIN)/python -m benchmarks.run
 	$(BIN)/python -m benchmarks.jobs
+	$(BIN)/python -m benchmarks.conditioning
 
 fuzz: $(STAMP)
 	$(BIN)/python -m tests.fuzz --mode $${MODE:-all} --cases $${CASES:-20000} --seed $${SEED:-0}

@@ -116,14 +116,17 @@ class _Command(click.Command):
     (``UsdDataError``), the message names this command's input files."""
 
     def invoke(self, ctx: click.Context):
+        files: list[str] = []
+        for name in _INPUT_PARAMS:
+            value = ctx.params.get(name)
+            files += [str(v) for v in value] if isinstance(value, (list, tuple)) else [str(value)] if value else []
         try:
             with usd_errors():
                 return super().invoke(ctx)
+        except UnicodeDecodeError:  # a name or string in the data is not UTF-8 (a damaged file)
+            raise UsdDataError(f"{', '.join(files) or 'the inputs'}: a name or string in the data is not UTF-8 "
+                               "text") from None
         except UsdDataError as exc:
-            files: list[str] = []
-            for name in _INPUT_PARAMS:
-                value = ctx.params.get(name)
-                files += [str(v) for v in value] if isinstance(value, (list, tuple)) else [str(value)] if value else []
             raise UsdDataError(f"{', '.join(files) or 'the inputs'}: {exc}") from None
 
 

@@ -184,7 +184,7 @@ def monomial_powers(ndim: int, degree: int) -> NDArray[np.int64]:
             for var in mono:
                 row[var] += 1
             out.append(row)
-    return np.array(out, dtype=np.int64).reshape(-1, ndim)
+    return np.array(out, dtype=np.int64).reshape(len(out), ndim)
 
 
 @dataclass(frozen=True)
@@ -390,11 +390,9 @@ def _plan(full: NDArray[np.float64], labels: Sequence[str], kernel: str, sigma: 
 
     def advice() -> str:
         if kernel not in SCALE_FREE and sigma is not None:
-            try:
-                auto = _plan(full, labels, kernel, None, degree, smoothing, where_)
-                return f"use a smaller --sigma (the automatic {auto.sigma:.3g} rad gives {auto.condition:.1e}) or omit it"
-            except FitError:
-                pass
+            auto, auto_cond, _ = _adapt_sigma(system, auto_sigma(centers))  # eigenvalues only: no solve
+            if auto_cond < cond:
+                return f"use a smaller --sigma (the automatic {auto:.3g} rad gives {auto_cond:.1e}) or omit it"
         if deg >= 0:
             return "use a lower --degree, --smoothing or fewer examples"
         if kernel in SCALE_FREE:
@@ -413,7 +411,8 @@ def _plan(full: NDArray[np.float64], labels: Sequence[str], kernel: str, sigma: 
         raise FitError(f"{subject} is singular ({str(exc).splitlines()[0]}; condition number {cond:.1e} "
                        f"{at_sigma}): {advice()}") from None
     coefficients = np.array(interp._coeffs, dtype=np.float64)
-    powers = np.array(interp.powers, dtype=np.int64).reshape(-1, centers.shape[1])
+    powers = np.array(interp.powers, dtype=np.int64)
+    powers = powers.reshape(len(powers), centers.shape[1])  # (0, d) or (p, 0) too
     shift = np.array(interp._shift, dtype=np.float64)
     scale = np.array(interp._scale, dtype=np.float64)
 

@@ -18,6 +18,7 @@ import sys
 import tempfile
 import zipfile
 from collections.abc import Callable, Iterator
+from typing import Any
 
 #: Address-space cap of the probe: a corrupt size field must not take the machine's memory.
 _MEMORY_LIMIT = 8 << 30
@@ -45,11 +46,18 @@ def read_every_value(identifier: str) -> None:
         if spec is None:
             continue
         for key in spec.ListInfoKeys():
-            spec.GetInfo(key)
+            _decode(spec.GetInfo(key))
         if path.IsPropertyPath():
             for t in layer.ListTimeSamplesForPath(path):
-                layer.QueryTimeSample(path, t)
+                _decode(layer.QueryTimeSample(path, t))
     _compose(layer)
+
+
+def _decode(value: Any) -> None:
+    """Names and strings as Python text: token and string arrays decode their elements only
+    when read, so read them here (a damaged token table is not UTF-8)."""
+    if type(value).__name__ in ("TokenArray", "StringArray", "list", "tuple", "dict"):
+        str(list(value.values()) if isinstance(value, dict) else list(value))
 
 
 def _compose(layer) -> None:
