@@ -16,7 +16,7 @@ import warnings
 from collections.abc import Sequence
 
 from . import __version__, atomic
-from .correctives import fit_regions, plan_mesh
+from .correctives import fit_regions, plan_mesh, plan_systems
 from .deformers import deformer_files, load_deformers
 from .errors import InputError, PsdWarning, where
 from .evaluate import animation_weights, correctives_by_animation, posed_points
@@ -88,10 +88,11 @@ def fit(
     layout: list[str] = []  # why a mesh's correctives are one global group, when they are
     try:
         per_mesh, tasks = gather_examples(asset, asset_scene, infos, meshes, example_files, settings)  # checked
-        plans = {}
+        plans, systems = {}, {}
         for info in [i for i in infos if i.path in per_mesh]:
             regions, unused, why = plan_mesh(asset, info, per_mesh[info.path], settings)  # who drives what
             plans[info.path] = regions
+            systems[info.path] = plan_systems(asset, info, per_mesh[info.path], regions, settings, notes)
             skipped += [f"{per_mesh[info.path][i].label} <{info.path}>" for i in unused]
             if why:
                 layout.append(f"{where(asset, info.path)}: one global correctives group 'main': {why} (local, "
@@ -105,7 +106,8 @@ def fit(
             examples = per_mesh[info.path]
             mine = {i: solved[(info.path, e.source, e.time)] for i, e in enumerate(examples)
                     if (info.path, e.source, e.time) in solved}
-            fits += fit_regions(asset, asset_scene, info, examples, mine, plans[info.path], settings, notes)
+            fits += fit_regions(asset, asset_scene, info, examples, mine, plans[info.path], settings, notes,
+                                systems[info.path])
             _note_normals(asset, asset_scene, info.path, notes)
     finally:
         cached_scene.cache_clear()  # the example stages die with the fit

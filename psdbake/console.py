@@ -101,6 +101,7 @@ def fit_report(result: FitResult, output: str) -> dict:
             "gates": list(d.gates),
             "mesh": m.mesh, "group": m.group, "skeleton": m.skeleton, "points": m.point_count, "drivers": list(m.drivers),
             "kernel": d.kernel, "sigma": d.sigma, "degree": d.degree, "examples": examples,
+            "condition": None if m.condition != m.condition else m.condition,
         })
     return {
         "psdbake": __version__, "command": "fit", "asset": result.asset, "output": output,
@@ -117,8 +118,9 @@ def say_fit(ui: Ui, result: FitResult, output: str) -> None:
     for m in result.meshes:
         d = m.driver_data
         drivers = ", ".join(j.split("/")[-1] for j in m.drivers)
+        cond = f"  cond: {m.condition:.2g}" if m.condition == m.condition else ""
         ui.say(f"  <{m.mesh}>  group: {m.group}  drivers: {drivers}  kernel: {d.kernel}  sigma: {d.sigma:.4g} rad  "
-               f"degree: {d.degree}")
+               f"degree: {d.degree}{cond}")
         width = max(28, *(len(ex.label) for ex in m.examples))
         ui.say(f"    {'example':<{width}} {'solved':>7} {'evals':>6} {'max/diag':>10} {'rms/diag':>10} {'missed':>7} "
                f"{'seconds':>8}")

@@ -10,17 +10,19 @@ sum_g w_g d'_g + 1 * d'_c, and d'_c = d'_total - sum_g w_g d'_g reproduces the s
 from __future__ import annotations
 
 import dataclasses
+import warnings
 from collections.abc import Sequence
 
 import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
-from .drivers import fit_drivers, resolve_drivers
-from .errors import InputError, where
+from .drivers import fit_drivers, plan_group, resolve_drivers
+from .errors import InputError, PsdWarning, where
 from .groups import shapes_of
 from .inverse import InverseResult
 from .normals import CorrectiveNormals
+from .rbf import RbfPlan
 from .regions import Region, plan_regions
 from .results import Example, MeshFit
 from .settings import FitSettings
@@ -44,16 +46,29 @@ def plan_mesh(asset: str, info: SkinnedMesh, examples: Sequence[Example], settin
     return regions, skipped, why
 
 
+def plan_systems(asset: str, info: SkinnedMesh, examples: Sequence[Example], regions: Sequence[Region],
+                 settings: FitSettings, notes: list[str]) -> dict[str, RbfPlan | None]:
+    """Every region's RBF system, checked before any inverse is solved; warnings noted."""
+    plans = {}
+    for region in regions:
+        plan = plan_group(asset, info, [examples[i] for i in region.examples], settings, region)
+        for msg in plan.warnings if plan else ():
+            notes.append(msg)
+            warnings.warn(msg, PsdWarning, stacklevel=3)
+        plans[region.group] = plan
+    return plans
+
+
 def fit_regions(asset: str, asset_scene: Scene, info: SkinnedMesh, examples: Sequence[Example],
                 solved: dict[int, Solved], regions: Sequence[Region], settings: FitSettings,
-                notes: list[str]) -> list[MeshFit]:
+                notes: list[str], systems: dict[str, RbfPlan | None] | None = None) -> list[MeshFit]:
     """Every region of one mesh fitted; combinations (gated) after the groups they sit on."""
     bind_local = asset_scene.bind_local_transforms(info.path)
     fits: list[MeshFit] = []
     for region in sorted(regions, key=lambda r: r.gated):
         mine = [solved[i] for i in region.examples]
         fitted = fit_drivers(asset, asset_scene, info, [examples[i] for i in region.examples], [s[0] for s in mine],
-                             bind_local, settings, region, notes)
+                             bind_local, settings, region, notes, (systems or {}).get(region.group))
         fitted = dataclasses.replace(fitted, normals=tuple(s[1] for s in mine))
         if region.gated:
             below = [f for f in fits if set(f.drivers) <= set(fitted.drivers)]

@@ -115,16 +115,43 @@ def _check_model(model: rbf.CardinalRbf, centers: NDArray[np.float64], outputs: 
         _warn(notes, f"{where_}: examples {a} and {b} are only {d:.3g} rad apart in pose space")
 
 
+def _degree(settings: FitSettings, region: Region) -> int | None:
+    """A combination's RBF keeps a constant term (its gates make it vanish at bind instead)."""
+    return max(0, settings.degree if settings.degree is not None else 0) if region.gated else settings.degree
+
+
+def plan_group(asset: str, info: SkinnedMesh, examples: Sequence[Example], settings: FitSettings, region: Region
+               ) -> rbf.RbfPlan | None:
+    """The group's RBF system, built and checked before any example is solved (a bad
+    setting fails in a second, not after the inverses); None for a one-example combination
+    (the constant 1)."""
+    if region.gated and len(examples) == 1:
+        return None
+    driver_idx = _drivers(info, examples, region)
+
+    def coordinates(pose: NDArray[np.float64]) -> NDArray[np.float64]:
+        return posespace.features(Rotation.from_quat(pose[driver_idx]), settings.pose_space, settings.twist_axis)
+
+    centers, labels = [], []
+    if settings.rest_example and not region.gated:
+        centers.append(coordinates(np.tile([0.0, 0.0, 0.0, 1.0], (len(info.joints), 1))))
+        labels.append("bind")
+    centers += [coordinates(e.pose) for e in examples]
+    labels += [e.label for e in examples]
+    return rbf.plan_rbf(np.array(centers), None, labels, kernel=settings.kernel, sigma=settings.sigma,
+                        degree=_degree(settings, region), smoothing=settings.smoothing,
+                        where=f"{where(asset, info.path)} group {region.group!r}")
+
+
 def _model(full_centers: NDArray[np.float64], outputs: list[int], labels: list[str], settings: FitSettings,
-           region: Region) -> rbf.CardinalRbf:
+           region: Region, plan: rbf.RbfPlan | None) -> rbf.CardinalRbf:
     """The group's cardinal RBF. A combination with one example is the constant 1 (its gates
     shape it: the product of its joints' activations, as a facial rig's combination shape)."""
     if region.gated and len(full_centers) == 1:
         return rbf.constant_one(full_centers)
     return rbf.fit_cardinal(
         full_centers, outputs, labels, kernel=settings.kernel, sigma=settings.sigma,
-        degree=max(0, settings.degree if settings.degree is not None else 0) if region.gated else settings.degree,
-        smoothing=settings.smoothing,
+        degree=_degree(settings, region), smoothing=settings.smoothing, plan=plan,
     )
 
 
@@ -143,13 +170,13 @@ def _gates(info: SkinnedMesh, examples: Sequence[Example], driver_idx: list[int]
 
 def fit_drivers(asset: str, asset_scene: Scene, info: SkinnedMesh, examples: Sequence[Example],
                 inverses: Sequence[InverseResult], bind_local: NDArray[np.float64], settings: FitSettings,
-                region: Region, notes: list[str]) -> MeshFit:
+                region: Region, notes: list[str], plan: rbf.RbfPlan | None = None) -> MeshFit:
     """One mesh's fit for one group (``region``): its drivers, the RBF over its examples'
     poses, and the MeshFit that carries them with the inverses."""
     driver_idx = _drivers(info, examples, region)
     centers, labels, outputs, channels = _centers(info, examples, inverses, driver_idx, settings, region, notes)
     full_centers = np.array(centers)
-    model = _model(full_centers, outputs, labels, settings, region)
+    model = _model(full_centers, outputs, labels, settings, region, plan)
     _check_model(model, full_centers, outputs, labels, where(asset, info.path), settings.smoothing, notes)
     gates, gate_poses = _gates(info, examples, driver_idx, settings) if region.gated else ([], np.zeros((0, 0)))
     data = DriverData(
@@ -167,5 +194,5 @@ def fit_drivers(asset: str, asset_scene: Scene, info: SkinnedMesh, examples: Seq
         mesh=info.path, skeleton=info.skeleton, point_count=info.point_count, examples=tuple(examples),
         inverses=tuple(inverses), channels=tuple(channels), drivers=tuple(data.drivers), driver_data=data,
         existing_channels=tuple(existing), existing_targets=tuple(targets), group=region.group,
-        joints=tuple(info.joints),
+        joints=tuple(info.joints), condition=float(model.condition),
     )

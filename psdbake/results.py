@@ -46,6 +46,7 @@ class MeshFit:
     #: the BlendShapes to write when they are not the inverses themselves: a combination's
     #: carry what its joints' own correctives do not already give at its poses
     shapes: tuple[BlendShapeData, ...] | None = None
+    condition: float = float("nan")  # 2-norm condition number of the group's RBF system (nan: none solved)
 
 
 @dataclass(frozen=True)
