@@ -73,6 +73,8 @@ def cross_talk(result: FitResult, others: Groups) -> list[str]:
         infos = dict(others.get(m.mesh, {}))
         infos.pop(m.group, None)
         for group, (data, shapes) in sorted(infos.items()):
+            if m.driver_data.gates and set(data.drivers) <= set(m.drivers):
+                continue  # a combination sits on its joints' groups by design
             reach = np.array([np.abs(s.offsets).max() if len(s.offsets) else 0.0 for s in shapes])
             idx = [m.joints.index(d) for d in data.drivers if d in m.joints]
             if len(idx) != len(data.drivers):
@@ -83,8 +85,9 @@ def cross_talk(result: FitResult, others: Groups) -> list[str]:
                 if spill > result.settings.rtol:
                     notes.append(
                         f"{where(result.asset, m.mesh)}: group {group!r} moves points by {spill:.2g} of the diagonal "
-                        f"at example {ex.label} of group {m.group!r}: the two groups' drivers overlap, so that sculpt "
-                        "is not reproduced exactly"
+                        f"at example {ex.label} of group {m.group!r} (its own examples: "
+                        f"{', '.join(c for c in data.center_labels if c != 'bind')}): the two groups' drivers overlap, "
+                        "so that sculpt is not reproduced exactly"
                     )
     return notes
 
@@ -100,8 +103,6 @@ def correctives_layer(result: FitResult, update: str | None = None):
     from . import __version__
 
     groups: Groups = read_correctives(result.asset, update) if update else {}
-    for note in cross_talk(result, groups):
-        warnings.warn(note, PsdWarning, stacklevel=2)
     fitted = {m.mesh for m in result.meshes}
     for mesh, per_group in groups.items():
         if not result.settings.meshes or mesh in fitted:
@@ -109,6 +110,8 @@ def correctives_layer(result: FitResult, update: str | None = None):
                 per_group.pop(group, None)
     for m in result.meshes:
         groups.setdefault(m.mesh, {})[m.group] = (m.driver_data, shapes_of(m))
+    for note in cross_talk(result, groups):  # this fit's groups and the ones carried over
+        warnings.warn(note, PsdWarning, stacklevel=2)
     asset_scene = Scene([result.asset])
     layer = usdwrite.new_layer(
         f"psdbake {__version__} fit: rest-space correctives (inverse PSD)", metadata=usdwrite.asset_metadata(result.asset)
