@@ -58,7 +58,8 @@ ASSET = os.path.join(hum.HERE, hum.ASSET)
 EXAMPLES = os.path.join(hum.HERE, hum.EXAMPLES)
 ANIM = os.path.join(hum.HERE, hum.ANIM_FILE)
 
-METHODS = ("plain skinning", "forward PSD", "inverse PSD, default fit", "inverse PSD, hand-made groups")
+METHODS = ("plain skinning", "forward PSD", "inverse PSD, one global group", "inverse PSD, default fit",
+           "inverse PSD, hand-made groups")
 _KEEP: list = []
 
 
@@ -224,6 +225,16 @@ def run(folder: str) -> dict:
         attempt("forward PSD", forward_rows)
 
     attempt("inverse PSD, default fit", default)
+
+    def global_group() -> None:
+        """psdbake 0.1's default: one RBF over every driver (``--group main``)."""
+        result = api.fit(ASSET, [EXAMPLES], FitSettings(group="main"))
+        path = api.write_correctives(result, os.path.join(folder, "correctives_global.usda"))
+        shot["inverse PSD, one global group"], _ = stacked(path, ANIM, frames, folder, "global")
+        ex_pts, _ = stacked(path, poses_layer, ex_times, folder, "global_examples")
+        at_combos["inverse PSD, one global group"] = ex_pts[[ex_times.index(t) for t in combos]]
+
+    attempt("inverse PSD, one global group", global_group)
     if "inverse PSD, default fit" in failures:
         failures.setdefault("forward PSD", "needs the default fit's weights: " + failures["inverse PSD, default fit"])
 

@@ -17,7 +17,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
-from .drivers import fit_drivers, plan_group, resolve_drivers
+from .drivers import character_scale, fit_drivers, plan_group, resolve_drivers
 from .errors import InputError, PsdWarning, where
 from .groups import shapes_of
 from .inverse import InverseResult
@@ -50,8 +50,11 @@ def plan_systems(asset: str, info: SkinnedMesh, examples: Sequence[Example], reg
                  settings: FitSettings, notes: list[str]) -> dict[str, RbfPlan | None]:
     """Every region's RBF system, checked before any inverse is solved; warnings noted."""
     plans = {}
+    local = len(regions) > 1 or bool(regions and regions[0].gated)
+    joints = sorted({j for r in regions for j in r.joints})
+    scale = character_scale(examples, joints, settings) if local and joints else None
     for region in regions:
-        plan = plan_group(asset, info, [examples[i] for i in region.examples], settings, region)
+        plan = plan_group(asset, info, [examples[i] for i in region.examples], settings, region, scale)
         for msg in plan.warnings if plan else ():
             notes.append(msg)
             warnings.warn(msg, PsdWarning, stacklevel=3)

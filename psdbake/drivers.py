@@ -120,11 +120,16 @@ def _degree(settings: FitSettings, region: Region) -> int | None:
     return max(0, settings.degree if settings.degree is not None else 0) if region.gated else settings.degree
 
 
-def plan_group(asset: str, info: SkinnedMesh, examples: Sequence[Example], settings: FitSettings, region: Region
-               ) -> rbf.RbfPlan | None:
+def plan_group(asset: str, info: SkinnedMesh, examples: Sequence[Example], settings: FitSettings, region: Region,
+               scale: float | None = None) -> rbf.RbfPlan | None:
     """The group's RBF system, built and checked before any example is solved (a bad
     setting fails in a second, not after the inverses); None for a one-example combination
-    (the constant 1)."""
+    (the constant 1).
+
+    scale: the character's pose scale (``character_scale``) for local groups: a region sculpted
+    at one or two angles would otherwise get a Gaussian as narrow as its few examples are apart,
+    and its correction would fade past them. Used when its system is well conditioned, else the
+    group's own automatic sigma."""
     if region.gated and len(examples) == 1:
         return None
     driver_idx = _drivers(info, examples, region)
@@ -138,9 +143,24 @@ def plan_group(asset: str, info: SkinnedMesh, examples: Sequence[Example], setti
         labels.append("bind")
     centers += [coordinates(e.pose) for e in examples]
     labels += [e.label for e in examples]
+    here = f"{where(asset, info.path)} group {region.group!r}"
+    if scale is not None and settings.sigma is None and settings.kernel not in rbf.SCALE_FREE:
+        plan = rbf.plan_rbf(np.array(centers), None, labels, kernel=settings.kernel, sigma=scale,
+                            degree=_degree(settings, region), smoothing=settings.smoothing, where=here,
+                            raise_problem=False)
+        if plan.ok and plan.condition <= tol.RBF_COND_TARGET and not plan.warnings:
+            return plan
     return rbf.plan_rbf(np.array(centers), None, labels, kernel=settings.kernel, sigma=settings.sigma,
-                        degree=_degree(settings, region), smoothing=settings.smoothing,
-                        where=f"{where(asset, info.path)} group {region.group!r}")
+                        degree=_degree(settings, region), smoothing=settings.smoothing, where=here)
+
+
+def character_scale(examples: Sequence[Example], joints: Sequence[int], settings: FitSettings) -> float:
+    """The automatic sigma one global group over these joints would use (the mean pairwise
+    distance of every example pose and the bind pose): the scale local groups share."""
+    bind = np.tile([0.0, 0.0, 0.0, 1.0], (len(examples[0].pose), 1))
+    coords = [posespace.features(Rotation.from_quat(p[list(joints)]), settings.pose_space, settings.twist_axis)
+              for p in [bind, *(e.pose for e in examples)]]
+    return rbf.auto_sigma(np.array(coords))
 
 
 def _model(full_centers: NDArray[np.float64], outputs: list[int], labels: list[str], settings: FitSettings,
