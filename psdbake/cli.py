@@ -405,6 +405,9 @@ def main(argv: Sequence[str] | None = None) -> None:
     except KeyboardInterrupt:
         click.echo("psdbake: interrupted", err=True)
         sys.exit(EXIT_INTERRUPTED)
+    except BrokenPipeError:  # stdout closed early (``psdbake inspect X | head``): outputs are already whole
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # Python's recipe: no second error
+        sys.exit(EXIT_INTERNAL)
     except Exception as exc:
         if os.environ.get("PSDBAKE_DEBUG"):
             raise

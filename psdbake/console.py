@@ -18,9 +18,7 @@ from . import __version__
 from .errors import PsdWarning
 from .farm import JobResult
 from .farm.chunked import ChunkedWeights, WrittenChunks
-from .results import FitResult, WeightsResult
-
-Progress = Callable[[int, int, str], None]
+from .results import FitResult, Progress, WeightsResult
 
 
 class Ui:

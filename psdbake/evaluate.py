@@ -15,7 +15,7 @@ from numpy.typing import NDArray
 
 from .deformers import DeformerFactory
 from .errors import InputError, where
-from .results import AnimWeights
+from .results import AnimWeights, Progress
 from .usd.blackbox import FLOAT32_MAX, SkinningBlackBox
 from .usd.read import Scene, SkinnedMesh
 from .usd.schema import DriverData
@@ -82,7 +82,7 @@ def _finite_weights(w: NDArray[np.float64], data: DriverData, group: str, times:
 
 
 def posed_points(rest_scene: Scene, scene: Scene, meshes: Sequence[SkinnedMesh], times: Sequence[float],
-                 chain: Sequence[tuple[str, DeformerFactory]], progress: Callable[[int, int, str], None] | None
+                 chain: Sequence[tuple[str, DeformerFactory]], progress: Progress | None
                  ) -> Iterator[tuple[str, float, NDArray[np.float64]]]:
     """(mesh, time, points) for every mesh and time: the black box applied to the rest points
     (``pose``'s examples to sculpt, ``eval``'s points cache)."""
