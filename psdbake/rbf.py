@@ -1,16 +1,7 @@
-"""Cardinal RBF weights over pose space.
+"""Fitting cardinal RBF weights over pose space, with the system checked first.
 
-Model. Example poses c_0..c_{k-1} (pose coordinates, see ``posespace``) and, for
-each corrective shape s, the cardinal interpolant b_s with b_s(c_i) = [i == s]::
-
-    b_s(x) = sum_i C[i, s] phi(eps |x - c_i|) + sum_m C[k + m, s] prod_d xhat_d ^ P[m, d]
-    xhat   = (x - shift) / scale
-
-phi is the kernel (table ``KERNELS``), eps = 1/sigma, P the monomial powers of the
-polynomial term of degree ``degree`` (-1: none). The corrective at pose x is then
-sum_s b_s(x) d'_s: each example's rest-space offsets d'_s are one UsdSkel BlendShape
-and b_s(x) its weight. An implicit bind-pose example (zero corrective) is a centre
-with no output column.
+The model and its formula are ``rbf_model`` (re-exported here). An implicit bind-pose
+example (zero corrective) is a centre with no output column.
 
 Fitting is ``scipy.interpolate.RBFInterpolator`` with the identity as data; its
 solved coefficients, shift, scale and powers are copied out so that any program can
@@ -42,9 +33,8 @@ columns and make the polynomial system singular.
 
 from __future__ import annotations
 
-import itertools
 import warnings as _warnings
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -54,137 +44,41 @@ from scipy.spatial.distance import cdist
 
 from . import tolerances as tol
 from .errors import FitError, PsdWarning
+from .rbf_model import (
+    KERNELS,
+    MIN_DEGREE,
+    SCALE_FREE,
+    CardinalRbf,
+    auto_sigma,
+    check_distinct,
+    constant_one,
+    default_degree,
+    formula_basis,
+    monomial_powers,
+    row_independent_product,
+)
 
-#: phi(r) for r = eps |x - c|, exactly as scipy.interpolate.RBFInterpolator defines them.
-KERNELS = {
-    "gaussian": lambda r: np.exp(-(r**2)),
-    "linear": lambda r: -r,
-    "thin_plate_spline": lambda r: np.where(r > 0, r**2 * np.log(np.where(r > 0, r, 1.0)), 0.0),
-    "cubic": lambda r: r**3,
-    "quintic": lambda r: -(r**5),
-    "multiquadric": lambda r: -np.sqrt(r**2 + 1.0),
-    "inverse_multiquadric": lambda r: 1.0 / np.sqrt(r**2 + 1.0),
-    "inverse_quadratic": lambda r: 1.0 / (r**2 + 1.0),
-}
-#: Kernels that need at least this polynomial degree to be well posed (scipy's rule).
-MIN_DEGREE = {"multiquadric": 0, "linear": 0, "thin_plate_spline": 1, "cubic": 1, "quintic": 2}
-#: Kernels whose shape does not depend on eps: sigma is meaningless and stored as 1.
-SCALE_FREE = frozenset({"linear", "thin_plate_spline", "cubic", "quintic"})
-
-
-@dataclass(frozen=True)
-class CardinalRbf:
-    """Everything needed to evaluate the cardinal weights b_s(x)."""
-
-    centers: NDArray[np.float64]  # (k, d) example pose coordinates (bind pose included), over dims
-    kernel: str
-    sigma: float  # eps = 1 / sigma
-    degree: int  # polynomial degree, -1 for none
-    smoothing: float
-    coefficients: NDArray[np.float64]  # (k + p, s)
-    powers: NDArray[np.int64]  # (p, d)
-    shift: NDArray[np.float64]  # (d,)
-    scale: NDArray[np.float64]  # (d,)
-    dims: NDArray[np.int64]  # (d,) indices of the pose coordinates used
-    condition: float = float("nan")  # 2-norm condition number of the fitted system (nan: not fitted here)
-
-    @property
-    def epsilon(self) -> float:
-        return 1.0 / self.sigma
-
-    def weights(self, x: NDArray[np.float64]) -> NDArray[np.float64]:
-        """b(x): (f, D) full pose coordinates -> (f, s) weights, by the documented formula."""
-        x = np.atleast_2d(np.asarray(x, dtype=np.float64))[:, self.dims]
-        k = len(self.centers)
-        basis = formula_basis(x, self.centers, self.kernel, self.epsilon, self.powers, self.shift, self.scale)
-        return row_independent_product(basis, self.coefficients[: k + len(self.powers)])
+__all__ = [  # the model's names, re-exported: callers import the RBF from one place
+    "KERNELS", "MIN_DEGREE", "SCALE_FREE", "CardinalRbf", "RbfPlan", "auto_sigma", "check_distinct", "constant_one",
+    "default_degree", "fit_cardinal", "formula_basis", "monomial_powers", "plan_rbf", "row_independent_product",
+]
 
 
-def formula_basis(x: NDArray[np.float64], centers: NDArray[np.float64], kernel: str, epsilon: float,
-                  powers: NDArray[np.int64], shift: NDArray[np.float64], scale: NDArray[np.float64]
-                  ) -> NDArray[np.float64]:
-    """The documented formula's basis at x (over dims): [phi(eps |x - c_i|) ..., monomials of xhat ...].
-    The fit builds its system from this too, so what is checked is what is stored."""
-    basis = KERNELS[kernel](epsilon * cdist(x, centers))
-    if len(powers):
-        xhat = (x - shift) / scale
-        poly = np.prod(xhat[:, None, :] ** powers[None, :, :], axis=2)
-        basis = np.concatenate([basis, poly], axis=1)
-    return basis
 
 
-def row_independent_product(a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64]:
-    """a @ b summed term by term in a fixed order: each row of the result depends on that row
-    of a only, bit for bit.
-
-    Why not BLAS: its kernels round a row differently depending on how many rows come with it
-    (gemv for one row, edge kernels for the odd rows of a block; measured on this project's
-    machines: 1 row in 3 differs in the last bit for 3-row calls), so a frame's weights
-    would depend on how a shot is cut into farm chunks. Separate multiplies and adds (numpy
-    never fuses them) give the same bits for any row count, whatever kernel BLAS would pick.
-    Cost measured against BLAS: about the same up to 30 examples (~1 us/frame); 17 vs 1.3
-    us/frame at 120 examples x 119 shapes (an eval frame costs ~20 us in UsdSkel anyway).
-    """
-    out = np.zeros((a.shape[0], b.shape[1]), dtype=np.float64)
-    step = max(1, 32768 // max(1, b.shape[1]))  # rows per block: the block's sums stay in cache
-    for start in range(0, a.shape[0], step):
-        rows, acc = a[start : start + step], out[start : start + step]
-        for i in range(b.shape[0]):
-            acc += rows[:, i, None] * b[i]
-    return out
 
 
-def constant_one(centers: NDArray[np.float64]) -> CardinalRbf:
-    """b(x) = 1 everywhere, in the documented formula's terms (degree 0: one constant monomial,
-    no kernel weight): a combination corrective with one example, shaped by its gates."""
-    dims = np.arange(np.asarray(centers).shape[1], dtype=np.int64)
-    return CardinalRbf(
-        centers=np.asarray(centers, dtype=np.float64), kernel="gaussian", sigma=tol.DEFAULT_SIGMA, degree=0,
-        smoothing=0.0, coefficients=np.array([[0.0], [1.0]]), powers=np.zeros((1, len(dims)), dtype=np.int64),
-        shift=np.zeros(len(dims)), scale=np.ones(len(dims)), dims=dims,
-    )
 
 
-def default_degree(kernel: str) -> int:
-    """No polynomial term unless the kernel needs one (Gaussian: none)."""
-    return MIN_DEGREE.get(kernel, -1)
 
 
-def auto_sigma(centers: NDArray[np.float64]) -> float:
-    """Mean pairwise distance between centres (DEFAULT_SIGMA for one centre): the automatic
-    sigma's starting point, sigma0 (``plan_rbf`` shrinks it when the system is ill-conditioned)."""
-    if len(centers) < 2:
-        return tol.DEFAULT_SIGMA
-    d = cdist(centers, centers)
-    sigma = float(d[np.triu_indices(len(centers), k=1)].mean())
-    return sigma if sigma > 0 else tol.DEFAULT_SIGMA
 
 
-def check_distinct(centers: NDArray[np.float64], labels: Sequence[str]) -> list[tuple[str, str, float]]:
-    """Raise on duplicate poses; return near-duplicate pairs (label, label, distance)."""
-    d = cdist(centers, centers)
-    close = np.argwhere(np.triu(d < tol.NEAR_DUPLICATE_POSE_ATOL, k=1))
-    near = []
-    for i, j in close:
-        if d[i, j] < tol.DUPLICATE_POSE_ATOL:
-            raise FitError(
-                f"examples {labels[i]} and {labels[j]} have the same pose "
-                f"(distance {d[i, j]:.2e} rad in pose space): remove one or merge their sculpts"
-            )
-        near.append((labels[i], labels[j], float(d[i, j])))
-    return near
 
 
-def monomial_powers(ndim: int, degree: int) -> NDArray[np.int64]:
-    """The polynomial term's monomials, in scipy's order: (p, ndim) powers, p = C(degree + ndim, ndim)."""
-    out = []
-    for deg in range(degree + 1):
-        for mono in itertools.combinations_with_replacement(range(ndim), deg):
-            row = [0] * ndim
-            for var in mono:
-                row[var] += 1
-            out.append(row)
-    return np.array(out, dtype=np.int64).reshape(len(out), ndim)
+
+
+
 
 
 @dataclass(frozen=True)
@@ -338,9 +232,9 @@ def plan_rbf(
                        condition=float("nan"), problem=str(exc))
 
 
-def _plan(full: NDArray[np.float64], labels: Sequence[str], kernel: str, sigma: float | None, degree: int | None,
-          smoothing: float, where_: str) -> RbfPlan:
-    at = f"{where_}: " if where_ else ""
+def _check_settings(full: NDArray[np.float64], labels: Sequence[str], kernel: str, sigma: float | None,
+                    degree: int | None, smoothing: float, at: str) -> int:
+    """Refuse settings no system can satisfy; returns the polynomial degree."""
     if kernel not in KERNELS:
         raise FitError(f"{at}unknown kernel {kernel!r}: choose --kernel from {', '.join(sorted(KERNELS))}")
     if full.ndim != 2 or len(full) == 0 or len(labels) != len(full):
@@ -358,55 +252,89 @@ def _plan(full: NDArray[np.float64], labels: Sequence[str], kernel: str, sigma: 
         raise FitError(f"{at}--smoothing must be a non-negative number (got {smoothing})")
     if sigma is not None and not (np.isfinite(sigma) and sigma > 0):
         raise FitError(f"{at}--sigma must be a positive number of radians (got {sigma})")
-    dims = np.nonzero(np.ptp(full, axis=0) > tol.DRIVER_ANGLE_ATOL)[0] if deg >= 0 else np.arange(full.shape[1])
-    centers = full[:, dims]
-    k, subject = len(centers), _subject(labels, where_)
-    system = _System(centers, kernel, deg, float(smoothing))
-    p = len(system.powers)
+    return deg
+
+
+def _check_polynomial(system: _System, subject: str, deg: int, dims: int) -> None:
+    p, k = len(system.powers), len(system.centers)
     if p > k:
-        raise FitError(f"{subject}: a degree-{deg} polynomial term in {len(dims)} pose dimensions has {p} monomials, "
+        raise FitError(f"{subject}: a degree-{deg} polynomial term in {dims} pose dimensions has {p} monomials, "
                        f"more than the {k} poses that must determine it: use a lower --degree or more examples")
     if p and system.polynomial_rank() < p:
         raise FitError(f"{subject}: the poses do not determine a degree-{deg} polynomial term (its {p} monomials are "
                        "linearly dependent at the poses, e.g. poses along a line): use a lower --degree or more "
                        "varied examples")
 
-    warnings: list[str] = []
+
+def _choose_sigma(system: _System, kernel: str, sigma: float | None, subject: str, warnings: list[str]
+                  ) -> tuple[float, float, str]:
+    """(sigma, condition number, the rule that chose it): scale-free kernels 1, --sigma as
+    given (warned when far narrower than the poses' spacing), else the adaptive rule."""
+    k = len(system.centers)
     if kernel in SCALE_FREE:
-        sig, rule = 1.0, "scale-free kernel"
-        cond = system.condition(sig)
-    elif sigma is not None:
-        sig, rule = float(sigma), "--sigma"
-        cond = system.condition(sig)
+        return 1.0, system.condition(1.0), "scale-free kernel"
+    if sigma is not None:
         spacing = float(system.dist[np.triu_indices(k, 1)].min()) if k > 1 else float("inf")
-        if kernel == "gaussian" and sig < spacing / 3:
-            warnings.append(f"{subject}: --sigma {sig:.3g} rad is far below the closest poses' distance "
+        if kernel == "gaussian" and sigma < spacing / 3:
+            warnings.append(f"{subject}: --sigma {sigma:.3g} rad is far below the closest poses' distance "
                             f"({spacing:.3g} rad): each corrective vanishes before the next example; omit --sigma "
                             "for the automatic one")
-    else:
-        sigma0 = auto_sigma(centers)
-        sig, cond, j = _adapt_sigma(system, sigma0)
-        rule = "mean pairwise distance" if j == 0 else f"mean pairwise distance {sigma0:.4g} x 2^(-{j}/4)"
+        return float(sigma), system.condition(float(sigma)), "--sigma"
+    sigma0 = auto_sigma(system.centers)
+    sig, cond, j = _adapt_sigma(system, sigma0)
+    return sig, cond, "mean pairwise distance" if j == 0 else f"mean pairwise distance {sigma0:.4g} x 2^(-{j}/4)"
 
-    def advice() -> str:
-        if kernel not in SCALE_FREE and sigma is not None:
-            auto, auto_cond, _ = _adapt_sigma(system, auto_sigma(centers))  # eigenvalues only: no solve
-            if auto_cond < cond:
-                return f"use a smaller --sigma (the automatic {auto:.3g} rad gives {auto_cond:.1e}) or omit it"
-        if deg >= 0:
-            return "use a lower --degree, --smoothing or fewer examples"
-        if kernel in SCALE_FREE:
-            return "use another --kernel, --smoothing or fewer examples"
-        return "use --smoothing, another --kernel or fewer examples"
 
+def _advice(system: _System, kernel: str, sigma: float | None, deg: int, cond: float) -> str:
+    """The option to change, for a system that is singular or not exact."""
+    if kernel not in SCALE_FREE and sigma is not None:
+        auto, auto_cond, _ = _adapt_sigma(system, auto_sigma(system.centers))  # eigenvalues only: no solve
+        if auto_cond < cond:
+            return f"use a smaller --sigma (the automatic {auto:.3g} rad gives {auto_cond:.1e}) or omit it"
+    if deg >= 0:
+        return "use a lower --degree, --smoothing or fewer examples"
+    if kernel in SCALE_FREE:
+        return "use another --kernel, --smoothing or fewer examples"
+    return "use --smoothing, another --kernel or fewer examples"
+
+
+def _plan(full: NDArray[np.float64], labels: Sequence[str], kernel: str, sigma: float | None, degree: int | None,
+          smoothing: float, where_: str) -> RbfPlan:
+    deg = _check_settings(full, labels, kernel, sigma, degree, smoothing, f"{where_}: " if where_ else "")
+    dims = np.nonzero(np.ptp(full, axis=0) > tol.DRIVER_ANGLE_ATOL)[0] if deg >= 0 else np.arange(full.shape[1])
+    centers = full[:, dims]
+    subject = _subject(labels, where_)
+    system = _System(centers, kernel, deg, float(smoothing))
+    _check_polynomial(system, subject, deg, len(dims))
+    warnings: list[str] = []
+    sig, cond, rule = _choose_sigma(system, kernel, sigma, subject, warnings)
     at_sigma = f"with sigma {sig:.3g} rad, kernel {kernel}, degree {deg}"
     if not cond < tol.RBF_COND_MAX:
-        raise FitError(f"{subject} is numerically singular (condition number {cond:.1e} {at_sigma}): {advice()}")
+        raise FitError(f"{subject} is numerically singular (condition number {cond:.1e} {at_sigma}): "
+                       f"{_advice(system, kernel, sigma, deg, cond)}")
+    solved = _solve_checked(system, sig, deg, float(smoothing), subject, at_sigma,
+                            lambda: _advice(system, kernel, sigma, deg, cond), cond)
+    coefficients, powers, shift, scale, err, noise = solved
+    if cond > tol.RBF_COND_TARGET:
+        warnings.append(f"{subject} is ill-conditioned (condition number {cond:.1e} {at_sigma}, above "
+                        f"{tol.RBF_COND_TARGET:.0e}) but exact at the examples (to {err:.1e}); its weights between "
+                        f"examples carry round-off of ~{noise:.0e}: {_advice(system, kernel, sigma, deg, cond)}")
+    return RbfPlan(
+        kernel=kernel, degree=deg, smoothing=float(smoothing), sigma=sig, sigma_rule=rule, dims=dims.astype(np.int64),
+        centers=centers, labels=tuple(labels), condition=cond, cardinal_error=err, warnings=tuple(warnings),
+        coefficients=coefficients, powers=powers, shift=shift, scale=scale,
+    )
 
+
+def _solve_checked(system: _System, sig: float, deg: int, smoothing: float, subject: str, at_sigma: str,
+                   advice: Callable[[], str], cond: float):
+    """scipy's solution, copied into the documented formula's terms, and checked exact at the
+    examples: (coefficients, powers, shift, scale, error at the examples, round-off scale)."""
+    centers, kernel, k = system.centers, system.kernel, len(system.centers)
     try:
         with np.errstate(all="ignore"):
             interp = RBFInterpolator(centers, np.eye(k), kernel=kernel, epsilon=1.0 / sig, degree=deg,
-                                     smoothing=float(smoothing))
+                                     smoothing=smoothing)
     except (ValueError, np.linalg.LinAlgError) as exc:
         raise FitError(f"{subject} is singular ({str(exc).splitlines()[0]}; condition number {cond:.1e} "
                        f"{at_sigma}): {advice()}") from None
@@ -415,13 +343,12 @@ def _plan(full: NDArray[np.float64], labels: Sequence[str], kernel: str, sigma: 
     powers = powers.reshape(len(powers), centers.shape[1])  # (0, d) or (p, 0) too
     shift = np.array(interp._shift, dtype=np.float64)
     scale = np.array(interp._scale, dtype=np.float64)
-
     # Exactness of the stored formula at the examples: b(c_i) = delta (with smoothing, of its own system).
     with np.errstate(all="ignore"):
         basis = formula_basis(centers, centers, kernel, 1.0 / sig, powers, shift, scale)
         ours = basis @ coefficients
         theirs = interp(centers)
-        target = np.eye(k) - float(smoothing) * coefficients[:k]
+        target = np.eye(k) - smoothing * coefficients[:k]
         size = np.abs(basis) @ np.abs(coefficients)  # the dot products' magnitudes: their round-off scale
     eps = float(np.finfo(np.float64).eps)
     noise = eps * float(np.max(size)) if size.size else 0.0
@@ -437,15 +364,7 @@ def _plan(full: NDArray[np.float64], labels: Sequence[str], kernel: str, sigma: 
                                    "reproduce it")
         raise FitError(f"{subject} is ill-conditioned (condition number {cond:.1e} {at_sigma}): its weights miss "
                        f"the examples by {max(err, noise):.1e} (tolerance {tol.CARDINAL_ATOL:g}): {advice()}")
-    if cond > tol.RBF_COND_TARGET:
-        warnings.append(f"{subject} is ill-conditioned (condition number {cond:.1e} {at_sigma}, above "
-                        f"{tol.RBF_COND_TARGET:.0e}) but exact at the examples (to {err:.1e}); its weights between "
-                        f"examples carry round-off of ~{noise:.0e}: {advice()}")
-    return RbfPlan(
-        kernel=kernel, degree=deg, smoothing=float(smoothing), sigma=sig, sigma_rule=rule, dims=dims.astype(np.int64),
-        centers=centers, labels=tuple(labels), condition=cond, cardinal_error=err, warnings=tuple(warnings),
-        coefficients=coefficients, powers=powers, shift=shift, scale=scale,
-    )
+    return coefficients, powers, shift, scale, err, noise
 
 
 def fit_cardinal(
