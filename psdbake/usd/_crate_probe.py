@@ -50,6 +50,9 @@ def read_every_value(identifier: str) -> None:
         if path.IsPropertyPath():
             for t in layer.ListTimeSamplesForPath(path):
                 _decode(layer.QueryTimeSample(path, t))
+    from pxr import UsdUtils
+
+    UsdUtils.ExtractExternalReferences(identifier)  # what psdbake's dependency walk runs next
     _compose(layer)
 
 
