@@ -96,7 +96,7 @@ def fit_report(result: FitResult, output: str) -> dict:
             })
         d = m.driver_data
         meshes.append({
-            "gates": list(d.gates),
+            "gate_groups": list(d.gate_groups),
             "mesh": m.mesh, "group": m.group, "skeleton": m.skeleton, "points": m.point_count, "drivers": list(m.drivers),
             "kernel": d.kernel, "sigma": d.sigma, "degree": d.degree, "examples": examples,
             "condition": None if m.condition != m.condition else m.condition,

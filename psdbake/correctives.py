@@ -17,8 +17,9 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
+from . import tolerances as tol
 from .drivers import character_scale, fit_drivers, plan_group, resolve_drivers
-from .errors import InputError, PsdWarning, where
+from .errors import FitError, InputError, PsdWarning, where
 from .groups import shapes_of
 from .inverse import InverseResult
 from .normals import CorrectiveNormals
@@ -27,8 +28,8 @@ from .regions import Region, plan_regions
 from .results import Example, MeshFit
 from .settings import FitSettings
 from .usd.read import Scene, SkinnedMesh
-from .usd.schema import BlendShapeData
-from .weights import weights_of_rotations
+from .usd.schema import BlendShapeData, DriverData
+from .weights import activation, rbf_weights, weights_at_pose
 
 Solved = tuple[InverseResult, CorrectiveNormals | None]
 
@@ -75,6 +76,7 @@ def fit_regions(asset: str, asset_scene: Scene, info: SkinnedMesh, examples: Seq
         fitted = dataclasses.replace(fitted, normals=tuple(s[1] for s in mine))
         if region.gated:
             below = [f for f in fits if set(f.drivers) <= set(fitted.drivers)]
+            fitted = _gated_by(fitted, below, asset)
             fitted = dataclasses.replace(fitted, shapes=tuple(_combination_shapes(fitted, below)))
         fits.append(fitted)
     return sorted(fits, key=lambda f: f.group)
@@ -88,6 +90,35 @@ def _dense(shape: BlendShapeData, n: int) -> tuple[NDArray[np.float64], NDArray[
     return offsets, normals
 
 
+def _rotations(example: Example, joints: Sequence[str], data: DriverData) -> Rotation:
+    """The example's rotations away from bind of one group's drivers."""
+    return Rotation.from_quat(example.pose[[list(joints).index(d) for d in data.drivers]])
+
+
+def _gated_by(combo: MeshFit, below: Sequence[MeshFit], asset: str) -> MeshFit:
+    """The combination gated by the groups it sits on: its weights are its RBF's times each
+    one's activation (0 when that joint is at bind, growing as that joint's own correctives
+    do), and each example's RBF column is divided by the product at its pose, so the
+    combination's weight is exactly 1 there."""
+    data = combo.driver_data
+    gates = sorted(f.group for f in below if not f.driver_data.gate_groups and not len(f.driver_data.gates))
+    product = np.ones(len(data.shapes))
+    for col, example in enumerate(e for e, c in zip(combo.examples, combo.channels, strict=True) if c):
+        raw = {f.group: rbf_weights(f.driver_data, _rotations(example, combo.joints, f.driver_data), 1)
+               for f in below if f.group in gates}
+        for g in gates:
+            product[col] *= float(activation(raw[g])[0])
+        if not product[col] > tol.GATE_ACTIVATION_MIN:
+            off = min(gates, key=lambda g: float(activation(raw[g])[0]))
+            raise FitError(
+                f"{where(asset, combo.mesh)}: combination example {example.label}: group {off!r}'s correctives are "
+                f"off at its pose (activation {float(activation(raw[off])[0]):.2g}), so they cannot gate it; sculpt "
+                f"{off!r} nearer this pose, or fit the combination alone with --group/--driver"
+            )
+    gated = dataclasses.replace(data, gate_groups=gates, coefficients=data.coefficients / product[None, :])
+    return dataclasses.replace(combo, driver_data=gated)
+
+
 def _combination_shapes(combo: MeshFit, below: Sequence[MeshFit]) -> list[BlendShapeData]:
     """The combination's BlendShapes minus what the groups below give at each of its poses."""
     n = combo.point_count
@@ -96,11 +127,9 @@ def _combination_shapes(combo: MeshFit, below: Sequence[MeshFit]) -> list[BlendS
                               [e for e, c in zip(combo.examples, combo.channels, strict=True) if c], strict=True):
         offsets, normals = _dense(shape, n)
         has_normals = shape.normal_offsets is not None
+        weights = weights_at_pose([(f.group, f.driver_data) for f in below], example.pose, combo.joints)
         for group in below:
-            data = group.driver_data
-            idx = [group.joints.index(d) for d in data.drivers]
-            weights = weights_of_rotations(data, Rotation.from_quat(example.pose[idx]), 1)[0]
-            for w, other in zip(weights, shapes_of(group), strict=True):
+            for w, other in zip(weights[group.group][0], shapes_of(group), strict=True):
                 o, nrm = _dense(other, n)
                 offsets -= w * o
                 normals -= w * nrm

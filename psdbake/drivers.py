@@ -175,19 +175,6 @@ def _model(full_centers: NDArray[np.float64], outputs: list[int], labels: list[s
     )
 
 
-def _gates(info: SkinnedMesh, examples: Sequence[Example], driver_idx: list[int], settings: FitSettings
-           ) -> tuple[list[str], NDArray[np.float64]]:
-    """Each driver of a combination is a gate; its gate pose is its least-bent pose among the
-    combination's examples (the activation reaches 1 there)."""
-    width = posespace.POSE_SPACES[settings.pose_space].width
-    poses = []
-    for j in driver_idx:
-        coords = [posespace.features(Rotation.from_quat(e.pose[[j]]), settings.pose_space, settings.twist_axis)
-                  for e in examples]
-        poses.append(min(coords, key=lambda c: float(c @ c)).reshape(width))
-    return [info.joints[j] for j in driver_idx], np.array(poses)
-
-
 def fit_drivers(asset: str, asset_scene: Scene, info: SkinnedMesh, examples: Sequence[Example],
                 inverses: Sequence[InverseResult], bind_local: NDArray[np.float64], settings: FitSettings,
                 region: Region, notes: list[str], plan: rbf.RbfPlan | None = None) -> MeshFit:
@@ -198,7 +185,6 @@ def fit_drivers(asset: str, asset_scene: Scene, info: SkinnedMesh, examples: Seq
     full_centers = np.array(centers)
     model = _model(full_centers, outputs, labels, settings, region, plan)
     _check_model(model, full_centers, outputs, labels, where(asset, info.path), settings.smoothing, notes)
-    gates, gate_poses = _gates(info, examples, driver_idx, settings) if region.gated else ([], np.zeros((0, 0)))
     data = DriverData(
         drivers=[info.joints[j] for j in driver_idx],
         bind_rotations=posespace.rotations(bind_local[driver_idx]).as_quat(),
@@ -207,7 +193,6 @@ def fit_drivers(asset: str, asset_scene: Scene, info: SkinnedMesh, examples: Seq
         smoothing=model.smoothing, centers=model.centers, center_labels=labels, shapes=[c for c in channels if c],
         coefficients=model.coefficients, powers=model.powers, shift=model.shift, scale=model.scale, dims=model.dims,
         example_times=[e.time for e in examples], example_sources=[os.path.basename(e.source) for e in examples],
-        gates=gates, gate_poses=gate_poses,
     )
     existing, targets = existing_blend_shapes(asset_scene, info.path)
     return MeshFit(

@@ -20,7 +20,7 @@ from .usd.blackbox import FLOAT32_MAX, SkinningBlackBox
 from .usd.read import Scene, SkinnedMesh
 from .usd.schema import DriverData
 from .usd.validate import check_corrective_indices, require_finite_time_samples, validate_animation
-from .weights import check_driver_transforms, driver_weights
+from .weights import check_driver_transforms, weights_of_local
 
 Corrected = tuple[SkinnedMesh, list[tuple[str, DriverData]]]  # a mesh and its correctives groups
 
@@ -56,10 +56,12 @@ def animation_weights(scene: Scene, anim_prim: str, entries: Sequence[Corrected]
         for f, t in enumerate(times):  # UsdSkel's pose per frame: the slow part, so progress per frame
             local[f] = scene.joint_local_transforms(info.path, float(t))
             tick(info.path)
-        for group, data in groups:
+        for _, data in groups:
             idx = [info.joints.index(d) for d in data.drivers]
             check_driver_transforms(local[:, idx], times, data.drivers, where(anim, anim_prim))
-            columns.append(_finite_weights(driver_weights(data, local[:, idx]), data, group, times, correctives, info))
+        by_group = weights_of_local(groups, local, info.joints)
+        for group, data in groups:
+            columns.append(_finite_weights(by_group[group], data, group, times, correctives, info))
             psd_channels += list(data.shapes)
     keep = [i for i, c in enumerate(own_channels) if c not in set(psd_channels)]
     channels = tuple([own_channels[i] for i in keep] + psd_channels)

@@ -9,7 +9,6 @@ from __future__ import annotations
 import warnings
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from .errors import InputError, PsdWarning, where
 from .results import FitResult, MeshFit
@@ -17,7 +16,7 @@ from .usd import write as usdwrite
 from .usd.compose import open_layer
 from .usd.read import Scene, existing_blend_shapes, read_corrective_shapes
 from .usd.schema import BlendShapeData, DriverData, author_driver_data, psd_prims
-from .weights import weights_of_rotations
+from .weights import weights_at_pose
 
 
 def shapes_of(m: MeshFit) -> list[BlendShapeData]:
@@ -64,6 +63,10 @@ def read_correctives(asset: str, correctives: str) -> Groups:
     return out
 
 
+def _combination_of(data: DriverData) -> bool:
+    return bool(len(data.gates) or data.gate_groups)
+
+
 def cross_talk(result: FitResult, others: Groups) -> list[str]:
     """Groups are fitted independently, so another group's correctives must be (nearly) off
     at this group's examples: its weight times its largest offset, relative to the mesh's
@@ -72,16 +75,16 @@ def cross_talk(result: FitResult, others: Groups) -> list[str]:
     for m in result.meshes:
         infos = dict(others.get(m.mesh, {}))
         infos.pop(m.group, None)
-        for group, (data, shapes) in sorted(infos.items()):
-            if m.driver_data.gates and set(data.drivers) <= set(m.drivers):
-                continue  # a combination sits on its joints' groups by design
-            reach = np.array([np.abs(s.offsets).max() if len(s.offsets) else 0.0 for s in shapes])
-            idx = [m.joints.index(d) for d in data.drivers if d in m.joints]
-            if len(idx) != len(data.drivers):
-                continue  # eval refuses such a layer with its own message
-            for ex, inv in zip(m.examples, m.inverses, strict=True):
-                w = weights_of_rotations(data, Rotation.from_quat(ex.pose[idx]), 1)[0]
-                spill = float(np.max(np.abs(w) * reach)) / (inv.diagonal or 1.0)
+        # eval refuses a layer whose drivers are not the mesh's joints, or whose gate groups are missing
+        usable = {g: v for g, v in infos.items() if set(v[0].drivers) <= set(m.joints)}
+        usable = {g: v for g, v in usable.items() if set(v[0].gate_groups) <= set(usable)}
+        for ex, inv in zip(m.examples, m.inverses, strict=True):
+            weights = weights_at_pose([(g, v[0]) for g, v in sorted(usable.items())], ex.pose, m.joints)
+            for group, (data, shapes) in sorted(usable.items()):
+                if _combination_of(m.driver_data) and set(data.drivers) <= set(m.drivers):
+                    continue  # a combination sits on its joints' groups by design
+                reach = np.array([np.abs(s.offsets).max() if len(s.offsets) else 0.0 for s in shapes])
+                spill = float(np.max(np.abs(weights[group][0]) * reach)) / (inv.diagonal or 1.0)
                 if spill > result.settings.rtol:
                     notes.append(
                         f"{where(result.asset, m.mesh)}: group {group!r} moves points by {spill:.2g} of the diagonal "

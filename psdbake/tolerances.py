@@ -63,6 +63,12 @@ DRIVER_ANGLE_ATOL = 1e-5
 #: tiny secondary motion (a spine settling by a tenth of a degree) is not what was sculpted.
 ACTIVE_JOINT_ANGLE = 1e-2
 
+#: A combination is gated by the activations of the groups it sits on and divided by their
+#: product at its own pose (so its weight is 1 there). Below this product the joints'
+#: correctives are essentially off at the combination's pose: the division would amplify
+#: the combination a thousandfold, so the fit refuses instead.
+GATE_ACTIVATION_MIN = 1e-3
+
 #: A sculpted vertex farther than this many diagonals from where skinning puts it is
 #: not a sculpt but broken data (1e30 coordinates, a unit mix-up): refused, never fitted.
 ABSURD_SCULPT_DIAGONALS = 10.0

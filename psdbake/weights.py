@@ -6,7 +6,7 @@ as a third party would evaluate them (README: "To evaluate at a frame without ps
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import numpy as np
 from numpy.typing import NDArray
@@ -38,15 +38,20 @@ def check_driver_transforms(local: NDArray[np.float64], times, drivers: Sequence
 
 
 def driver_weights(data: DriverData, local: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Weights (f, s) of the stored correctives for driver local transforms (f, d, 4, 4):
-    pose coordinates, cardinal RBF, then the stored clamp/normalise options."""
+    """Weights (f, s) of one group that no other group gates, for driver local transforms
+    (f, d, 4, 4): pose coordinates, cardinal RBF, then the stored clamp/normalise options."""
+    return weights_of_rotations(data, relative_rotations(data, local), len(local))
+
+
+def relative_rotations(data: DriverData, local: NDArray[np.float64]) -> Rotation:
+    """The group's drivers' rotations (f * d) away from their stored bind rotations, for
+    their local transforms (f, d, 4, 4)."""
     f = len(local)
-    delta = posespace.relative_from_quaternions(np.tile(data.bind_rotations, (f, 1)), local.reshape(-1, 4, 4))
-    return weights_of_rotations(data, delta, f)
+    return posespace.relative_from_quaternions(np.tile(data.bind_rotations, (f, 1)), local.reshape(-1, 4, 4))
 
 
 def gate_activation(data: DriverData, x: NDArray[np.float64]) -> NDArray[np.float64]:
-    """(f,) product over the group's gates of clamp(x_j . g_j / g_j . g_j, 0, 1): x_j the gate
+    """(f,) product over the group's v3 gates of clamp(x_j . g_j / g_j . g_j, 0, 1): x_j the gate
     driver's pose coordinates, g_j its gate pose. 1 without gates; 0 whenever a gate driver
     is at its bind pose (x_j = 0), 1 once every gate driver reaches its gate pose."""
     width = posespace.POSE_SPACES[data.pose_space].width
@@ -58,13 +63,65 @@ def gate_activation(data: DriverData, x: NDArray[np.float64]) -> NDArray[np.floa
     return out
 
 
-def weights_of_rotations(data: DriverData, delta: Rotation, f: int) -> NDArray[np.float64]:
-    """Weights (f, s) for the drivers' rotations away from their bind pose (f * d rotations)."""
+def rbf_weights(data: DriverData, delta: Rotation, f: int) -> NDArray[np.float64]:
+    """(f, s): the group's cardinal RBF (times its v3 gates), before group gates and options."""
     width = posespace.POSE_SPACES[data.pose_space].width
     x = posespace.features(delta, data.pose_space, data.twist_axis).reshape(f, width * len(data.drivers))
-    w = rbf_from_driver_data(data).weights(x) * gate_activation(data, x)[:, None]
+    return rbf_from_driver_data(data).weights(x) * gate_activation(data, x)[:, None]
+
+
+def activation(raw: NDArray[np.float64]) -> NDArray[np.float64]:
+    """(f,) a group's activation from its RBF weights (f, s): max(0, their sum). 0 at bind,
+    1 at every one of its examples (cardinal weights): how far its joint is into its sculpts."""
+    return np.maximum(0.0, raw.sum(axis=1))
+
+
+def apply_options(data: DriverData, w: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The stored clamp and normalise options."""
     if data.clamp_weights:
         w = np.clip(w, 0.0, 1.0)
     if data.normalize_weights:
         w = w / np.maximum(1.0, w.sum(axis=1, keepdims=True))
     return w
+
+
+def weights_of_rotations(data: DriverData, delta: Rotation, f: int) -> NDArray[np.float64]:
+    """Weights (f, s) of a group without group gates, for its drivers' rotations away from
+    their bind pose (f * d rotations)."""
+    if data.gate_groups:
+        raise ValueError("a combination gated by other groups needs their weights: use group_weights")
+    return apply_options(data, rbf_weights(data, delta, f))
+
+
+def group_weights(groups: Sequence[tuple[str, DriverData]], delta_of: Callable[[DriverData], Rotation], f: int
+                  ) -> dict[str, NDArray[np.float64]]:
+    """group -> weights (f, s) of one mesh's groups, combinations included: a group's RBF
+    weights times the activation of each group in its ``gate_groups`` (a facial rig's
+    combination shape: the product of its components), then its options.
+
+    delta_of(data): the rotations (f * d) of that group's drivers away from their bind pose."""
+    raw = {g: rbf_weights(data, delta_of(data), f) for g, data in groups}
+    out = {}
+    for g, data in groups:
+        w = raw[g]
+        for gate in data.gate_groups:
+            w = w * activation(raw[gate])[:, None]
+        out[g] = apply_options(data, w)
+    return out
+
+
+def weights_of_local(groups: Sequence[tuple[str, DriverData]], local: NDArray[np.float64], joints: Sequence[str]
+                     ) -> dict[str, NDArray[np.float64]]:
+    """``group_weights`` for every joint's local transforms (f, J, 4, 4), skeleton order ``joints``."""
+    return group_weights(groups, lambda data: relative_rotations(data, local[:, _index(joints, data)]), len(local))
+
+
+def weights_at_pose(groups: Sequence[tuple[str, DriverData]], pose: NDArray[np.float64], joints: Sequence[str]
+                    ) -> dict[str, NDArray[np.float64]]:
+    """``group_weights`` (1, s) at an example's pose: every joint's rotation away from bind,
+    (J, 4) quaternions in skeleton order ``joints``."""
+    return group_weights(groups, lambda data: Rotation.from_quat(pose[_index(joints, data)]), 1)
+
+
+def _index(joints: Sequence[str], data: DriverData) -> list[int]:
+    return [list(joints).index(d) for d in data.drivers]

@@ -221,6 +221,8 @@ def test_bad_animation(command, name, prim, says, cli, tmp_path):
     ("psd_groups_missing.usda", f"<{MESH}.psd:groups>", r"missing"),
     ("psd_unknown_driver.usda", f"<{MESH}.psd:main:drivers>", r"Knee"),
     ("psd_coefficients_truncated.usda", f"<{MESH}.psd:main:coefficients>", r"expected .* got 11"),
+    ("psd_gate_group_missing.usda", f"<{MESH}.psd:main:gateGroups>", r"'l_elbow' is not one of psd:groups"),
+    ("psd_gate_group_self.usda", f"<{MESH}.psd:main:gateGroups>", r"'main' is the group itself"),
 ])
 def test_bad_correctives(name, prim, says, cli, tmp_path):
     out = tmp_path / "weights.usda"

@@ -24,10 +24,10 @@ from ..rbf import KERNELS
 from .author import attribute, double_array, int_array, over, quatd_array
 
 #: Version of the psd: attribute schema written by this psdbake.
-PSD_VERSION = 3
+PSD_VERSION = 4
 #: psd: schema versions this psdbake reads (1: one flat group, read as group "main"; 2: groups;
-#: 3: groups with optional gates, for combination correctives).
-READABLE_PSD_VERSIONS = (1, 2, 3)
+#: 3: groups with optional joint gates; 4: combinations gated by the groups they sit on).
+READABLE_PSD_VERSIONS = (1, 2, 3, 4)
 #: The group a v1 layer's flat psd: data belongs to, and fit's group when none is named.
 DEFAULT_GROUP = "main"
 #: Group names become attribute namespaces: identifiers, and not the schema's own names.
@@ -45,7 +45,7 @@ PSD_TYPES = _type_names(
     degree="Int", smoothing="Double", centers="DoubleArray", centerLabels="StringArray", shapes="TokenArray",
     coefficients="DoubleArray", polyPowers="IntArray", dimensions="IntArray", polyShift="DoubleArray",
     polyScale="DoubleArray", exampleTimes="DoubleArray", exampleSources="StringArray", gates="TokenArray",
-    gatePoses="DoubleArray",
+    gatePoses="DoubleArray", gateGroups="TokenArray",
 )
 
 
@@ -87,6 +87,7 @@ class DriverData:
     example_sources: Sequence[str]
     gates: Sequence[str] = ()  # combination groups: driver joints whose activation multiplies the weights
     gate_poses: NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, 0)))  # (g, width) coordinates
+    gate_groups: Sequence[str] = ()  # combinations (v4): groups whose activation multiplies the weights
 
 
 # --- read ----------------------------------------------------------------------------------
@@ -119,7 +120,22 @@ def read_groups(prim: Usd.Prim, label: str, joints: Sequence[str] | None = None,
                 ) -> list[tuple[str, DriverData]]:
     """Every correctives group's driver data on prim, validated, sorted by group name.
     With ``joints`` (the bound skeleton's joint order), drivers must be among them."""
-    return [(g, _GroupReader(prim, label, prefix).read(joints, skeleton)) for g, prefix in group_prefixes(prim, label)]
+    groups = [(g, _GroupReader(prim, label, prefix).read(joints, skeleton)) for g, prefix in group_prefixes(prim, label)]
+    _check_gate_groups(groups, label, str(prim.GetPath()))
+    return groups
+
+
+def _check_gate_groups(groups: Sequence[tuple[str, DriverData]], label: str, mesh: str) -> None:
+    """A combination's gate groups are other groups of the same mesh, themselves ungated
+    (so the weights never depend on an order or a cycle)."""
+    by_name = dict(groups)
+    for name, data in groups:
+        for gate in data.gate_groups:
+            other = by_name.get(gate)
+            why = ("is not one of psd:groups" if other is None else "is the group itself" if gate == name
+                   else "is itself gated by groups" if other.gate_groups else "")
+            if why:
+                raise InputError(f"{where(label, mesh, f'psd:{name}:gateGroups')}: gate group {gate!r} {why}")
 
 
 class _GroupReader:
@@ -192,7 +208,7 @@ class _GroupReader:
             example_times=[float(t) for t in self.finite("exampleTimes", self.numbers("exampleTimes"),
                                                          "time codes are finite numbers")],
             example_sources=[str(s) for s in self.get("exampleSources")],
-            **self._gates(drivers, space),
+            **self._gates(drivers, space), gate_groups=self._gate_groups(),
         )
 
     def _rbf_arrays(self, drivers: list[str], space: str):
@@ -232,6 +248,14 @@ class _GroupReader:
         if np.any(np.einsum("ij,ij->i", poses, poses) <= 0):
             raise InputError(f"{self.at('gatePoses')}: a gate pose is the bind pose (zero): its activation is undefined")
         return {"gates": gates, "gate_poses": poses}
+
+    def _gate_groups(self) -> list[str]:
+        """psd:gateGroups (v4): other groups of this mesh, listed once each (checked by
+        ``_check_gate_groups`` once every group is read)."""
+        names = [str(g) for g in self.get("gateGroups", required=False) or []]
+        if len(set(names)) != len(names):
+            raise InputError(f"{self.at('gateGroups')}: a group is listed twice")
+        return names
 
     def _sigma(self) -> float:
         sigma = self.scalar("sigma")
@@ -374,3 +398,5 @@ def _author_group(put: Put, prefix: str, data: DriverData) -> None:
     if len(data.gates):
         put(f"{prefix}gates", t.TokenArray, Vt.TokenArray(list(data.gates)))
         put(f"{prefix}gatePoses", t.DoubleArray, double_array(data.gate_poses))
+    if len(data.gate_groups):
+        put(f"{prefix}gateGroups", t.TokenArray, Vt.TokenArray(list(data.gate_groups)))
