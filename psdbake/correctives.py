@@ -29,7 +29,7 @@ from .results import Example, MeshFit
 from .settings import FitSettings
 from .usd.read import Scene, SkinnedMesh
 from .usd.schema import BlendShapeData, DriverData
-from .weights import activation, rbf_weights, weights_at_pose
+from .weights import activation, pose_coordinates, rbf_weights, weights_at_pose
 
 Solved = tuple[InverseResult, CorrectiveNormals | None]
 
@@ -90,33 +90,41 @@ def _dense(shape: BlendShapeData, n: int) -> tuple[NDArray[np.float64], NDArray[
     return offsets, normals
 
 
-def _rotations(example: Example, joints: Sequence[str], data: DriverData) -> Rotation:
-    """The example's rotations away from bind of one group's drivers."""
-    return Rotation.from_quat(example.pose[[list(joints).index(d) for d in data.drivers]])
-
-
 def _gated_by(combo: MeshFit, below: Sequence[MeshFit], asset: str) -> MeshFit:
-    """The combination gated by the groups it sits on: its weights are its RBF's times each
-    one's activation (0 when that joint is at bind, growing as that joint's own correctives
-    do), and each example's RBF column is divided by the product at its pose, so the
-    combination's weight is exactly 1 there."""
+    """The combination gated by the groups it sits on: each shape's weight is the RBF's times
+    each group's ``activation`` toward that shape's example (0 when that joint is at bind or
+    turned away from the example's side, growing as that joint's own correctives do), and
+    each RBF column is divided by the product at its example's pose, so the shape's weight is
+    exactly 1 there."""
     data = combo.driver_data
-    gates = sorted(f.group for f in below if not f.driver_data.gate_groups and not len(f.driver_data.gates))
-    product = np.ones(len(data.shapes))
-    for col, example in enumerate(e for e, c in zip(combo.examples, combo.channels, strict=True) if c):
-        raw = {f.group: rbf_weights(f.driver_data, _rotations(example, combo.joints, f.driver_data), 1)
-               for f in below if f.group in gates}
-        for g in gates:
-            product[col] *= float(activation(raw[g])[0])
-        if not product[col] > tol.GATE_ACTIVATION_MIN:
-            off = min(gates, key=lambda g: float(activation(raw[g])[0]))
+    gates = sorted((f for f in below if not f.driver_data.gate_groups and not len(f.driver_data.gates)),
+                   key=lambda f: f.group)
+    examples = [e for e, c in zip(combo.examples, combo.channels, strict=True) if c]
+    product = np.ones(len(examples))
+    directions = []
+    for f in gates:
+        x = pose_coordinates(f.driver_data, _rotations(examples, combo.joints, f.driver_data), len(examples))
+        units = x / np.linalg.norm(x, axis=1, keepdims=True)  # every combination example moves each joint
+        act = np.diagonal(activation(rbf_weights(f.driver_data, x), x, units)).copy()
+        low = np.nonzero(~(act > tol.GATE_ACTIVATION_MIN))[0]
+        if len(low):
             raise FitError(
-                f"{where(asset, combo.mesh)}: combination example {example.label}: group {off!r}'s correctives are "
-                f"off at its pose (activation {float(activation(raw[off])[0]):.2g}), so they cannot gate it; sculpt "
-                f"{off!r} nearer this pose, or fit the combination alone with --group/--driver"
+                f"{where(asset, combo.mesh)}: combination example {examples[low[0]].label}: group {f.group!r}'s "
+                f"correctives are off at its pose (activation {float(act[low[0]]):.2g}), so they cannot gate it; "
+                f"sculpt {f.group!r} nearer this pose, or fit the combination alone with --group/--driver"
             )
-    gated = dataclasses.replace(data, gate_groups=gates, coefficients=data.coefficients / product[None, :])
+        product *= act
+        directions.append(units)
+    gated = dataclasses.replace(data, gate_groups=[f.group for f in gates],
+                                gate_directions=np.concatenate(directions, axis=1),
+                                coefficients=data.coefficients / product[None, :])
     return dataclasses.replace(combo, driver_data=gated)
+
+
+def _rotations(examples: Sequence[Example], joints: Sequence[str], data: DriverData) -> Rotation:
+    """The examples' rotations away from bind of one group's drivers (examples * drivers)."""
+    idx = [list(joints).index(d) for d in data.drivers]
+    return Rotation.from_quat(np.concatenate([e.pose[idx] for e in examples]))
 
 
 def _combination_shapes(combo: MeshFit, below: Sequence[MeshFit]) -> list[BlendShapeData]:

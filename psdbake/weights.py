@@ -63,17 +63,40 @@ def gate_activation(data: DriverData, x: NDArray[np.float64]) -> NDArray[np.floa
     return out
 
 
-def rbf_weights(data: DriverData, delta: Rotation, f: int) -> NDArray[np.float64]:
-    """(f, s): the group's cardinal RBF (times its v3 gates), before group gates and options."""
+def pose_coordinates(data: DriverData, delta: Rotation, f: int) -> NDArray[np.float64]:
+    """(f, width * d): the group's pose-space coordinates of its drivers' rotations (f * d)."""
     width = posespace.POSE_SPACES[data.pose_space].width
-    x = posespace.features(delta, data.pose_space, data.twist_axis).reshape(f, width * len(data.drivers))
+    return posespace.features(delta, data.pose_space, data.twist_axis).reshape(f, width * len(data.drivers))
+
+
+def rbf_weights(data: DriverData, x: NDArray[np.float64]) -> NDArray[np.float64]:
+    """(f, s): the group's cardinal RBF at pose coordinates x (times its v3 gates), before
+    group gates and options."""
     return rbf_from_driver_data(data).weights(x) * gate_activation(data, x)[:, None]
 
 
-def activation(raw: NDArray[np.float64]) -> NDArray[np.float64]:
-    """(f,) a group's activation from its RBF weights (f, s): max(0, their sum). 0 at bind,
-    1 at every one of its examples (cardinal weights): how far its joint is into its sculpts."""
-    return np.maximum(0.0, raw.sum(axis=1))
+def activation(raw: NDArray[np.float64], x: NDArray[np.float64], directions: NDArray[np.float64]
+               ) -> NDArray[np.float64]:
+    """(f, c) a gate group's activation toward each of c combination shapes: max(0, the sum
+    of its RBF weights raw (f, s)) -- 0 at bind, 1 at every one of its examples (cardinal
+    weights), so it grows as its own correctives do -- times max(0, cos) of its pose
+    coordinates x (f, m) with each shape's unit direction (c, m), so a joint sculpted both ways
+    (a shoulder raised and lowered) gates only the combinations on its side."""
+    norm = np.linalg.norm(x, axis=1, keepdims=True)
+    cos = np.divide(x @ directions.T, norm, out=np.zeros((len(x), len(directions))), where=norm > 0)
+    return np.maximum(0.0, raw.sum(axis=1))[:, None] * np.maximum(0.0, cos)
+
+
+def gate_slices(groups: dict[str, DriverData], data: DriverData) -> list[slice]:
+    """Which columns of ``data.gate_directions`` (shapes x coordinates) belong to each gate
+    group (its pose width times its drivers)."""
+    out, start = [], 0
+    for gate in data.gate_groups:
+        other = groups[gate]
+        stop = start + posespace.POSE_SPACES[other.pose_space].width * len(other.drivers)
+        out.append(slice(start, stop))
+        start = stop
+    return out
 
 
 def apply_options(data: DriverData, w: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -90,22 +113,24 @@ def weights_of_rotations(data: DriverData, delta: Rotation, f: int) -> NDArray[n
     their bind pose (f * d rotations)."""
     if data.gate_groups:
         raise ValueError("a combination gated by other groups needs their weights: use group_weights")
-    return apply_options(data, rbf_weights(data, delta, f))
+    return apply_options(data, rbf_weights(data, pose_coordinates(data, delta, f)))
 
 
 def group_weights(groups: Sequence[tuple[str, DriverData]], delta_of: Callable[[DriverData], Rotation], f: int
                   ) -> dict[str, NDArray[np.float64]]:
     """group -> weights (f, s) of one mesh's groups, combinations included: a group's RBF
-    weights times the activation of each group in its ``gate_groups`` (a facial rig's
+    weights times the ``activation`` of each group in its ``gate_groups`` (a facial rig's
     combination shape: the product of its components), then its options.
 
     delta_of(data): the rotations (f * d) of that group's drivers away from their bind pose."""
-    raw = {g: rbf_weights(data, delta_of(data), f) for g, data in groups}
+    x = {g: pose_coordinates(data, delta_of(data), f) for g, data in groups}
+    raw = {g: rbf_weights(data, x[g]) for g, data in groups}
+    by_name = dict(groups)
     out = {}
     for g, data in groups:
         w = raw[g]
-        for gate in data.gate_groups:
-            w = w * activation(raw[gate])[:, None]
+        for gate, part in zip(data.gate_groups, gate_slices(by_name, data), strict=True):
+            w = w * activation(raw[gate], x[gate], np.asarray(data.gate_directions)[:, part])
         out[g] = apply_options(data, w)
     return out
 

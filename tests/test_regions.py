@@ -85,7 +85,7 @@ def test_combination_is_off_whenever_one_of_its_joints_is_at_bind(rig):
     joints = result.meshes[0].joints
     from scipy.spatial.transform import Rotation
 
-    from psdbake.weights import activation, group_weights, rbf_weights
+    from psdbake.weights import group_weights
 
     def weights(elbow: float, wrist: float) -> dict[str, np.ndarray]:
         pose = {ELBOW: Rotation.from_rotvec(np.radians(elbow) * np.array([0, 0, 1.0])).as_quat(),
@@ -101,17 +101,60 @@ def test_combination_is_off_whenever_one_of_its_joints_is_at_bind(rig):
     own = group_weights(groups, lambda data: Rotation.from_quat(example.pose[[joints.index(d) for d in data.drivers]]),
                         1)
     np.testing.assert_allclose(own["combo_Elbow_Wrist"], 1.0, rtol=0, atol=1e-12)
-    by = dict(groups)
-
+    # between: the product of the two joints' activations (the sums of their cardinal weights,
+    # here every pose on the combination's side), normalised at 60/60 degrees (the stored
+    # example pose is a float32 quaternion, ~1e-8 from these float64 angles: rtol 1e-6)
     def act(group: str, axis: list[float], deg: float) -> float:
-        return float(activation(rbf_weights(by[group], Rotation.from_rotvec([np.radians(deg) * np.array(axis)]), 1))[0])
+        return float(weights(*((deg, 0.0) if group == "Elbow" else (0.0, deg)))[group].sum())
 
-    # the product of activations, normalised at 60/60 degrees (the stored example pose is a
-    # float32 quaternion, ~1e-8 from these float64 angles: rtol 1e-6)
     for elbow, wrist in [(30.0, 30.0), (45.0, 80.0), (90.0, 20.0)]:
         expected = (act("Elbow", [0, 0, 1.0], elbow) * act("Wrist", [1.0, 0, 0], wrist)
                     / (act("Elbow", [0, 0, 1.0], 60) * act("Wrist", [1.0, 0, 0], 60)))
         np.testing.assert_allclose(weights(elbow, wrist)["combo_Elbow_Wrist"], expected, rtol=1e-6, atol=0)
+
+
+def test_combination_gates_only_on_its_side_of_a_joint_sculpted_both_ways(tmp_path):
+    """A wrist sculpted at +60 and -60 degrees: its group is fully on at both, but the
+    combination sculpted with the wrist at +60 stays off (0) with the wrist at -60."""
+    poses = {**POSES, 5.0: {"Wrist": ((1, 0, 0), -60.0)}}
+    asset = generate.build_arm(str(tmp_path / "arm.usda"), generate.ArmSpec(rings=12, segments=8))
+    anim = generate.write_animation(str(tmp_path / "poses.usda"), poses)
+    rest = generate.tube_points(12, 8)
+    sculpts = generate.bake_sculpt(asset, anim, sorted(poses), lambda t: _offsets(rest, poses[t]))
+    examples = generate.write_examples(str(tmp_path / "examples.usda"), anim, sculpts)
+    result = api.fit(asset, [examples])
+    assert sorted(m.group for m in result.meshes) == ["Elbow", "Wrist", "combo_Elbow_Wrist"]
+    both = generate.write_animation(str(tmp_path / "both.usda"), {
+        1.0: {"Elbow": ((0, 0, 1), 60.0), "Wrist": ((1, 0, 0), 60.0)},
+        2.0: {"Elbow": ((0, 0, 1), 60.0), "Wrist": ((1, 0, 0), -60.0)}})
+    corr = api.write_correctives(result, str(tmp_path / "corr.usda"))
+    anim_w = api.evaluate(asset, corr, both).animations[0]
+    w = dict(zip(anim_w.channels, anim_w.weights.T, strict=True))
+    wrist = sum(v for ch, v in w.items() if ch.startswith("psd_Wrist_"))
+    combo = sum(v for ch, v in w.items() if ch.startswith("psd_combo_"))
+    # float32 poses: the stored example pose and this one agree to ~1e-7 rad
+    np.testing.assert_allclose(wrist, [1.0, 1.0], atol=1e-5)
+    np.testing.assert_allclose(combo, [1.0, 0.0], atol=1e-5)
+    assert combo[1] == 0.0
+
+
+@pytest.mark.parametrize(("scale", "says"), [(2.0, r"not a unit direction per shape for gate group 'Elbow'"),
+                                             (None, r"2 values; expected 1 shapes x 6 gate-group pose coordinates")])
+def test_corrupt_gate_directions_are_refused(rig, cli, tmp_path, scale, says):
+    """A combination's gateDirections must hold one unit direction per shape and gate group."""
+    from conftest import refused
+    from pxr import Sdf, Vt
+
+    _, asset, examples, _ = rig
+    corr, weights = tmp_path / "corr.usda", tmp_path / "weights.usda"
+    assert cli("fit", asset, examples, "-o", corr, "-q")[0] == 0
+    layer = Sdf.Layer.FindOrOpen(str(corr))
+    attr = layer.GetAttributeAtPath(Sdf.Path(generate.MESH).AppendProperty("psd:combo_Elbow_Wrist:gateDirections"))
+    values = list(attr.default)
+    attr.default = Vt.DoubleArray([v * scale for v in values] if scale else values[:2])
+    layer.Save()
+    names = ["corr.usda", f"<{generate.MESH}.psd:combo_Elbow_Wrist:gateDirections>"]
+    refused(cli("eval", asset, corr, "--anim", examples, "-o", weights), 3, names=names, says=says, outputs=[weights])
 
 
 def test_explicit_driver_uses_exactly_the_examples_it_moves(rig, run):

@@ -9,6 +9,7 @@ naming the attribute, so evaluation never computes NaN weights from a tampered l
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from math import comb
@@ -45,7 +46,7 @@ PSD_TYPES = _type_names(
     degree="Int", smoothing="Double", centers="DoubleArray", centerLabels="StringArray", shapes="TokenArray",
     coefficients="DoubleArray", polyPowers="IntArray", dimensions="IntArray", polyShift="DoubleArray",
     polyScale="DoubleArray", exampleTimes="DoubleArray", exampleSources="StringArray", gates="TokenArray",
-    gatePoses="DoubleArray", gateGroups="TokenArray",
+    gatePoses="DoubleArray", gateGroups="TokenArray", gateDirections="DoubleArray",
 )
 
 
@@ -88,6 +89,8 @@ class DriverData:
     gates: Sequence[str] = ()  # combination groups: driver joints whose activation multiplies the weights
     gate_poses: NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, 0)))  # (g, width) coordinates
     gate_groups: Sequence[str] = ()  # combinations (v4): groups whose activation multiplies the weights
+    #: v4: (shapes, coordinates): per shape, its unit direction in each gate group's pose coordinates
+    gate_directions: NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, 0)))
 
 
 # --- read ----------------------------------------------------------------------------------
@@ -121,21 +124,38 @@ def read_groups(prim: Usd.Prim, label: str, joints: Sequence[str] | None = None,
     """Every correctives group's driver data on prim, validated, sorted by group name.
     With ``joints`` (the bound skeleton's joint order), drivers must be among them."""
     groups = [(g, _GroupReader(prim, label, prefix).read(joints, skeleton)) for g, prefix in group_prefixes(prim, label)]
-    _check_gate_groups(groups, label, str(prim.GetPath()))
-    return groups
+    return _check_gate_groups(groups, label, str(prim.GetPath()))
 
 
-def _check_gate_groups(groups: Sequence[tuple[str, DriverData]], label: str, mesh: str) -> None:
-    """A combination's gate groups are other groups of the same mesh, themselves ungated
-    (so the weights never depend on an order or a cycle)."""
+def _check_gate_groups(groups: list[tuple[str, DriverData]], label: str, mesh: str) -> list[tuple[str, DriverData]]:
+    """The groups, each combination's gate directions shaped (shapes, coordinates). A
+    combination's gate groups are other groups of the same mesh, themselves ungated (so the
+    weights never depend on an order or a cycle), with one unit direction per shape each."""
     by_name = dict(groups)
+    out = []
     for name, data in groups:
+        if not data.gate_groups:
+            out.append((name, data))
+            continue
+        at = where(label, mesh, f"psd:{name}:gateDirections")
+        widths = []
         for gate in data.gate_groups:
             other = by_name.get(gate)
             why = ("is not one of psd:groups" if other is None else "is the group itself" if gate == name
                    else "is itself gated by groups" if other.gate_groups else "")
-            if why:
+            if why or other is None:
                 raise InputError(f"{where(label, mesh, f'psd:{name}:gateGroups')}: gate group {gate!r} {why}")
+            widths.append(POSE_SPACES[other.pose_space].width * len(other.drivers))
+        flat = np.asarray(data.gate_directions).reshape(-1)
+        if flat.size != len(data.shapes) * sum(widths):
+            raise InputError(f"{at}: {flat.size} values; expected {len(data.shapes)} shapes x {sum(widths)} "
+                             "gate-group pose coordinates")
+        directions = flat.reshape(len(data.shapes), sum(widths))
+        for gate, part in zip(data.gate_groups, np.split(directions, np.cumsum(widths)[:-1], axis=1), strict=True):
+            if np.any(np.abs(np.linalg.norm(part, axis=1) - 1.0) > 1e-6):
+                raise InputError(f"{at}: not a unit direction per shape for gate group {gate!r}")
+        out.append((name, dataclasses.replace(data, gate_directions=directions)))
+    return out
 
 
 class _GroupReader:
@@ -208,7 +228,7 @@ class _GroupReader:
             example_times=[float(t) for t in self.finite("exampleTimes", self.numbers("exampleTimes"),
                                                          "time codes are finite numbers")],
             example_sources=[str(s) for s in self.get("exampleSources")],
-            **self._gates(drivers, space), gate_groups=self._gate_groups(),
+            **self._gates(drivers, space), **self._gate_groups(),
         )
 
     def _rbf_arrays(self, drivers: list[str], space: str):
@@ -249,13 +269,16 @@ class _GroupReader:
             raise InputError(f"{self.at('gatePoses')}: a gate pose is the bind pose (zero): its activation is undefined")
         return {"gates": gates, "gate_poses": poses}
 
-    def _gate_groups(self) -> list[str]:
-        """psd:gateGroups (v4): other groups of this mesh, listed once each (checked by
-        ``_check_gate_groups`` once every group is read)."""
+    def _gate_groups(self) -> dict[str, Any]:
+        """psd:gateGroups (v4: other groups of this mesh, listed once each) and
+        psd:gateDirections (finite; sizes and norms checked by ``_check_gate_groups`` once
+        every group is read)."""
         names = [str(g) for g in self.get("gateGroups", required=False) or []]
+        if not names:
+            return {}
         if len(set(names)) != len(names):
             raise InputError(f"{self.at('gateGroups')}: a group is listed twice")
-        return names
+        return {"gate_groups": names, "gate_directions": self.finite("gateDirections", self.numbers("gateDirections"))}
 
     def _sigma(self) -> float:
         sigma = self.scalar("sigma")
@@ -400,3 +423,4 @@ def _author_group(put: Put, prefix: str, data: DriverData) -> None:
         put(f"{prefix}gatePoses", t.DoubleArray, double_array(data.gate_poses))
     if len(data.gate_groups):
         put(f"{prefix}gateGroups", t.TokenArray, Vt.TokenArray(list(data.gate_groups)))
+        put(f"{prefix}gateDirections", t.DoubleArray, double_array(data.gate_directions))
