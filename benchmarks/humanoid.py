@@ -51,6 +51,7 @@ import generate  # noqa: E402
 import humanoid as hum  # noqa: E402
 
 from psdbake import api  # noqa: E402
+from psdbake.channels import column_weights  # noqa: E402
 from psdbake.results import FitResult, WeightsResult  # noqa: E402
 from psdbake.settings import FitSettings  # noqa: E402
 
@@ -131,8 +132,13 @@ def corrective_shapes(correctives: str) -> dict[str, np.ndarray]:
 
 def forward_deltas(result: FitResult, correctives: str, poses_layer: str, plain_at: dict[float, np.ndarray]
                    ) -> dict[str, np.ndarray]:
-    """channel -> posed-space delta at its own example's pose (forward PSD's data)."""
-    example_time = {ch: ex.time for m in result.meshes for ch, ex in zip(m.channels, m.examples, strict=True) if ch}
+    """channel -> posed-space delta at its own example's pose (forward PSD's data; a channel
+    carries its column's corrective times a scale, and skinning is linear in rest offsets)."""
+    example_time = {}
+    for m in result.meshes:
+        column_time = {col: ex.time for col, ex in zip(m.channels, m.examples, strict=True) if col}
+        for ch, col in zip(m.driver_data.channels, m.driver_data.channel_columns, strict=True):
+            example_time[ch] = column_time[m.driver_data.shapes[int(col)]]
     out = {}
     for ch, shape in corrective_shapes(correctives).items():
         if ch not in example_time:
@@ -212,9 +218,10 @@ def run(folder: str) -> dict:
         ex_pts, w_ex = stacked(path, poses_layer, ex_times, folder, "default_examples")
         at_combos["inverse PSD, default fit"] = ex_pts[[ex_times.index(t) for t in combos]]
         # combination correctives (driven by several joints): their weights where one region moves alone
-        gated = [ch for m in result.meshes if len(m.drivers) > 1 for ch in m.channels if ch]
         ws = channel_weights(w_shot, frames)
-        combo_weight = max((float(np.abs(ws[ch][parts["one joint"]]).max()) for ch in gated), default=None)
+        combo_columns = [column_weights(m.driver_data, np.stack([ws[c] for c in m.driver_data.channels], axis=1))
+                         for m in result.meshes if len(m.drivers) > 1]
+        combo_weight = max((float(np.abs(b[parts["one joint"]]).max()) for b in combo_columns), default=None)
 
         def forward_rows() -> None:
             deltas = forward_deltas(result, path, poses_layer, dict(zip(ex_times, plain_ex, strict=True)))

@@ -96,7 +96,7 @@ def fit_report(result: FitResult, output: str) -> dict:
             })
         d = m.driver_data
         meshes.append({
-            "gate_groups": list(d.gate_groups),
+            "gate_groups": list(d.gate_groups), "channels": list(d.channels),
             "mesh": m.mesh, "group": m.group, "skeleton": m.skeleton, "points": m.point_count, "drivers": list(m.drivers),
             "kernel": d.kernel, "sigma": d.sigma, "degree": d.degree, "examples": examples,
             "condition": None if m.condition != m.condition else m.condition,

@@ -18,6 +18,7 @@ from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
 from . import tolerances as tol
+from .channels import plan_channels, split_shapes, weight_range
 from .drivers import character_scale, fit_drivers, plan_group, resolve_drivers
 from .errors import FitError, InputError, PsdWarning, where
 from .groups import shapes_of
@@ -79,7 +80,18 @@ def fit_regions(asset: str, asset_scene: Scene, info: SkinnedMesh, examples: Seq
             fitted = _gated_by(fitted, below, asset)
             fitted = dataclasses.replace(fitted, shapes=tuple(_combination_shapes(fitted, below)))
         fits.append(fitted)
-    return sorted(fits, key=lambda f: f.group)
+    groups = {f.group: f.driver_data for f in fits}
+    return sorted((_client_safe(f, groups) for f in fits), key=lambda f: f.group)
+
+
+def _client_safe(fit: MeshFit, groups: dict[str, DriverData]) -> MeshFit:
+    """The fit's correctives as client-safe channels (``channels``): each column split into a
+    positive and a negative channel scaled by the bounds of its weight over every pose."""
+    data = fit.driver_data
+    lo, hi = weight_range(data, groups)
+    names, columns, scales = plan_channels(list(data.shapes), lo, hi)
+    data = dataclasses.replace(data, channels=names, channel_columns=columns, channel_scales=scales)
+    return dataclasses.replace(fit, driver_data=data, shapes=tuple(split_shapes(shapes_of(fit), data)))
 
 
 def _dense(shape: BlendShapeData, n: int) -> tuple[NDArray[np.float64], NDArray[np.float64]]:

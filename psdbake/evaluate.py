@@ -13,6 +13,8 @@ from collections.abc import Callable, Iterator, Sequence
 import numpy as np
 from numpy.typing import NDArray
 
+from . import tolerances as tol
+from .channels import channel_names, channel_weights
 from .deformers import DeformerFactory
 from .errors import InputError, where
 from .results import AnimWeights, Progress
@@ -20,7 +22,7 @@ from .usd.blackbox import FLOAT32_MAX, SkinningBlackBox
 from .usd.read import Scene, SkinnedMesh
 from .usd.schema import DriverData
 from .usd.validate import check_corrective_indices, require_finite_time_samples, validate_animation
-from .weights import check_driver_transforms, weights_of_local
+from .weights import check_driver_transforms, column_weights_of_local
 
 Corrected = tuple[SkinnedMesh, list[tuple[str, DriverData]]]  # a mesh and its correctives groups
 
@@ -34,7 +36,7 @@ def correctives_by_animation(scene: Scene, anim_scene: Scene, correctives: str, 
         if not groups:
             continue
         for _, data in groups:
-            check_corrective_indices(scene, info.path, data.shapes, info.point_count)
+            check_corrective_indices(scene, info.path, channel_names(data), info.point_count)
         anim_prim = scene.animation_prim(info.path)
         if anim_prim is None:
             raise InputError(f"{where(anim, info.skeleton)}: no SkelAnimation bound (skel:animationSource)")
@@ -59,10 +61,11 @@ def animation_weights(scene: Scene, anim_prim: str, entries: Sequence[Corrected]
         for _, data in groups:
             idx = [info.joints.index(d) for d in data.drivers]
             check_driver_transforms(local[:, idx], times, data.drivers, where(anim, anim_prim))
-        by_group = weights_of_local(groups, local, info.joints)
+        by_group = column_weights_of_local(groups, local, info.joints)
         for group, data in groups:
-            columns.append(_finite_weights(by_group[group], data, group, times, correctives, info))
-            psd_channels += list(data.shapes)
+            b = _finite_weights(by_group[group], data, group, times, correctives, info)
+            columns.append(_bounded_channels(b, data, group, times, correctives, info))
+            psd_channels += channel_names(data)
     keep = [i for i, c in enumerate(own_channels) if c not in set(psd_channels)]
     channels = tuple([own_channels[i] for i in keep] + psd_channels)
     weights = np.concatenate([own_weights[:, keep], *columns], axis=1)
@@ -76,11 +79,29 @@ def _finite_weights(w: NDArray[np.float64], data: DriverData, group: str, times:
     if bad.any():
         f, s = (int(i[0]) for i in np.nonzero(bad))
         raise InputError(
-            f"{where(correctives, info.path)}: group {group!r} gives channel {data.shapes[s]} the weight "
+            f"{where(correctives, info.path)}: group {group!r} gives corrective {data.shapes[s]} the weight "
             f"{float(w[f, s]):.3g} at time {float(times[f]):g}: beyond float32's range (the psd: values "
             "are corrupt or absurdly large)"
         )
     return w
+
+
+def _bounded_channels(b: NDArray[np.float64], data: DriverData, group: str, times: NDArray[np.float64],
+                      correctives: str, info: SkinnedMesh) -> NDArray[np.float64]:
+    """The written channel weights; refused when a stored channel scale does not bound its
+    corrective's weight (clamping it to [0, 1] would silently change the shape)."""
+    if not len(data.channels):
+        return b
+    ratio = b[:, data.channel_columns] / data.channel_scales
+    over = ratio > 1.0 + tol.CHANNEL_BOUND_SLACK
+    if over.any():
+        f, c = (int(i[0]) for i in np.nonzero(over))
+        raise InputError(
+            f"{where(correctives, info.path)}: group {group!r} needs channel {data.channels[c]} at "
+            f"{float(ratio[f, c]):.3g} x its psd:channelScales at time {float(times[f]):g}: the scales do not "
+            "bound the weights (the psd: values are corrupt or were edited); re-fit"
+        )
+    return channel_weights(data, b)
 
 
 def posed_points(rest_scene: Scene, scene: Scene, meshes: Sequence[SkinnedMesh], times: Sequence[float],

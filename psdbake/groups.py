@@ -10,6 +10,7 @@ import warnings
 
 import numpy as np
 
+from .channels import channel_names
 from .errors import InputError, PsdWarning, where
 from .results import FitResult, MeshFit
 from .usd import write as usdwrite
@@ -52,7 +53,7 @@ def read_correctives(asset: str, correctives: str) -> Groups:
         if mesh not in skinned:
             raise InputError(f"{where(correctives, mesh)}: has correctives but is not a skinned mesh of {asset}")
         for group, data in scene.driver_groups(mesh):
-            shapes = read_corrective_shapes(scene, mesh, data.shapes)
+            shapes = read_corrective_shapes(scene, mesh, channel_names(data))
             for shape in shapes:
                 if len(shape.indices) and (shape.indices.min() < 0 or shape.indices.max() >= skinned[mesh].point_count):
                     raise InputError(

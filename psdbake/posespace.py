@@ -113,6 +113,7 @@ class PoseSpace:
     width: int  # coordinates per driver
     coordinates: Callable[[Rotation, NDArray[np.float64] | None], NDArray[np.float64]]
     needs_twist_axis: bool = False
+    bound: float = np.pi  # no coordinate of any rotation exceeds this in magnitude (channels.py)
 
 
 #: The pose spaces, by their ``psd:poseSpace`` token: the CLI's choices, the fit's and the
@@ -120,7 +121,7 @@ class PoseSpace:
 POSE_SPACES: dict[str, PoseSpace] = {
     "rotationVector": PoseSpace(3, _rotation_vector),
     "swingTwist": PoseSpace(4, _swing_twist, needs_twist_axis=True),
-    "quaternion": PoseSpace(9, _chordal),
+    "quaternion": PoseSpace(9, _chordal, bound=2.0),  # entries of R - I
 }
 
 

@@ -69,6 +69,11 @@ ACTIVE_JOINT_ANGLE = 1e-2
 #: the combination a thousandfold, so the fit refuses instead.
 GATE_ACTIVATION_MIN = 1e-3
 
+#: A client-safe channel's weight is b / scale with scale a guaranteed bound of b over every
+#: pose, so it never exceeds 1 but by float64 round-off of that division (a few 1e-16); eval
+#: refuses more than this, which only a corrupt or edited psd:channelScales gives.
+CHANNEL_BOUND_SLACK = 1e-9
+
 #: A sculpted vertex farther than this many diagonals from where skinning puts it is
 #: not a sculpt but broken data (1e30 coordinates, a unit mix-up): refused, never fitted.
 ABSURD_SCULPT_DIAGONALS = 10.0

@@ -1,4 +1,5 @@
-"""Corrective weights from stored driver data: pose coordinates -> cardinal RBF -> options.
+"""Corrective weights from stored driver data: pose coordinates -> cardinal RBF -> gates ->
+options -> channels.
 
 The numerics of ``eval`` (and of ``compare``), from the documented ``psd:`` attributes alone,
 as a third party would evaluate them (README: "To evaluate at a frame without psdbake").
@@ -13,6 +14,7 @@ from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
 from . import posespace, rbf
+from .channels import channel_weights
 from .errors import InputError
 from .usd.schema import DriverData
 
@@ -135,17 +137,20 @@ def group_weights(groups: Sequence[tuple[str, DriverData]], delta_of: Callable[[
     return out
 
 
-def weights_of_local(groups: Sequence[tuple[str, DriverData]], local: NDArray[np.float64], joints: Sequence[str]
-                     ) -> dict[str, NDArray[np.float64]]:
-    """``group_weights`` for every joint's local transforms (f, J, 4, 4), skeleton order ``joints``."""
+def column_weights_of_local(groups: Sequence[tuple[str, DriverData]], local: NDArray[np.float64],
+                            joints: Sequence[str]) -> dict[str, NDArray[np.float64]]:
+    """group -> its correctives' weights b (f, s) (``group_weights``) for every joint's local
+    transforms (f, J, 4, 4), skeleton order ``joints``: ``channels.channel_weights`` makes them
+    the written channels."""
     return group_weights(groups, lambda data: relative_rotations(data, local[:, _index(joints, data)]), len(local))
 
 
 def weights_at_pose(groups: Sequence[tuple[str, DriverData]], pose: NDArray[np.float64], joints: Sequence[str]
                     ) -> dict[str, NDArray[np.float64]]:
-    """``group_weights`` (1, s) at an example's pose: every joint's rotation away from bind,
-    (J, 4) quaternions in skeleton order ``joints``."""
-    return group_weights(groups, lambda data: Rotation.from_quat(pose[_index(joints, data)]), 1)
+    """group -> written channel weights (1, c) at an example's pose: every joint's rotation
+    away from bind, (J, 4) quaternions in skeleton order ``joints``."""
+    b = group_weights(groups, lambda data: Rotation.from_quat(pose[_index(joints, data)]), 1)
+    return {g: channel_weights(data, b[g]) for g, data in groups}
 
 
 def _index(joints: Sequence[str], data: DriverData) -> list[int]:

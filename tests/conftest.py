@@ -207,3 +207,22 @@ def baked_normal_errors(layers: list[str], mesh: str, time: float, sculpt_points
     baked = np.array(UsdGeom.Mesh(stage.GetPrimAtPath(mesh)).GetNormalsAttr().Get(time), dtype=np.float64)
     shape = points(stage, mesh, time) if sculpt_points is None else sculpt_points
     return angle_between(baked, vertex_normals(shape, shading.topology))
+
+
+def corrective_weights(asset: str, correctives: str, weights: str, anim_prim: str, times) -> dict[str, np.ndarray]:
+    """Each corrective's weight b_s over times (psd:shapes name -> (f,)), from WEIGHTS as
+    written: its client-safe channels' weights times their scales, summed (channels.py)."""
+    from psdbake.channels import column_weights
+    from psdbake.groups import read_correctives
+
+    layer = Sdf.Layer.FindOrOpen(str(weights))
+    names = list(layer.GetAttributeAtPath(Sdf.Path(anim_prim).AppendProperty("blendShapes")).default)
+    path = Sdf.Path(anim_prim).AppendProperty("blendShapeWeights")
+    w = np.array([layer.QueryTimeSample(path, float(t)) for t in times], dtype=np.float64)
+    out = {}
+    for groups in read_correctives(str(asset), str(correctives)).values():
+        for data, _ in groups.values():
+            channels = list(data.channels) or list(data.shapes)
+            b = column_weights(data, w[:, [names.index(c) for c in channels]])
+            out.update({name: b[:, s] for s, name in enumerate(data.shapes)})
+    return out

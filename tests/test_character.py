@@ -104,11 +104,13 @@ def test_refitting_a_group_leaves_the_others_untouched(fitted, run, tmp_path):
     assert code == 0, err
     before, after = Sdf.Layer.FindOrOpen(str(fitted)), Sdf.Layer.FindOrOpen(str(out))
     for group in ("l_elbow", "r_elbow"):
-        for attr in ("kernel", "sigma", "coefficients", "centers", "shapes"):
+        for attr in ("kernel", "sigma", "coefficients", "centers", "shapes", "channels", "channelScales"):
             path = f"{character.BODY}.psd:{group}:{attr}"
             assert before.GetAttributeAtPath(path).default == after.GetAttributeAtPath(path).default, path
-        for k in range(2):
-            shape = f"{character.BODY}/psd_{group}_{k:02d}.offsets"
+        channels = before.GetAttributeAtPath(f"{character.BODY}.psd:{group}:channels").default
+        assert len(channels) >= 2
+        for channel in channels:
+            shape = f"{character.BODY}/{channel}.offsets"
             assert before.GetAttributeAtPath(shape).default == after.GetAttributeAtPath(shape).default
     assert after.GetAttributeAtPath(f"{character.BODY}.psd:neck:kernel").default == "thin_plate_spline"
     assert before.GetAttributeAtPath(f"{character.BODY}.psd:neck:kernel").default == "gaussian"
@@ -195,5 +197,10 @@ def test_psd_v1_layers_still_evaluate(run, tmp_path):
 
     w1 = api.evaluate(asset, v1, anim).animations[0]
     w2 = api.evaluate(asset, str(v2), anim).animations[0]
-    assert w1.channels == tuple(c.replace("psd_main_", "psd_") for c in w2.channels)
-    np.testing.assert_allclose(w1.weights, w2.weights, rtol=0, atol=1e-9)
+    from psdbake.channels import column_weights
+    from psdbake.groups import read_correctives
+
+    ((data, _),) = next(iter(read_correctives(asset, str(v2)).values())).values()
+    assert w1.channels == tuple(c.replace("psd_main_", "psd_") for c in data.shapes)
+    b2 = column_weights(data, w2.weights[:, [w2.channels.index(c) for c in data.channels]])
+    np.testing.assert_allclose(w1.weights, b2, rtol=0, atol=1e-9)

@@ -63,7 +63,7 @@ def test_ten_chunks_bake_exactly_like_one_eval(shot):
     stages = stage_of([shot["single"], *base]), stage_of([shot["manifest"], *base])
     a, b = (s.GetAttributeAtPath(f"{ANIM_PRIM}.blendShapeWeights") for s in stages)
     order = [list(s.GetAttributeAtPath(f"{ANIM_PRIM}.blendShapes").Get()) for s in stages]
-    assert order[0] == order[1] and len(order[0]) == 3
+    assert order[0] == order[1] and len(order[0]) >= 3
     times = [float(t) for t in range(1, FRAMES + 1)] + [100.25, 100.5, 100.999, 500.5, 999.75]
     for t in times:
         assert np.array_equal(np.array(a.Get(t)), np.array(b.Get(t))), t

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import ROOT, bake, diagonal, fixture, generate, points, sculpt
+from conftest import ROOT, bake, corrective_weights, diagonal, fixture, generate, points, sculpt
 from pxr import Sdf, Usd
 
 ASSET, EXAMPLES = fixture("arm_lbs.usda"), fixture("arm_lbs_examples.usda")
@@ -92,7 +92,7 @@ def test_existing_blend_shapes_are_kept_everywhere(run, tmp_path):
     assert run("eval", asset, corr, "--anim", poses, "-o", weights, "-q")[0] == 0
     stage = Usd.Stage.Open(str(corr))
     channels = list(stage.GetPrimAtPath(generate.MESH).GetAttribute("skel:blendShapes").Get())
-    assert channels[0] == "flex" and len(channels) == 4
+    assert channels[0] == "flex" and all(c.startswith("psd_main_") for c in channels[1:]) and len(channels) >= 4
     wlayer = Sdf.Layer.FindOrOpen(str(weights))
     anim = wlayer.GetPrimAtPath(generate.ANIM)
     assert anim.properties["blendShapes"].default[0] == "flex"
@@ -177,10 +177,9 @@ def test_pose_spaces_are_stored_and_reproduced_by_eval(run, tmp_path, space):
     corr, weights = tmp_path / "c.usda", tmp_path / "w.usda"
     assert run("fit", ASSET, EXAMPLES, "-o", corr, "-q", *space)[0] == 0
     assert run("eval", ASSET, corr, "--anim", POSES, "-o", weights, "-q")[0] == 0
-    layer = Sdf.Layer.FindOrOpen(str(weights))
-    path = Sdf.Path(generate.ANIM).AppendProperty("blendShapeWeights")
-    for k, t in enumerate((1.0, 2.0, 3.0)):
-        np.testing.assert_allclose(layer.QueryTimeSample(path, t), np.eye(3)[k], atol=1e-6)  # float32 storage
+    b = corrective_weights(ASSET, corr, weights, generate.ANIM, (1.0, 2.0, 3.0))
+    # float32 storage of channel weights (in [0, 1]) times scales of a few units: 1e-6
+    np.testing.assert_allclose(np.stack([b[s] for s in sorted(b)], axis=1), np.eye(3), atol=1e-6)
     assert Usd.Stage.Open(str(corr)).GetPrimAtPath(generate.MESH).GetAttribute("psd:main:poseSpace").Get() == space[1]
 
 
@@ -194,7 +193,10 @@ def test_clamp_and_normalize_are_explicit_stored_options(run, tmp_path):
         assert run("eval", ASSET, corr, "--anim", ANIM, "-o", out, "-q")[0] == 0
         layer = Sdf.Layer.FindOrOpen(str(out))
         path = Sdf.Path(generate.ANIM).AppendProperty("blendShapeWeights")
-        w[name] = np.array([layer.QueryTimeSample(path, t) for t in layer.ListTimeSamplesForPath(path)])
+        written = np.array([layer.QueryTimeSample(path, t) for t in layer.ListTimeSamplesForPath(path)])
+        assert written.min() >= 0.0 and written.max() <= 1.0  # client-safe channels, either way
+        b = corrective_weights(ASSET, corr, out, generate.ANIM, layer.ListTimeSamplesForPath(path))
+        w[name] = np.stack([b[s] for s in sorted(b)], axis=1)
     assert w["plain"].min() < 0.0  # cardinal Gaussian weights do go negative: nothing hides it by default
     assert w["clamped"].min() >= 0.0 and w["clamped"].sum(axis=1).max() <= 1.0 + 1e-6
 
@@ -207,7 +209,10 @@ def test_inspect_reports_what_a_file_holds(run, tmp_path):
     assert code == 0 and info["correctives"][0]["mesh"] == generate.MESH
     assert info["correctives"][0]["drivers"] == ["Shoulder/Elbow", "Shoulder/Elbow/Wrist"]
     assert info["correctives"][0]["group"] == "main"
-    assert sorted(info["correctives"][0]["offsets"]) == ["psd_main_00", "psd_main_01", "psd_main_02"]
+    group = info["correctives"][0]
+    assert group["shapes"] == [f"psd_main_Geo_Tube_{k:02d}" for k in range(3)]
+    assert sorted(group["offsets"]) == sorted(group["channels"])  # one BlendShape per written channel
+    assert {c.rsplit("_", 1)[0] for c in group["channels"]} == set(group["shapes"])
     code, out, _ = run("inspect", EXAMPLES)
     assert code == 0 and "examples of </Arm/Geo/Tube> at time codes 1, 2, 3" in out
     code, out, _ = run("inspect", ASSET, "--json")

@@ -111,7 +111,7 @@ def test_finite_psd_values_that_overflow_the_weights(cli, tmp_path):
 
 @pytest.mark.parametrize(("name", "prim", "says"), [
     ("correctives_other_asset.usda", "</Arm/Geo/Sleeve>", r"not a skinned mesh of .*good_asset\.usda"),
-    ("correctives_other_point_count.usda", f"<{MESH}/psd_main_01.pointIndices>", r"outside the 16 points"),
+    ("correctives_other_point_count.usda", f"<{MESH}/psd_main_Geo_Tube_01_pos.pointIndices>", r"outside the 16 points"),
 ])
 def test_correctives_of_another_asset(name, prim, says, cli, tmp_path):
     """Before: exit 0 with a points cache silently lacking those correctives."""

@@ -360,7 +360,7 @@ def test_baked_stack_shades_the_sculpt_as_plain_skinning_shades_its_own_mesh(rig
     asset, examples = _asset_with_normals(tmp_path, f"{rig}.usda"), fixture(f"{rig}_examples.usda")
     corr, corr_n, weights = (str(tmp_path / f) for f in ("corr.usda", "corr_normals.usda", "weights.usda"))
     assert run("fit", asset, examples, "-o", corr_n, "-q")[0] == 0  # fit writes normalOffsets itself
-    assert _without_normal_offsets(corr_n, corr) == 3
+    assert _without_normal_offsets(corr_n, corr) >= 3  # every channel of the three correctives
     assert run("eval", asset, corr_n, "--anim", examples, "-o", weights, "-q")[0] == 0
     rest_scene = Scene([asset])
     topo, rest = read_mesh_shading(rest_scene.prim(MESH)).topology, rest_scene.rest_points(MESH)

@@ -15,6 +15,7 @@ import pytest
 from conftest import ROOT, diagonal, fixture, generate, points, stage_of
 
 from psdbake import api
+from psdbake.channels import column_weights
 from psdbake.regions import active_joints, plan_regions
 from psdbake.settings import FitSettings
 from psdbake.usd.schema import DEFAULT_GROUP
@@ -130,8 +131,9 @@ def test_combination_gates_only_on_its_side_of_a_joint_sculpted_both_ways(tmp_pa
     corr = api.write_correctives(result, str(tmp_path / "corr.usda"))
     anim_w = api.evaluate(asset, corr, both).animations[0]
     w = dict(zip(anim_w.channels, anim_w.weights.T, strict=True))
-    wrist = sum(v for ch, v in w.items() if ch.startswith("psd_Wrist_"))
-    combo = sum(v for ch, v in w.items() if ch.startswith("psd_combo_"))
+    data = {m.group: m.driver_data for m in result.meshes}
+    b = {g: column_weights(d, np.stack([w[c] for c in d.channels], axis=1)) for g, d in data.items()}
+    wrist, combo = b["Wrist"].sum(axis=1), b["combo_Elbow_Wrist"].sum(axis=1)
     # float32 poses: the stored example pose and this one agree to ~1e-7 rad
     np.testing.assert_allclose(wrist, [1.0, 1.0], atol=1e-5)
     np.testing.assert_allclose(combo, [1.0, 0.0], atol=1e-5)
@@ -193,20 +195,22 @@ def test_examples_moving_uncovered_joints_fall_back_to_one_global_group():
     assert [sorted(a) for a in active_joints(poses)] == [[0, 1], [1, 2]]
 
 
-def test_psd_v2_layers_still_evaluate_to_the_same_weights(run, tmp_path):
-    """A v2 layer (psdbake before local groups) evaluates exactly as a v4 fit of the same
-    examples in the same single group."""
+def test_psd_v2_layers_still_evaluate_to_the_same_weights(tmp_path):
+    """A v2 layer (psdbake before local groups) evaluates as a v4 fit of the same examples in
+    the same single group: its weights are the v4 fit's column weights (the v4 channels are
+    b / scale, clamped: summed back times their scales, they give b to float64 round-off)."""
     asset, examples, anim = fixture("bad", "good_asset.usda"), fixture("bad", "good_examples.usda"), fixture("arm_anim.usda")
     v2 = os.path.join(ROOT, "tests", "data", "correctives_v2.usda")
-    v4 = tmp_path / "v4.usda"
-    assert run("fit", asset, examples, "-o", v4, "-q", "--group", "main")[0] == 0
+    result = api.fit(asset, [examples], FitSettings(group="main"))
+    v4 = api.write_correctives(result, str(tmp_path / "v4.usda"))
     w2 = api.evaluate(asset, v2, anim).animations[0]
-    w4 = api.evaluate(asset, str(v4), anim).animations[0]
-    assert w2.channels == w4.channels
-    np.testing.assert_allclose(w2.weights, w4.weights, rtol=0, atol=0)  # the same stored numbers, the same code
+    w4 = api.evaluate(asset, v4, anim).animations[0]
+    (data,) = [m.driver_data for m in result.meshes]
+    assert list(w2.channels) == list(data.shapes)
+    np.testing.assert_allclose(w2.weights, column_weights(data, w4.weights), rtol=1e-12, atol=1e-15)
 
 
-def test_v3_layer_with_joint_gates_still_evaluates(rig, run, tmp_path):
+def test_v3_layer_with_joint_gates_still_evaluates(rig, tmp_path):
     """A v3 layer (written by psdbake before combinations were gated by their groups, for this
     rig: tests/data/correctives_v3.usda) still evaluates: its single-joint groups exactly as a
     v4 fit's (the same stored numbers), and its combination by the documented v3 formula, the
@@ -214,16 +218,20 @@ def test_v3_layer_with_joint_gates_still_evaluates(rig, run, tmp_path):
     attributes with rotation vectors."""
     _, asset, examples, _ = rig
     v3 = os.path.join(ROOT, "tests", "data", "correctives_v3.usda")
-    v4 = tmp_path / "v4.usda"
-    assert run("fit", asset, examples, "-o", v4, "-q")[0] == 0
+    result = api.fit(asset, [examples])
+    v4 = api.write_correctives(result, str(tmp_path / "v4.usda"))
     poses = {1.0: {"Elbow": ((0, 0, 1), 30.0), "Wrist": ((1, 0, 0), 20.0)},
              2.0: {"Elbow": ((0, 0, 1), 90.0), "Wrist": ((1, 0, 0), 75.0)},
              3.0: {"Elbow": ((0, 0, 1), 60.0)}}
     anim = generate.write_animation(str(tmp_path / "anim.usda"), poses)
-    old, new = api.evaluate(asset, v3, anim).animations[0], api.evaluate(asset, str(v4), anim).animations[0]
-    assert old.channels == new.channels
-    single = [k for k, ch in enumerate(old.channels) if "combo" not in ch]
-    np.testing.assert_array_equal(old.weights[:, single], new.weights[:, single])
+    old, new = api.evaluate(asset, v3, anim).animations[0], api.evaluate(asset, v4, anim).animations[0]
+    for m in result.meshes:
+        if m.group.startswith("combo"):
+            continue
+        cols = [old.channels.index(c) for c in m.driver_data.shapes]
+        chans = [new.channels.index(c) for c in m.driver_data.channels]
+        np.testing.assert_allclose(old.weights[:, cols], column_weights(m.driver_data, new.weights[:, chans]),
+                                   rtol=1e-12, atol=1e-15)
     from pxr import Usd
     from scipy.spatial.transform import Rotation
 

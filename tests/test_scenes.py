@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import scenes
-from conftest import bake, diagonal, generate, points, sculpt, stage_of
+from conftest import bake, corrective_weights, diagonal, generate, points, sculpt, stage_of
 from pxr import Gf, Sdf, Usd, UsdGeom, UsdSkel
 from scipy.spatial.transform import Rotation
 
@@ -100,10 +100,9 @@ def test_own_joints_pose_space_and_drivers_are_in_skeleton_order(own, run, tmp_p
     drivers = [a for a in stage.GetPrimAtPath(generate.MESH).GetAttributes() if a.GetName().endswith(":drivers")]
     assert [list(a.Get()) for a in drivers] == [["Shoulder/Elbow", "Shoulder/Elbow/Wrist"]]
     assert run("eval", own.asset, corr, "--anim", own.anim, "-o", weights, "-q")[0] == 0
-    # cardinal RBF: at example k's pose, channel k weighs 1 and the others 0
-    layer = Sdf.Layer.FindOrOpen(weights)
-    attr = Sdf.Path(generate.ANIM).AppendProperty("blendShapeWeights")
-    w = np.array([layer.QueryTimeSample(attr, t) for t in scenes.TIMES], dtype=np.float64)
+    # cardinal RBF: at example k's pose, corrective k weighs 1 and the others 0
+    b = corrective_weights(own.asset, corr, weights, generate.ANIM, scenes.TIMES)
+    w = np.stack([b[s] for s in sorted(b)], axis=1)
     assert np.abs(w - np.eye(3)).max() < 1e-6
 
 
@@ -158,7 +157,7 @@ def test_nested_skelroots_pose_fit_eval_cache_and_bake(nested, run, tmp_path):
     layer = Sdf.Layer.FindOrOpen(weights)
     for anim, meshes in ((generate.ANIM, 2), (scenes.PROP_ANIM, 1)):
         channels = list(layer.GetPrimAtPath(anim).attributes["blendShapes"].default)
-        assert len(channels) == len(set(channels)) == 3 * meshes
+        assert len(channels) == len(set(channels)) >= 3 * meshes  # 3 correctives per mesh, 1-2 channels each
     # the cache needs no UsdSkel: both SkelRoots become Xforms (else UsdSkel would skin the
     # prop's cached points again), and a bake over cache + asset leaves every point in place
     stack = stage_of([cache, nested.asset])
@@ -266,4 +265,4 @@ def test_instanced_characters_show_their_corrected_shape(arm, run, tmp_path):
             assert np.abs(off).max() >= PLAIN_MIN * diagonal(target), (root, t)
             # and the instance itself composes the corrective channels that were baked
             ours = UsdSkel.BindingAPI(instanced.GetPrimAtPath(mesh)).GetBlendShapesAttr().Get()
-            assert len(ours) == 3 and list(ours) == list(UsdSkel.BindingAPI(flat.GetPrimAtPath(mesh)).GetBlendShapesAttr().Get())
+            assert len(ours) >= 3 and list(ours) == list(UsdSkel.BindingAPI(flat.GetPrimAtPath(mesh)).GetBlendShapesAttr().Get())

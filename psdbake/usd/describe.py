@@ -73,13 +73,15 @@ def _correctives(prim: Usd.Prim, label: str) -> list[dict]:
     out = []
     for group, data in groups:
         offsets = {}
-        for channel in data.shapes:
+        written = list(data.channels) or list(data.shapes)  # v4 writes channels; before, the shapes
+        for channel in written:
             target = prim.GetStage().GetPrimAtPath(targets[channel]) if channel in targets else None
             if target and target.IsA(UsdSkel.BlendShape):
                 offsets[target.GetName()] = len(UsdSkel.BlendShape(target).GetPointIndicesAttr().Get() or [])
         out.append({
             "mesh": str(prim.GetPath()), "group": group, "version": version, "drivers": list(data.drivers),
             "pose_space": data.pose_space, "kernel": data.kernel, "sigma": data.sigma, "degree": data.degree,
-            "shapes": list(data.shapes), "examples": len(data.example_times), "offsets": offsets,
+            "shapes": list(data.shapes), "channels": written, "examples": len(data.example_times),
+            "offsets": offsets,
         })
     return out

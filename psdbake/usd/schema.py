@@ -47,6 +47,7 @@ PSD_TYPES = _type_names(
     coefficients="DoubleArray", polyPowers="IntArray", dimensions="IntArray", polyShift="DoubleArray",
     polyScale="DoubleArray", exampleTimes="DoubleArray", exampleSources="StringArray", gates="TokenArray",
     gatePoses="DoubleArray", gateGroups="TokenArray", gateDirections="DoubleArray",
+    channels="TokenArray", channelColumns="IntArray", channelScales="DoubleArray",
 )
 
 
@@ -91,6 +92,11 @@ class DriverData:
     gate_groups: Sequence[str] = ()  # combinations (v4): groups whose activation multiplies the weights
     #: v4: (shapes, coordinates): per shape, its unit direction in each gate group's pose coordinates
     gate_directions: NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, 0)))
+    #: v4: the written channels (client-safe, see channels.py): each carries one output column
+    #: times a signed scale, its weight clamp(b_column / scale, 0, 1). Empty: the shapes themselves.
+    channels: Sequence[str] = ()
+    channel_columns: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    channel_scales: NDArray[np.float64] = field(default_factory=lambda: np.zeros(0))
 
 
 # --- read ----------------------------------------------------------------------------------
@@ -228,7 +234,7 @@ class _GroupReader:
             example_times=[float(t) for t in self.finite("exampleTimes", self.numbers("exampleTimes"),
                                                          "time codes are finite numbers")],
             example_sources=[str(s) for s in self.get("exampleSources")],
-            **self._gates(drivers, space), **self._gate_groups(),
+            **self._gates(drivers, space), **self._gate_groups(), **self._channels(len(shapes)),
         )
 
     def _rbf_arrays(self, drivers: list[str], space: str):
@@ -268,6 +274,24 @@ class _GroupReader:
         if np.any(np.einsum("ij,ij->i", poses, poses) <= 0):
             raise InputError(f"{self.at('gatePoses')}: a gate pose is the bind pose (zero): its activation is undefined")
         return {"gates": gates, "gate_poses": poses}
+
+    def _channels(self, columns: int) -> dict[str, Any]:
+        """psd:channels, psd:channelColumns (each in [0, shapes)) and psd:channelScales (finite,
+        non-zero), one each per channel, names unique."""
+        names = [str(c) for c in self.get("channels", required=False) or []]
+        if not names:
+            return {}
+        if len(set(names)) != len(names):
+            raise InputError(f"{self.at('channels')}: a channel is listed twice")
+        cols, scales = self.integers("channelColumns"), self.finite("channelScales", self.numbers("channelScales"))
+        for attr, values in (("channelColumns", cols), ("channelScales", scales)):
+            if len(values) != len(names):
+                raise InputError(f"{self.at(attr)}: {len(values)} values for {len(names)} channels")
+        if np.any((cols < 0) | (cols >= columns)):
+            raise InputError(f"{self.at('channelColumns')}: a column outside the {columns} psd:shapes")
+        if np.any(scales == 0):
+            raise InputError(f"{self.at('channelScales')}: a scale is 0 (a channel's weight would be undefined)")
+        return {"channels": names, "channel_columns": cols, "channel_scales": scales}
 
     def _gate_groups(self) -> dict[str, Any]:
         """psd:gateGroups (v4: other groups of this mesh, listed once each) and
@@ -424,3 +448,7 @@ def _author_group(put: Put, prefix: str, data: DriverData) -> None:
     if len(data.gate_groups):
         put(f"{prefix}gateGroups", t.TokenArray, Vt.TokenArray(list(data.gate_groups)))
         put(f"{prefix}gateDirections", t.DoubleArray, double_array(data.gate_directions))
+    if len(data.channels):
+        put(f"{prefix}channels", t.TokenArray, Vt.TokenArray(list(data.channels)))
+        put(f"{prefix}channelColumns", t.IntArray, int_array(data.channel_columns))
+        put(f"{prefix}channelScales", t.DoubleArray, double_array(data.channel_scales))
