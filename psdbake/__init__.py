@@ -19,11 +19,11 @@ __version__ = "0.1.0"
 #: view below are derived from it; tests/test_layering.py checks they agree).
 _EXPORTS = {
     "api": (
-        "correctives_layer", "describe", "evaluate", "files_read", "fit", "points_cache_layer", "pose",
+        "correctives_layer", "describe", "evaluate", "export_gltf", "files_read", "fit", "points_cache_layer", "pose",
         "weights_layer", "write_correctives", "write_points_cache", "write_pose", "write_stack", "write_weights",
     ),
     "settings": ("FitSettings",),
-    "results": ("AnimWeights", "Example", "FitResult", "MeshFit", "PoseResult", "Progress", "WeightsResult"),
+    "results": ("AnimWeights", "Example", "FitResult", "GltfResult", "MeshFit", "PoseResult", "Progress", "WeightsResult"),
     "frames": ("parse_frames",),
     "farm": ("Batch", "BatchResult", "JobResult", "load_jobs", "run_batch"),
     "farm.chunked": ("ChunkedWeights", "evaluate_chunks", "write_chunks"),
@@ -61,6 +61,7 @@ if TYPE_CHECKING:  # for type checkers and IDEs: the same names, eagerly
         correctives_layer,
         describe,
         evaluate,
+        export_gltf,
         files_read,
         fit,
         points_cache_layer,
@@ -91,6 +92,15 @@ if TYPE_CHECKING:  # for type checkers and IDEs: the same names, eagerly
     from .posespace import POSE_SPACES  # noqa: F401
     from .powell import PowellResult, minimize_lockstep  # noqa: F401
     from .rbf import KERNELS, CardinalRbf, fit_cardinal  # noqa: F401
-    from .results import AnimWeights, Example, FitResult, MeshFit, PoseResult, Progress, WeightsResult  # noqa: F401
+    from .results import (  # noqa: F401
+        AnimWeights,
+        Example,
+        FitResult,
+        GltfResult,
+        MeshFit,
+        PoseResult,
+        Progress,
+        WeightsResult,
+    )
     from .settings import FitSettings  # noqa: F401
     from .usd.schema import PSD_VERSION, DriverData  # noqa: F401

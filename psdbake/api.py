@@ -23,13 +23,14 @@ from .evaluate import animation_weights, correctives_by_animation, posed_points
 from .examples import gather_examples
 from .frames import frames_of
 from .groups import correctives_layer
-from .results import FitResult, PoseResult, Progress, WeightsResult
+from .results import FitResult, GltfResult, PoseResult, Progress, WeightsResult
 from .settings import FitSettings, SettingError
 from .solve import cached_scene, solve_all
 from .usd import write as usdwrite
 from .usd.author import Layer
 from .usd.compose import compose
 from .usd.describe import describe as describe_file
+from .usd.gltf_source import read_gltf_source
 from .usd.normalbox import read_mesh_shading
 from .usd.read import Scene, animation_components
 from .usd.validate import require_finite_time_samples, require_psd_prims_skinned, validate_animation, validate_skinning
@@ -37,7 +38,7 @@ from .usd.validate import require_finite_time_samples, require_psd_prims_skinned
 __all__ = [  # noqa: RUF022 - in pipeline order; the public surface is psdbake/__init__.py
     "fit", "write_correctives", "evaluate", "weights_layer", "write_weights", "points_cache_layer",
     "write_points_cache", "pose", "write_pose", "write_stack", "describe", "open_asset", "files_read",
-    "correctives_layer",
+    "correctives_layer", "export_gltf",
 ]
 
 
@@ -240,6 +241,31 @@ def write_points_cache(result: WeightsResult, path: str, deformers: Sequence[str
         points_cache_layer(result, deformers, progress=progress), path,
         files_read([result.asset, result.correctives, result.anim], deformers),
     )
+
+
+# --- export-gltf: ASSET + CORRECTIVES + ANIM + eval's weights -> one .glb for game engines ---
+
+def export_gltf(asset: str, correctives: str, anim: str, output: str, *, frames: tuple[float, float] | None = None,
+                progress: Progress | None = None) -> GltfResult:
+    """Write the shot as a skinned glTF 2.0 binary: meshes, skins, joint animation (one
+    key per time code), every BlendShape channel of the composed stack as a morph target
+    and eval's weights animating them. Skinned in glTF (linear blend), it gives
+    ``UsdSkel.BakeSkinning``'s world-space points of ASSET + CORRECTIVES + ANIM + WEIGHTS,
+    in glTF's Y-up meters."""
+    from . import gltf  # pygltflib loads only for this command
+
+    inputs = files_read([asset, correctives, anim])
+    atomic.check_output(output, inputs, (".glb",))  # before the work, so a bad output fails at once
+    weights = evaluate(asset, correctives, anim, frames=frames, progress=progress)
+    scene = Scene([anim, correctives, asset], label=correctives)
+    source = read_gltf_source(scene, asset, {a.animation: (a.channels, a.times, a.weights) for a in weights.animations})
+    for msg in gltf.differences(source, asset):
+        warnings.warn(msg, PsdWarning, stacklevel=2)
+    name = os.path.splitext(os.path.basename(anim))[0] or "animation"
+    glb = gltf.build_glb(source, name, f"psdbake {__version__} export-gltf")
+    gltf.write_glb(glb.data, output, inputs)
+    return GltfResult(output, weights, tuple(m.path for m in source.meshes), glb.morph_targets, glb.sparse_targets,
+                      max((len(s.times) for s in source.skeletons), default=0), len(glb.data))
 
 
 # --- pose: ASSET + POSES -> plain UsdSkel skinning per time code -> EXAMPLES to sculpt on -------

@@ -245,6 +245,27 @@ def eval_cmd(asset, correctives, anim, output, frames, points_cache, chunk_size,
     console.say_eval(ui, result, output, points_cache)
 
 
+@cli.command("export-gltf")
+@click.argument("asset", type=str)
+@click.argument("correctives", type=str)
+@click.option("--anim", required=True, type=str, help="ANIM layer: the shot to animate.")
+@click.option("-o", "--output", required=True, type=str, help="SHOT.glb to write (glTF 2.0 binary).")
+@click.option("--frames", metavar="START:END",
+              help="Whole frames START..END (inclusive). Default: the animation's authored samples.")
+@_common
+def export_gltf_cmd(asset, correctives, anim, output, frames, quiet, verbose, as_json) -> None:
+    """Write a skinned glTF 2.0 binary for game engines: meshes, skin, joint animation, the correctives
+    as morph targets and eval's weights animating them."""
+    ui = Ui(quiet, verbose, as_json)
+    with ui.warnings(), ui.progress("weights") as progress:  # the output is checked before any work
+        result = api.export_gltf(asset, correctives, anim, output, frames=parse_frames(frames), progress=progress)
+    ui.payload({"output": output, "meshes": list(result.meshes), "morph_targets": result.morph_targets,
+                "sparse_targets": result.sparse_targets, "frames": result.frames, "bytes": result.size})
+    ui.say(f"psdbake export-gltf: {len(result.meshes)} mesh(es), {result.morph_targets} morph target(s) "
+           f"({result.sparse_targets} sparse), {result.frames} frame(s)")
+    ui.say(f"wrote {output} ({result.size} bytes)")
+
+
 def _eval_chunked(ui: Ui, asset, correctives, anim, output, frames, points_cache, chunk_size, chunk,
                   deformers) -> None:
     """eval --chunk-size N [--chunk K]: chunk layers plus the value-clip manifest(s) (psdbake.farm.chunked)."""

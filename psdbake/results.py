@@ -87,6 +87,19 @@ class WeightsResult:
 
 
 @dataclass(frozen=True)
+class GltfResult:
+    """What ``export_gltf`` wrote: the .glb and what is in it."""
+
+    output: str
+    weights: WeightsResult  # the morph weights baked into it (eval's)
+    meshes: tuple[str, ...]
+    morph_targets: int  # over every mesh
+    sparse_targets: int  # of those, stored as sparse accessors
+    frames: int  # keyframes (the most of any skeleton)
+    size: int  # bytes
+
+
+@dataclass(frozen=True)
 class PoseResult:
     asset: str
     poses: str
