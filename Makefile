@@ -7,12 +7,13 @@ BIN    := $(VENV)/bin
 OUT    ?= out
 STAMP  := $(VENV)/.installed
 
-.PHONY: demo test lint bench fidelity fuzz fixtures clean
+.PHONY: demo test lint bench fidelity fuzz fixtures interop clean
 
-$(STAMP): pyproject.toml
+$(STAMP): pyproject.toml tests/gltf/package-lock.json
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
 	$(BIN)/python -m pip install --quiet -e '.[test]'
+	npm ci --prefix tests/gltf --silent  # the Khronos glTF-Validator, for tests/test_gltf.py
 	touch $(STAMP)
 
 demo: $(STAMP)
@@ -31,7 +32,7 @@ demo: $(STAMP)
 	@echo "  shot.usda          ASSET + CORRECTIVES + ANIM + WEIGHTS stacked: open it in any UsdSkel viewer"
 	@echo "View: usdview $(OUT)/shot.usda   (compare: usdview fixtures/arm_lbs.usda with fixtures/arm_anim.usda)"
 
-LINTED := psdbake tests benchmarks fixtures/generate.py fixtures/character.py fixtures/bad/make_bad.py
+LINTED := psdbake tests benchmarks interop fixtures/generate.py fixtures/character.py fixtures/bad/make_bad.py
 
 test: $(STAMP)
 	$(BIN)/ruff check $(LINTED)
@@ -61,5 +62,22 @@ fuzz: $(STAMP)
 fixtures: $(STAMP)
 	$(BIN)/python fixtures/generate.py
 
+# interop: psdbake's stacks in Blender 5.0's default USD import vs UsdSkel.BakeSkinning (interop/run.py).
+# bpy comes from PyPI with its own USD, so it lives in its own venv (bpy 5.0.1 needs Python 3.11).
+BPY_PYTHON  ?= python3.11
+BPY_VENV    := .venv-blender
+BPY_STAMP   := $(BPY_VENV)/.installed
+
+$(BPY_STAMP):
+	$(BPY_PYTHON) -m venv $(BPY_VENV)
+	echo '*' > $(BPY_VENV)/.gitignore
+	$(BPY_VENV)/bin/python -m pip install --quiet --upgrade pip
+	$(BPY_VENV)/bin/python -m pip install --quiet 'bpy==5.0.1' numpy
+	$(BPY_VENV)/bin/python -c "import bpy, numpy; print('bpy', bpy.app.version_string, 'numpy', numpy.__version__)"
+	touch $(BPY_STAMP)
+
+interop: $(STAMP) $(BPY_STAMP)
+	BLENDER_PYTHON=$(BPY_VENV)/bin/python OUT=$(OUT) $(BIN)/python -m interop.run
+
 clean:
-	rm -rf $(OUT) $(VENV) .pytest_cache .ruff_cache
+	rm -rf $(OUT) $(VENV) $(BPY_VENV) .pytest_cache .ruff_cache tests/gltf/node_modules
