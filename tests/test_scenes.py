@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import scenes
-from conftest import bake, corrective_weights, diagonal, generate, points, sculpt, stage_of
+from conftest import bake, corrective_weights, diagonal, fixture, generate, points, sculpt, stage_of
 from pxr import Gf, Sdf, Usd, UsdGeom, UsdSkel
 from scipy.spatial.transform import Rotation
 
@@ -266,3 +266,28 @@ def test_instanced_characters_show_their_corrected_shape(arm, run, tmp_path):
             # and the instance itself composes the corrective channels that were baked
             ours = UsdSkel.BindingAPI(instanced.GetPrimAtPath(mesh)).GetBlendShapesAttr().Get()
             assert len(ours) >= 3 and list(ours) == list(UsdSkel.BindingAPI(flat.GetPrimAtPath(mesh)).GetBlendShapesAttr().Get())
+
+
+def test_an_anim_at_30_fps_keeps_its_time_codes(run, tmp_path):
+    """ANIM authored at 30 time codes per second over a 24 fps asset: eval's WEIGHTS carry
+    ANIM's own time codes (USD would rescale them by 24/30 under a root at the default rate),
+    and the stack ASSET + CORRECTIVES + ANIM + WEIGHTS, opened as ``stack`` writes it, bakes
+    each sculpt at its own pose."""
+    asset, examples = fixture("arm_lbs.usda"), fixture("arm_lbs_examples.usda")
+    anim = tmp_path / "anim30.usda"
+    layer = Sdf.Layer.FindOrOpen(fixture("arm_poses.usda"))  # the examples' poses, no sculpted points
+    copy = Sdf.Layer.CreateNew(str(anim))
+    copy.TransferContent(layer)
+    copy.timeCodesPerSecond = copy.framesPerSecond = 30.0
+    copy.Save()
+    corr, weights, shot = tmp_path / "c.usda", tmp_path / "w.usda", tmp_path / "shot.usda"
+    assert run("fit", asset, examples, "-o", corr, "-q")[0] == 0
+    assert run("eval", asset, corr, "--anim", anim, "-o", weights, "-q")[0] == 0
+    times = list(Sdf.Layer.FindOrOpen(str(weights)).ListTimeSamplesForPath(
+        Sdf.Path(generate.ANIM).AppendProperty("blendShapeWeights")))
+    assert times == [1.0, 2.0, 3.0]
+    assert run("stack", shot, asset, corr, anim, weights)[0] == 0
+    stage = bake(Usd.Stage.Open(str(shot)), 1.0, 3.0)  # as a viewer opens it: its own rate
+    for t in (1.0, 2.0, 3.0):
+        target = sculpt(examples, generate.MESH, t)
+        assert np.abs(points(stage, generate.MESH, t) - target).max() <= 1e-5 * diagonal(target), t

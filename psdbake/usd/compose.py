@@ -53,6 +53,17 @@ def open_layer(path: str) -> Sdf.Layer:
     return layer
 
 
+def _time_rates(root: Sdf.Layer, layers: Sequence[Sdf.Layer]) -> None:
+    """The root takes the strongest authored timeCodesPerSecond (and framesPerSecond): USD
+    scales a sublayer's time codes by the root's rate over its own, so an anonymous root at
+    the default 24 would move a 30 fps ANIM's samples to other time codes."""
+    for key in ("timeCodesPerSecond", "framesPerSecond"):
+        for layer in layers:  # strongest first
+            if layer.pseudoRoot.HasInfo(key):
+                root.pseudoRoot.SetInfo(key, float(layer.pseudoRoot.GetInfo(key)))
+                break
+
+
 def compose(files: Sequence[str | Sdf.Layer]) -> Usd.Stage:
     """A stage over the given files (or in-memory layers), strongest first; inputs stay untouched."""
     root = Sdf.Layer.CreateAnonymous("psdbake.usda")
@@ -65,6 +76,7 @@ def compose(files: Sequence[str | Sdf.Layer]) -> Usd.Stage:
     layer_files(keep)  # every layer the stage will open is a regular file: no FIFO blocks composition
     for layer in keep:
         root.subLayerPaths.append(layer.identifier)
+    _time_rates(root, keep)
     try:
         stage = Usd.Stage.Open(root, Usd.Stage.LoadAll)
     except Tf.ErrorException as exc:
