@@ -155,8 +155,11 @@ class _Builder:
         self.blob = bytearray()
         self.animation = gl.Animation(name=animation_name)
         self.convert = world_conversion(source.up_axis, source.meters_per_unit)
+        # USD's timeline: time code t at t / fps seconds, so frame numbers survive an import
+        # (Blender's glTF importer keys second s at frame s * fps); glTF times cannot be
+        # negative, so a shot starting before 0 is shifted to start at 0 s
         all_times = [float(t) for s in source.skeletons for t in s.times]
-        self.t0 = min(all_times) if all_times else 0.0
+        self.t0 = min(0.0, min(all_times)) if all_times else 0.0
         self.inputs: dict[str, int] = {}  # skeleton -> its key times accessor
         self.joint_nodes: dict[str, list[int]] = {}
         self.skeleton_nodes: dict[str, int] = {}
