@@ -16,21 +16,31 @@ $(STAMP): pyproject.toml tests/gltf/package-lock.json
 	npm ci --prefix tests/gltf --silent  # the Khronos glTF-Validator, for tests/test_gltf.py
 	touch $(STAMP)
 
+# The bundled character: fixtures/humanoid/ (17 joints, 13 sculpts: single joints and two
+# shoulder+elbow combinations; made by fixtures/humanoid.py). Its layout imports into Blender
+# as UsdSkel shows it (psdbake inspect warns about layouts that do not).
+DEMO_ASSET    := fixtures/humanoid/humanoid.usda
+DEMO_EXAMPLES := fixtures/humanoid/humanoid_examples.usda
+DEMO_ANIM     := fixtures/humanoid/humanoid_anim.usda
+
 demo: $(STAMP)
 	@mkdir -p $(OUT)
-	$(BIN)/psdbake pose fixtures/arm_lbs.usda --anim fixtures/arm_poses.usda -o $(OUT)/to_sculpt.usda
-	$(BIN)/psdbake fit fixtures/arm_lbs.usda fixtures/arm_lbs_examples.usda -o $(OUT)/correctives.usda --report $(OUT)/fit_report.json
-	$(BIN)/psdbake eval fixtures/arm_lbs.usda $(OUT)/correctives.usda --anim fixtures/arm_anim.usda -o $(OUT)/weights.usda --points-cache $(OUT)/points_cache.usda
-	$(BIN)/psdbake stack $(OUT)/shot.usda fixtures/arm_lbs.usda $(OUT)/correctives.usda fixtures/arm_anim.usda $(OUT)/weights.usda
+	$(BIN)/psdbake inspect $(DEMO_ASSET)
+	$(BIN)/psdbake pose $(DEMO_ASSET) --anim $(DEMO_EXAMPLES) -o $(OUT)/to_sculpt.usda
+	$(BIN)/psdbake fit $(DEMO_ASSET) $(DEMO_EXAMPLES) -o $(OUT)/correctives.usda --report $(OUT)/fit_report.json
+	$(BIN)/psdbake eval $(DEMO_ASSET) $(OUT)/correctives.usda --anim $(DEMO_ANIM) -o $(OUT)/weights.usda --points-cache $(OUT)/points_cache.usdc
+	$(BIN)/psdbake stack $(OUT)/shot.usda $(DEMO_ASSET) $(OUT)/correctives.usda $(DEMO_ANIM) $(OUT)/weights.usda
+	$(BIN)/psdbake export-gltf $(DEMO_ASSET) $(OUT)/correctives.usda --anim $(DEMO_ANIM) -o $(OUT)/shot.glb
 	@echo
 	@echo "Outputs in $(OUT)/:"
-	@echo "  to_sculpt.usda     the character posed by plain skinning, one frame per pose (sculpt these)"
+	@echo "  to_sculpt.usda     the character posed by plain skinning, one frame per example pose (sculpt these)"
 	@echo "  correctives.usda   rest-space corrective BlendShapes + psd: RBF driver data"
 	@echo "  fit_report.json    per-example residuals and black-box evaluations"
 	@echo "  weights.usda       corrective weights over the shot"
-	@echo "  points_cache.usda  final posed points per frame (no UsdSkel needed)"
-	@echo "  shot.usda          ASSET + CORRECTIVES + ANIM + WEIGHTS stacked: open it in any UsdSkel viewer"
-	@echo "View: usdview $(OUT)/shot.usda   (compare: usdview fixtures/arm_lbs.usda with fixtures/arm_anim.usda)"
+	@echo "  points_cache.usdc  final posed points per frame (no UsdSkel needed)"
+	@echo "  shot.usda          ASSET + CORRECTIVES + ANIM + WEIGHTS stacked: open it in any UsdSkel viewer or Blender"
+	@echo "  shot.glb           the same shot as a skinned glTF with morph targets, for game engines"
+	@echo "View: usdview $(OUT)/shot.usda   (compare: usdview $(DEMO_ASSET) with $(DEMO_ANIM))"
 
 LINTED := psdbake tests benchmarks interop fixtures/generate.py fixtures/character.py fixtures/bad/make_bad.py
 

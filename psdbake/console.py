@@ -180,6 +180,8 @@ def say_chunks(ui: Ui, ev: ChunkedWeights, written: WrittenChunks) -> None:
 # --- inspect and batch -----------------------------------------------------------------------
 
 def say_inspect(file: str, info: dict) -> None:
+    for warning in info.get("warnings", []):
+        click.echo(f"psdbake: warning: {warning}", err=True)
     click.echo(f"{file}")
     for root in info["skel_roots"]:
         click.echo(f"  SkelRoot <{root}>")

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from conftest import ROOT, bake, corrective_weights, diagonal, fixture, generate, points, sculpt
-from pxr import Sdf, Usd
+from pxr import Sdf, Usd, UsdGeom
 
 ASSET, EXAMPLES = fixture("arm_lbs.usda"), fixture("arm_lbs_examples.usda")
 POSES, ANIM = fixture("arm_poses.usda"), fixture("arm_anim.usda")
@@ -296,3 +296,26 @@ def test_progress_bars_on_a_terminal(command, run, tmp_path):
     code, text = _on_terminal(argv)
     assert code == 0, text
     _assert_bars(text, bars, lines)
+
+
+def test_inspect_warns_of_a_layout_blender_misplaces(run, tmp_path):
+    """The arm's mesh parent </Arm/Geo> has another world transform than its skeleton: Blender's
+    USD import puts the mesh there (make interop measures 0.48 of the diagonal), so inspect
+    warns, naming both prims; the character, whose parent and skeleton agree, gets no warning.
+    Giving the parent the skeleton's world transform silences it."""
+    code, out, err = run("inspect", ASSET)
+    assert code == 0 and err.count("psdbake: warning:") == 1
+    assert "</Arm/Geo/Tube>" in err and "</Arm/Geo>" in err and "</Arm/Skel>" in err
+    code, out, err = run("inspect", fixture("character", "character.usda"), "--json")
+    assert code == 0 and json.loads(out)["warnings"] == [] and "warning" not in err
+    fixed = tmp_path / "arm_fixed.usda"
+    stage = Usd.Stage.Open(ASSET)
+    cache = UsdGeom.XformCache()
+    skel = cache.GetLocalToWorldTransform(stage.GetPrimAtPath(generate.SKEL))
+    geo_parent = cache.GetParentToWorldTransform(stage.GetPrimAtPath("/Arm/Geo"))
+    geo = UsdGeom.Xformable(stage.GetPrimAtPath("/Arm/Geo"))
+    geo.ClearXformOpOrder()
+    geo.AddTransformOp().Set(skel * geo_parent.GetInverse())  # world = local * parent (row vectors)
+    stage.GetRootLayer().Export(str(fixed))
+    code, out, _ = run("inspect", fixed, "--json")
+    assert code == 0 and json.loads(out)["warnings"] == []

@@ -4,10 +4,15 @@ CORRECTIVES layer on its own (overs included)."""
 
 from __future__ import annotations
 
+import numpy as np
 from pxr import Sdf, Usd, UsdGeom, UsdSkel
 
 from .compose import compose, open_layer
 from .schema import read_groups
+
+#: Two world matrices are the same transform when no entry differs by more than this
+#: (relative to the largest entry, at least 1): float32-authored transforms agree to ~1e-7.
+_SAME_TRANSFORM = 1e-6
 
 
 def describe(path: str) -> dict:
@@ -56,6 +61,36 @@ def describe(path: str) -> dict:
 
     layer.Traverse(Sdf.Path.absoluteRootPath, visit)
     out["examples"] = [{"mesh": m, "time_codes": t} for m, t in sorted(found)]
+    out["warnings"] = client_layout_warnings(stage, path)
+    return out
+
+
+def client_layout_warnings(stage: Usd.Stage, label: str) -> list[str]:
+    """Skinned meshes that Blender's USD import places elsewhere than UsdSkel does.
+
+    UsdSkel puts a skinned mesh's points at skeleton world x geomBindTransform (the mesh's own
+    transforms do not count); Blender (5.0) parents the mesh object to the mesh's USD parent
+    with geomBindTransform as its local matrix. The two agree only when that parent's world
+    transform is the skeleton's (measured by ``make interop``: the arm fixture, whose /Arm/Geo
+    and /Arm/Skel differ, lands 0.48 of its diagonal away in Blender)."""
+    cache = UsdGeom.XformCache(Usd.TimeCode.Default())
+    out = []
+    for prim in stage.Traverse():
+        if not (prim.IsA(UsdGeom.PointBased) and prim.HasAPI(UsdSkel.BindingAPI)):
+            continue
+        skel = UsdSkel.BindingAPI(prim).GetInheritedSkeleton()
+        if not skel:
+            continue
+        parent = np.array(cache.GetParentToWorldTransform(prim), dtype=np.float64)
+        skel_world = np.array(cache.GetLocalToWorldTransform(skel.GetPrim()), dtype=np.float64)
+        gap = float(np.abs(parent - skel_world).max())
+        if gap > _SAME_TRANSFORM * max(1.0, float(np.abs(skel_world).max())):
+            out.append(
+                f"{label} <{prim.GetPath()}>: Blender's USD import will misplace this mesh (UsdSkel and psdbake do "
+                f"not): Blender applies geomBindTransform under the mesh's parent <{prim.GetParent().GetPath()}>, "
+                f"whose world transform differs from the skeleton <{skel.GetPrim().GetPath()}>'s (by up to {gap:.3g}); "
+                "give that parent the skeleton's world transform"
+            )
     return out
 
 
