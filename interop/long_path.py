@@ -1,6 +1,7 @@
 """The long-path fixture: the arm rig of fixtures/generate.py with its mesh nested under Xforms with
-long names, so that psdbake's channel names (``psd_<group>_<mesh path below the SkelRoot>_<k>``)
-are longer than Blender's 63-byte shape-key names.
+long names, so that psdbake's readable channel names (``psd_<group>_<mesh path below the
+SkelRoot>_<k>_pos``) are longer than Blender's 63-byte shape-key names, and the mesh's parent has
+the skeleton's world transform (a layout Blender's import places as UsdSkel does).
 
 Generated at run time (deterministic: the arm, its poses and its ground-truth sculpts are
 generate.py's own) into a folder the caller gives: ``write(folder)`` returns the asset, examples
@@ -39,6 +40,13 @@ def _reroot_mesh(asset: str) -> None:
     del old.nameParent.nameChildren[old.name]
     layer.Save()
     stage = Usd.Stage.Open(layer)
+    # a layout Blender places as UsdSkel does (psdbake inspect: no warning): the mesh's parent
+    # gets the skeleton's world transform (world = local * parent world, row vectors)
+    cache = UsdGeom.XformCache()
+    skel_world = cache.GetLocalToWorldTransform(stage.GetPrimAtPath(generate.SKEL))
+    first = stage.GetPrimAtPath(Sdf.Path(NESTED[0]).AppendChild(NESTED[1]))
+    UsdGeom.Xformable(first).AddTransformOp().Set(skel_world * cache.GetParentToWorldTransform(first).GetInverse())
+    stage.GetRootLayer().Save()
     if not stage.GetPrimAtPath(MESH).IsA(UsdGeom.Mesh) or stage.GetPrimAtPath(generate.MESH):
         raise RuntimeError(f"re-rooting {generate.MESH} to {MESH} failed in {asset}")
 

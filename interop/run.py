@@ -92,9 +92,13 @@ def make_cases(tmp: str, only: list[str] | None) -> list[Case]:
     def want(name: str) -> bool:
         return not only or name in only
 
+    if want("humanoid"):
+        cases.append(Case("humanoid", fixture("humanoid", "humanoid.usda"),
+                          ((None, (fixture("humanoid", "humanoid_examples.usda"),)),),
+                          fixture("humanoid", "humanoid_anim.usda"), "make demo's set-up: default fit, combinations"))
     if want("arm"):
         cases.append(Case("arm", fixture("arm_lbs.usda"), ((None, (fixture("arm_lbs_examples.usda"),)),),
-                          fixture("arm_anim.usda"), "make demo's set-up"))
+                          fixture("arm_anim.usda"), "a layout Blender misplaces (psdbake inspect warns)"))
     if want("character"):
         cases.append(Case("character", fixture("character", "character.usda"), character_fits(),
                           fixture("character", "character_anim.usda"), "three fit --group runs, as tests/test_character.py"))
@@ -136,6 +140,14 @@ def run(cmd: list[str], log: list[str]) -> subprocess.CompletedProcess:
 def psdbake(log: list[str], *args: str) -> None:
     quiet = [] if args[0] == "stack" else ["-q"]  # stack has no -q
     run([psdbake_exe(), *args, *quiet], log)
+
+
+def inspect_warnings(asset: str) -> set[str]:
+    """The mesh paths ``psdbake inspect ASSET`` warns Blender's import will misplace."""
+    proc = subprocess.run([psdbake_exe(), "inspect", asset, "--json"], capture_output=True, text=True, cwd=ROOT)
+    if proc.returncode != 0:
+        raise HarnessError(f"psdbake inspect {asset} failed: {proc.stderr.strip()}")
+    return {w.split(" <", 1)[1].split(">", 1)[0] for w in json.loads(proc.stdout).get("warnings", [])}
 
 
 def has_export_gltf() -> bool:
@@ -442,6 +454,7 @@ class MeshResult:
     per_frame: list[dict] = field(default_factory=list)
     layout: dict = field(default_factory=dict)
     problems: list[str] = field(default_factory=list)
+    inspect_warned: bool = False  # psdbake inspect ASSET warned that Blender misplaces this mesh
 
 
 def blender_world_in_usd(view: BlenderView, index: int, c: np.ndarray) -> np.ndarray:
@@ -546,6 +559,7 @@ def compare_case(case: Case, tmp: str, gltf: bool) -> CaseResult:
         result.seconds["psdbake"] = time.perf_counter() - start
         frames = animation_frames(stacks.corrected)
         result.frames = frames
+        warned = inspect_warnings(case.asset)
         start = time.perf_counter()
         ref_plain, ref_corr = bake(stacks.plain, frames), bake(stacks.corrected, frames)
         result.seconds["bake"] = time.perf_counter() - start
@@ -574,7 +588,12 @@ def compare_case(case: Case, tmp: str, gltf: bool) -> CaseResult:
             r.correction = relative_error(u_corr, u_plain, mesh.diag)
             if b_plain.shape == b_corr.shape == u_plain.shape:
                 r.delta = float(np.linalg.norm((b_corr - b_plain) - (u_corr - u_plain), axis=-1).max() / mesh.diag)
-            r.passed = r.corrected <= r.plain + CRITERION
+            # psdbake inspect must predict Blender's placement: a warning exactly where the plain stack is off
+            r.inspect_warned = path in warned
+            r.passed = r.corrected <= r.plain + CRITERION and r.inspect_warned == (r.plain > PLAIN_MISMATCH)
+            if r.inspect_warned != (r.plain > PLAIN_MISMATCH):
+                r.problems.append(f"psdbake inspect {'warned' if r.inspect_warned else 'did not warn'} but the plain "
+                                  f"stack is {'within' if r.plain <= PLAIN_MISMATCH else 'off by'} {fmt(r.plain)}")
             r.names = shape_key_check(mesh.channels, obj)
             r.weights, r.per_frame = weight_check(mesh, view_corr, ic, obj, frames)
         if gltf:
@@ -707,11 +726,13 @@ def report(results: list[CaseResult], gltf_available: bool, seconds: float) -> s
     lines = ["# Blender 5.0 default USD import vs UsdSkel.BakeSkinning", ""]
     lines += ["error = max over frames and vertices of |Blender - BakeSkinning| / bind-pose bounding-box diagonal "
               "(USD world units, after undoing the importer's conversion); "
-              f"criterion: corrected ≤ plain + {CRITERION:g}. "
+              f"criterion: corrected ≤ plain + {CRITERION:g}, and `psdbake inspect ASSET` warns exactly for the meshes "
+              f"whose plain error exceeds {PLAIN_MISMATCH:g}. "
               "Δ-corrective = max |(Blender corrected - Blender plain) - (BakeSkinning corrected - BakeSkinning plain)| / diag; "
               "correctives = max |BakeSkinning corrected - BakeSkinning plain| / diag.", ""]
-    lines += ["| case | mesh | verts (order) | frames | plain err | corrected err | correctives | Δ-corrective | criterion |",
-              "|---|---|---|---|---|---|---|---|---|"]
+    lines += ["| case | mesh | verts (order) | frames | plain err | corrected err | correctives | Δ-corrective | "
+              "inspect warns | criterion |",
+              "|---|---|---|---|---|---|---|---|---|---|"]
     for res in results:
         if res.error:
             lines.append(f"| {res.case.name} | — | — | — | — | — | — | — | ERROR |")
@@ -719,7 +740,8 @@ def report(results: list[CaseResult], gltf_available: bool, seconds: float) -> s
         for m in res.meshes:
             verdict = ("PASS" if m.passed else "FAIL") + ("*" if m.plain > PLAIN_MISMATCH else "")
             lines.append(f"| {res.case.name} | `{m.path}` | {m.vertices} ({m.order}) | {len(res.frames)} | {fmt(m.plain)} | "
-                         f"{fmt(m.corrected)} | {fmt(m.correction)} | {fmt(m.delta)} | {verdict} |")
+                         f"{fmt(m.corrected)} | {fmt(m.correction)} | {fmt(m.delta)} | "
+                         f"{'yes' if m.inspect_warned else 'no'} | {verdict} |")
     if any(m.plain > PLAIN_MISMATCH for res in results for m in res.meshes):
         lines += ["", f"\\* plain error > {PLAIN_MISMATCH:g}: Blender misplaces this mesh even without correctives (see "
                   "Plain-stack placement), so the criterion cannot see the correctives; Δ-corrective shows how far Blender's "
@@ -814,7 +836,7 @@ def to_json(results: list[CaseResult]) -> list[dict]:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--cases", nargs="*", help="subset of: arm character cesiumman long_path")
+    parser.add_argument("--cases", nargs="*", help="subset of: humanoid arm character cesiumman long_path")
     parser.add_argument("--out", default=os.path.join(ROOT, os.environ.get("OUT", "out"), "interop"),
                         help="folder for report.md, weights.md, results.json (default: out/interop)")
     parser.add_argument("--keep", help="build in this folder (kept) instead of a temporary one")
