@@ -546,7 +546,8 @@ class CaseResult:
 
     @property
     def passed(self) -> bool:
-        return not self.error and bool(self.meshes) and all(m.passed for m in self.meshes)
+        return (not self.error and bool(self.meshes) and all(m.passed for m in self.meshes)
+                and (not self.gltf or bool(self.gltf.get("passed"))))
 
 
 def compare_case(case: Case, tmp: str, gltf: bool) -> CaseResult:
@@ -691,7 +692,20 @@ def gltf_case(case: Case, stacks: Stacks, ref_corr: Reference, folder: str) -> d
     psdbake(log, "export-gltf", case.asset, stacks.correctives, "--anim", stacks.anim, "-o", glb)
     report = check_gltf(glb, ref_corr, os.path.join(folder, "blender_gltf.npz"))
     report["commands"] = log
+    report["validator"] = validate_gltf(glb)
+    issues = report["validator"]
+    report["passed"] = report["passed"] and issues["errors"] == 0 and issues["warnings"] == 0
     return report
+
+
+def validate_gltf(glb: str) -> dict:
+    """The Khronos glTF-Validator's counts for glb (tests/gltf, installed by make test's npm ci)."""
+    proc = subprocess.run(["node", os.path.join(ROOT, "tests", "gltf", "validate.mjs"), glb], capture_output=True,
+                          text=True, cwd=ROOT)
+    if proc.returncode != 0:
+        raise HarnessError(f"glTF-Validator failed on {glb}: {proc.stderr.strip()[:300]}")
+    issues = json.loads(proc.stdout)["issues"]
+    return {k: int(issues[f"num{k.capitalize()}"]) for k in ("errors", "warnings", "infos", "hints")}
 
 
 # --- report -------------------------------------------------------------------------------------
@@ -784,7 +798,9 @@ def report(results: list[CaseResult], gltf_available: bool, seconds: float) -> s
                      f"(criterion {GLTF_CRITERION:g} against the corrected BakeSkinning reference).")
     for res in results:
         if res.gltf:
-            lines.append(f"- {res.case.name}: {res.gltf['time_mapping']}; {res.gltf['conversion']}")
+            v = res.gltf.get("validator", {})
+            lines.append(f"- {res.case.name}: {res.gltf['time_mapping']}; {res.gltf['conversion']}; glTF-Validator: "
+                         f"{v.get('errors')} errors, {v.get('warnings')} warnings, {v.get('infos')} infos")
             for path, e in res.gltf["meshes"].items():
                 w = e.get("weights", {})
                 verdict = "PASS" if e.get("passed") else "FAIL"
