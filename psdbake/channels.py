@@ -20,6 +20,7 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 from numpy.typing import NDArray
 
+from . import tolerances as tol
 from .posespace import POSE_SPACES
 from .rbf_model import KERNELS
 from .usd.schema import BlendShapeData, DriverData
@@ -116,6 +117,20 @@ def weight_range(data: DriverData, groups: Mapping[str, DriverData]) -> Interval
     return lo, hi
 
 
+def channel_scales(bound: Interval, sampled: Interval) -> Interval:
+    """Each side's scale: the guaranteed bound (``weight_range``) when it is within
+    ``tol.CHANNEL_HEADROOM`` of what the weights reach over sampled poses, else that headroom
+    times the sampled reach (the bound of an ill-conditioned RBF can be 1e6 where its weights
+    stay within [-1, 2], and a channel weight of 1e-6 is one UsdSkel skips). A positive scale
+    is at least the headroom (every corrective reaches 1 at its own example); a side the bound
+    allows but no sample reaches keeps a scale of at least ``tol.CHANNEL_FLOOR`` of it."""
+    (b_lo, b_hi), (s_lo, s_hi) = bound, sampled
+    hi = np.where(b_hi > 0.0, np.minimum(b_hi, tol.CHANNEL_HEADROOM * np.maximum(s_hi, 1.0)), 0.0)
+    reach = np.maximum(-s_lo, tol.CHANNEL_FLOOR * np.maximum(hi, 1.0))
+    lo = np.where(b_lo < 0.0, np.maximum(b_lo, -tol.CHANNEL_HEADROOM * reach), 0.0)
+    return lo, hi
+
+
 def plan_channels(names: Sequence[str], lo: NDArray[np.float64], hi: NDArray[np.float64]
                   ) -> tuple[list[str], NDArray[np.int64], NDArray[np.float64]]:
     """(channel names, the output column each carries, its signed scale): a positive channel
@@ -132,11 +147,12 @@ def plan_channels(names: Sequence[str], lo: NDArray[np.float64], hi: NDArray[np.
 
 
 def channel_weights(data: DriverData, b: NDArray[np.float64]) -> NDArray[np.float64]:
-    """(f, c) the written weights from the columns' weights b (f, s): clamp(b / scale, 0, 1)
-    per channel; a layer without channels (psd: v1-v3) writes b itself."""
+    """(f, c) the written weights from the columns' weights b (f, s): max(0, b / scale) per
+    channel (in [0, 1] wherever b stays within the scales); a layer without channels (psd:
+    v1-v3) writes b itself."""
     if not len(data.channels):
         return b
-    return np.clip(b[:, data.channel_columns] / data.channel_scales, 0.0, 1.0)
+    return np.maximum(b[:, data.channel_columns] / data.channel_scales, 0.0)
 
 
 def column_weights(data: DriverData, w: NDArray[np.float64]) -> NDArray[np.float64]:

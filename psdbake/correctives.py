@@ -18,7 +18,7 @@ from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
 from . import tolerances as tol
-from .channels import plan_channels, split_shapes, weight_range
+from .channels import channel_scales, plan_channels, split_shapes, weight_range
 from .drivers import character_scale, fit_drivers, plan_group, resolve_drivers
 from .errors import FitError, InputError, PsdWarning, where
 from .groups import shapes_of
@@ -30,7 +30,7 @@ from .results import Example, MeshFit
 from .settings import FitSettings
 from .usd.read import Scene, SkinnedMesh
 from .usd.schema import BlendShapeData, DriverData
-from .weights import activation, pose_coordinates, rbf_weights, weights_at_pose
+from .weights import activation, pose_coordinates, rbf_weights, sampled_range, weights_at_pose
 
 Solved = tuple[InverseResult, CorrectiveNormals | None]
 
@@ -86,10 +86,11 @@ def fit_regions(asset: str, asset_scene: Scene, info: SkinnedMesh, examples: Seq
 
 def _client_safe(fit: MeshFit, groups: dict[str, DriverData]) -> MeshFit:
     """The fit's correctives as client-safe channels (``channels``): each column split into a
-    positive and a negative channel scaled by the bounds of its weight over every pose."""
+    positive and a negative channel scaled by the range of its weight (``channel_scales``)."""
     data = fit.driver_data
-    lo, hi = weight_range(data, groups)
-    names, columns, scales = plan_channels(list(data.shapes), lo, hi)
+    bound = weight_range(data, groups)
+    sampled = sampled_range(list(groups.items()), fit.group, tol.CHANNEL_RANGE_SAMPLES)
+    names, columns, scales = plan_channels(list(data.shapes), *channel_scales(bound, sampled))
     data = dataclasses.replace(data, channels=names, channel_columns=columns, channel_scales=scales)
     return dataclasses.replace(fit, driver_data=data, shapes=tuple(split_shapes(shapes_of(fit), data)))
 

@@ -8,6 +8,7 @@ channels are kept, in front of psdbake's.
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Callable, Iterator, Sequence
 
 import numpy as np
@@ -16,7 +17,7 @@ from numpy.typing import NDArray
 from . import tolerances as tol
 from .channels import channel_names, channel_weights
 from .deformers import DeformerFactory
-from .errors import InputError, where
+from .errors import InputError, PsdWarning, where
 from .results import AnimWeights, Progress
 from .usd.blackbox import FLOAT32_MAX, SkinningBlackBox
 from .usd.read import Scene, SkinnedMesh
@@ -88,20 +89,20 @@ def _finite_weights(w: NDArray[np.float64], data: DriverData, group: str, times:
 
 def _bounded_channels(b: NDArray[np.float64], data: DriverData, group: str, times: NDArray[np.float64],
                       correctives: str, info: SkinnedMesh) -> NDArray[np.float64]:
-    """The written channel weights; refused when a stored channel scale does not bound its
-    corrective's weight (clamping it to [0, 1] would silently change the shape)."""
+    """The written channel weights, max(0, b / scale). A weight above 1 (a pose beyond the
+    reach the scales were set for) is written as is, so UsdSkel stays exact, and warned
+    about once per channel: clients that clamp slider values to [0, 1] under-correct there."""
     if not len(data.channels):
         return b
-    ratio = b[:, data.channel_columns] / data.channel_scales
-    over = ratio > 1.0 + tol.CHANNEL_BOUND_SLACK
-    if over.any():
-        f, c = (int(i[0]) for i in np.nonzero(over))
-        raise InputError(
-            f"{where(correctives, info.path)}: group {group!r} needs channel {data.channels[c]} at "
-            f"{float(ratio[f, c]):.3g} x its psd:channelScales at time {float(times[f]):g}: the scales do not "
-            "bound the weights (the psd: values are corrupt or were edited); re-fit"
-        )
-    return channel_weights(data, b)
+    w = channel_weights(data, b)
+    for c in map(int, np.nonzero(np.any(w > 1.0 + tol.CHANNEL_BOUND_SLACK, axis=0))[0]):
+        f = int(np.argmax(w[:, c]))
+        warnings.warn(
+            f"{where(correctives, info.path)}: group {group!r} drives channel {data.channels[c]} to {w[f, c]:.3g} "
+            f"at time {float(times[f]):g}, beyond the [0, 1] its psd:channelScales were set for: written as is "
+            "(UsdSkel shows it exactly); clients that clamp shape-key values to [0, 1], as Blender does, "
+            "under-correct there", PsdWarning, stacklevel=2)
+    return w
 
 
 def posed_points(rest_scene: Scene, scene: Scene, meshes: Sequence[SkinnedMesh], times: Sequence[float],

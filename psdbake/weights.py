@@ -155,3 +155,23 @@ def weights_at_pose(groups: Sequence[tuple[str, DriverData]], pose: NDArray[np.f
 
 def _index(joints: Sequence[str], data: DriverData) -> list[int]:
     return [list(joints).index(d) for d in data.drivers]
+
+
+def sampled_range(groups: Sequence[tuple[str, DriverData]], group: str, count: int, seed: int = 0
+                  ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """(min, max) per output column of one group's weights b over ``count`` rotations drawn
+    uniformly from SO(3) for every driver joint of the mesh's groups (the same draw for a
+    joint shared by several groups; a fixed seed, so a fit is deterministic), the bind pose
+    and nothing else: what the weights actually reach, where the interval bound
+    (``channels.weight_range``) can be loose by orders of magnitude for ill-conditioned RBFs."""
+    joints = sorted({d for _, data in groups for d in data.drivers})
+    rng = np.random.default_rng(seed)
+    draws = {j: Rotation.concatenate([Rotation.identity(), Rotation.random(count, random_state=rng)]) for j in joints}
+    n = count + 1
+
+    def delta_of(data: DriverData) -> Rotation:
+        quats = np.stack([draws[d].as_quat() for d in data.drivers], axis=1)  # (n, d, 4), frame-major
+        return Rotation.from_quat(quats.reshape(-1, 4))
+
+    b = group_weights(groups, delta_of, n)[group]
+    return b.min(axis=0), b.max(axis=0)

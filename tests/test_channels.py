@@ -37,8 +37,8 @@ def _random_rotations(n: int, seed: int) -> Rotation:
 ])
 def test_weight_bounds_hold_over_every_pose(kernel, degree, space):
     """weight_range bounds each corrective's weight over the whole rotation group: no sampled
-    pose (20,000 uniform rotations per driver and turns of nearly pi) leaves it. This is what
-    keeps every written channel weight in [0, 1]."""
+    pose (20,000 uniform rotations per driver and turns of nearly pi) leaves it. The scales
+    use it wherever it is within 2x of the sampled reach: then no pose at all exceeds them."""
     twist = (1.0, 0.0, 0.0) if space == "swingTwist" else None
     settings = FitSettings(group="main", kernel=kernel, pose_space=space, twist_axis=twist,
                            degree=degree if degree is not None else MIN_DEGREE.get(kernel))
@@ -57,6 +57,73 @@ def test_weight_bounds_hold_over_every_pose(kernel, degree, space):
     # as a channel's float32 weight and offsets each keep their own relative precision)
     assert np.all(hi <= 1000 * np.maximum(b.max(axis=0), 1e-3))
     assert np.all(lo >= 1000 * np.minimum(b.min(axis=0), -1e-3))
+
+
+def test_scales_keep_sampled_poses_in_range_and_examples_well_above_zero():
+    """The channel scales (channels.channel_scales): over 20,000 other random poses per driver
+    (another seed than the fit's) every channel weight stays within [0, 1], and at each
+    corrective's own example its channel weighs at least 0.2 (UsdSkel skips weights below
+    1e-6), on the humanoid's whole default fit, combinations included."""
+    asset, examples = fixture("humanoid", "humanoid.usda"), fixture("humanoid", "humanoid_examples.usda")
+    result = api.fit(asset, [examples])
+    groups = [(m.group, m.driver_data) for m in result.meshes]
+    from psdbake.channels import channel_weights
+    from psdbake.weights import sampled_range
+
+    for m in result.meshes:
+        data = m.driver_data
+        lo, hi = sampled_range(groups, m.group, 20_000, seed=12345)
+        top = channel_weights(data, np.stack([lo, hi]))  # both extremes, per channel
+        assert top.max() <= 1.0, (m.group, top.max())
+        own = channel_weights(data, np.eye(len(data.shapes)))  # b = 1 at its own example, 0 elsewhere
+        assert min(own[s, data.channel_columns == s].max() for s in range(len(data.shapes))) >= 0.2
+
+
+def test_an_ill_conditioned_group_keeps_usable_channels(tmp_path):
+    """32 examples on the 13k bench rig: the RBF system's condition number is ~4e7 and the
+    interval bound of its weights ~3e6; far from its examples the RBF does reach +-170 (the
+    sampled reach), so the scales follow that (2x): at most 336 here, every example's channel
+    weighs at least 1/336, and the stack reproduces every example (points cache) within 1e-5
+    of the diagonal. With the interval bound as scale a channel would weigh 4e-7 at its own
+    example, which UsdSkel skips (measured: 4.9e-2 of the diagonal off)."""
+    from benchmarks import rigs
+
+    poses_layer, poses = rigs.write_poses(str(tmp_path), 32)
+    rig = rigs.build(str(tmp_path), "lbs", "13k", poses, poses_layer)
+    result = api.fit(rig.asset, [rig.examples])
+    (m,) = result.meshes
+    lo, hi = weight_range(m.driver_data, {m.group: m.driver_data})
+    assert hi.max() > 1e4  # the loose bound this test is about
+    assert np.abs(m.driver_data.channel_scales).max() < 1e3
+    corr = api.write_correctives(result, str(tmp_path / "c.usda"))
+    cache = api.points_cache_layer(api.evaluate(rig.asset, corr, poses_layer))
+    from pxr import Sdf
+
+    spec = Sdf.Path(rigs.MESH).AppendProperty("points")
+    diag = diagonal(rig.sculpts[rig.times[0]])
+    worst = max(float(np.abs(np.array(cache.QueryTimeSample(spec, t), dtype=np.float64) - rig.sculpts[t]).max())
+                for t in rig.times)
+    assert worst <= 1e-5 * diag
+
+
+def test_a_pose_beyond_the_scales_is_written_as_is_and_warned(tmp_path, cli):
+    """Scales edited 100x smaller (standing in for a pose beyond the sampled reach): eval
+    warns, naming the channel and time, and writes the weight above 1, so UsdSkel still
+    gives the corrected shape; nothing is clamped silently."""
+    from pxr import Sdf, Vt
+
+    result = api.fit(ASSET, [EXAMPLES])
+    corr = api.write_correctives(result, str(tmp_path / "c.usda"))
+    layer = Sdf.Layer.FindOrOpen(corr)
+    attr = layer.GetAttributeAtPath(Sdf.Path(generate.MESH).AppendProperty("psd:main:channelScales"))
+    attr.default = Vt.DoubleArray([v / 100.0 for v in attr.default])
+    layer.Save()
+    weights = tmp_path / "w.usda"
+    code, _, err = cli("eval", ASSET, corr, "--anim", ANIM, "-o", weights)
+    assert code == 0 and "psdbake: warning:" in err and "beyond the [0, 1]" in err and "at time" in err
+    w = Sdf.Layer.FindOrOpen(str(weights))
+    path = Sdf.Path(generate.ANIM).AppendProperty("blendShapeWeights")
+    assert max(max(w.QueryTimeSample(path, t)) for t in w.ListTimeSamplesForPath(path)) > 1.0
 
 
 def test_written_weights_are_in_unit_range_and_names_fit(run, tmp_path):
