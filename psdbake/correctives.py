@@ -81,15 +81,22 @@ def fit_regions(asset: str, asset_scene: Scene, info: SkinnedMesh, examples: Seq
             fitted = dataclasses.replace(fitted, shapes=tuple(_combination_shapes(fitted, below)))
         fits.append(fitted)
     groups = {f.group: f.driver_data for f in fits}
-    return sorted((_client_safe(f, groups) for f in fits), key=lambda f: f.group)
+    anchors = _anchors(info, examples)
+    return sorted((_client_safe(f, groups, anchors) for f in fits), key=lambda f: f.group)
 
 
-def _client_safe(fit: MeshFit, groups: dict[str, DriverData]) -> MeshFit:
+def _anchors(info: SkinnedMesh, examples: Sequence[Example]) -> dict[str, NDArray[np.float64]]:
+    """joint -> the distinct rotations away from bind the mesh's examples give it, (k, 4)."""
+    poses = np.array([e.pose for e in examples])  # (examples, joints, 4)
+    return {j: np.unique(np.round(poses[:, i], 12), axis=0) for i, j in enumerate(info.joints)}
+
+
+def _client_safe(fit: MeshFit, groups: dict[str, DriverData], anchors: dict[str, NDArray[np.float64]]) -> MeshFit:
     """The fit's correctives as client-safe channels (``channels``): each column split into a
     positive and a negative channel scaled by the range of its weight (``channel_scales``)."""
     data = fit.driver_data
     bound = weight_range(data, groups)
-    sampled = sampled_range(list(groups.items()), fit.group, tol.CHANNEL_RANGE_SAMPLES)
+    sampled = sampled_range(list(groups.items()), fit.group, tol.CHANNEL_RANGE_SAMPLES, anchors)
     names, columns, scales = plan_channels(list(data.shapes), *channel_scales(bound, sampled))
     data = dataclasses.replace(data, channels=names, channel_columns=columns, channel_scales=scales)
     return dataclasses.replace(fit, driver_data=data, shapes=tuple(split_shapes(shapes_of(fit), data)))

@@ -76,9 +76,9 @@ GATE_ACTIVATION_MIN = 1e-3
 #: groups, far above UsdSkel's skipping of weights below 1e-6, and a pose beyond every sample
 #: has twice the sampled reach before a client clamps it.
 CHANNEL_HEADROOM = 2.0
-#: Rotations drawn uniformly from SO(3) per driver joint to measure that reach (fixed seed):
-#: 20,000 cost ~0.1 s per group of 100 examples and find the sup of the bundled rigs' weights
-#: to 1% (tests/test_channels.py).
+#: Poses drawn per driver joint to measure that reach (weights.sampled_range: between and
+#: past the sculpts, every mix of joints, a quarter uniform over SO(3); fixed seed): 20,000
+#: cost ~0.1 s per group of 100 examples.
 CHANNEL_RANGE_SAMPLES = 20_000
 #: A side no sample reaches but the bound allows keeps a scale of this fraction of the
 #: other side's (or of 1), so its channel stays usable.

@@ -7,7 +7,7 @@ as a third party would evaluate them (README: "To evaluate at a frame without ps
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 
 import numpy as np
 from numpy.typing import NDArray
@@ -157,16 +157,28 @@ def _index(joints: Sequence[str], data: DriverData) -> list[int]:
     return [list(joints).index(d) for d in data.drivers]
 
 
-def sampled_range(groups: Sequence[tuple[str, DriverData]], group: str, count: int, seed: int = 0
+def sampled_range(groups: Sequence[tuple[str, DriverData]], group: str, count: int,
+                  anchors: Mapping[str, NDArray[np.float64]], seed: int = 0
                   ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """(min, max) per output column of one group's weights b over ``count`` rotations drawn
-    uniformly from SO(3) for every driver joint of the mesh's groups (the same draw for a
-    joint shared by several groups; a fixed seed, so a fit is deterministic), the bind pose
-    and nothing else: what the weights actually reach, where the interval bound
-    (``channels.weight_range``) can be loose by orders of magnitude for ill-conditioned RBFs."""
+    """(min, max) per output column of one group's weights b over sampled poses of every
+    driver joint of the mesh's groups (one draw per joint, shared by the groups it drives;
+    a fixed seed, so a fit is deterministic): what the weights actually reach, where the
+    interval bound (``channels.weight_range``) can be loose by orders of magnitude.
+
+    Poses are drawn where shots go, between and across the sculpts: each joint independently
+    takes one of its ``anchors`` (its example rotations away from bind, (k, 4) quaternions; the
+    bind pose is always one) turned by a factor in [0, 1.5] (up to half again past the
+    sculpt), so every mix of joints the examples bend appears; a quarter of the draws are
+    uniform over SO(3), for poses far from every sculpt."""
     joints = sorted({d for _, data in groups for d in data.drivers})
     rng = np.random.default_rng(seed)
-    draws = {j: Rotation.concatenate([Rotation.identity(), Rotation.random(count, random_state=rng)]) for j in joints}
+    near, far = count - count // 4, count // 4
+    draws = {}
+    for j in joints:
+        rotvecs = Rotation.from_quat(np.concatenate([[[0.0, 0.0, 0.0, 1.0]], anchors.get(j, np.zeros((0, 4)))])).as_rotvec()
+        pick = rotvecs[rng.integers(0, len(rotvecs), near)] * rng.uniform(0.0, 1.5, (near, 1))
+        draws[j] = Rotation.concatenate([Rotation.identity(), Rotation.from_rotvec(pick),
+                                         Rotation.random(far, random_state=rng)])
     n = count + 1
 
     def delta_of(data: DriverData) -> Rotation:

@@ -59,24 +59,40 @@ def test_weight_bounds_hold_over_every_pose(kernel, degree, space):
     assert np.all(lo >= 1000 * np.minimum(b.min(axis=0), -1e-3))
 
 
-def test_scales_keep_sampled_poses_in_range_and_examples_well_above_zero():
-    """The channel scales (channels.channel_scales): over 20,000 other random poses per driver
+def test_scales_keep_sampled_poses_in_range_and_examples_well_above_zero(tmp_path):
+    """The channel scales (channels.channel_scales): over 20,000 other sampled poses per driver
     (another seed than the fit's) every channel weight stays within [0, 1], and at each
     corrective's own example its channel weighs at least 0.2 (UsdSkel skips weights below
-    1e-6), on the humanoid's whole default fit, combinations included."""
+    1e-6), on the humanoid's whole default fit, combinations included; and over the humanoid's
+    shot, one global group included (whose 16 drivers uniform SO(3) samples alone miss: its
+    weights reached 3x such scales), eval warns of no channel beyond its scale."""
     asset, examples = fixture("humanoid", "humanoid.usda"), fixture("humanoid", "humanoid_examples.usda")
     result = api.fit(asset, [examples])
     groups = [(m.group, m.driver_data) for m in result.meshes]
     from psdbake.channels import channel_weights
     from psdbake.weights import sampled_range
 
+    joints = result.meshes[0].joints
+    poses = np.array([e.pose for m in result.meshes for e in m.examples])
+    anchors = {j: poses[:, i] for i, j in enumerate(joints)}
     for m in result.meshes:
         data = m.driver_data
-        lo, hi = sampled_range(groups, m.group, 20_000, seed=12345)
+        lo, hi = sampled_range(groups, m.group, 20_000, anchors, seed=12345)
         top = channel_weights(data, np.stack([lo, hi]))  # both extremes, per channel
         assert top.max() <= 1.0, (m.group, top.max())
         own = channel_weights(data, np.eye(len(data.shapes)))  # b = 1 at its own example, 0 elsewhere
         assert min(own[s, data.channel_columns == s].max() for s in range(len(data.shapes))) >= 0.2
+    import warnings
+
+    from psdbake.errors import PsdWarning
+
+    for settings in (FitSettings(), FitSettings(group="main")):
+        corr = api.write_correctives(api.fit(asset, [examples], settings), str(tmp_path / "c.usda"))
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always", PsdWarning)
+            (anim,) = api.evaluate(asset, corr, fixture("humanoid", "humanoid_anim.usda")).animations
+        assert not [w for w in caught if issubclass(w.category, PsdWarning)]
+        assert anim.weights[:, -anim.psd_channels:].max() <= 1.0
 
 
 def test_an_ill_conditioned_group_keeps_usable_channels(tmp_path):
@@ -92,7 +108,7 @@ def test_an_ill_conditioned_group_keeps_usable_channels(tmp_path):
     rig = rigs.build(str(tmp_path), "lbs", "13k", poses, poses_layer)
     result = api.fit(rig.asset, [rig.examples])
     (m,) = result.meshes
-    lo, hi = weight_range(m.driver_data, {m.group: m.driver_data})
+    _lo, hi = weight_range(m.driver_data, {m.group: m.driver_data})
     assert hi.max() > 1e4  # the loose bound this test is about
     assert np.abs(m.driver_data.channel_scales).max() < 1e3
     corr = api.write_correctives(result, str(tmp_path / "c.usda"))
