@@ -19,11 +19,13 @@ __version__ = "0.1.0"
 #: view below are derived from it; tests/test_layering.py checks they agree).
 _EXPORTS = {
     "api": (
-        "correctives_layer", "describe", "evaluate", "export_gltf", "files_read", "fit", "points_cache_layer", "pose",
-        "weights_layer", "write_correctives", "write_points_cache", "write_pose", "write_stack", "write_weights",
+        "correctives_layer", "describe", "evaluate", "export_gltf", "files_read", "fit", "mirror", "mirror_reads",
+        "points_cache_layer", "pose", "weights_layer", "write_correctives", "write_mirror", "write_points_cache",
+        "write_pose", "write_stack", "write_weights",
     ),
-    "settings": ("FitSettings",),
-    "results": ("AnimWeights", "Example", "FitResult", "GltfResult", "MeshFit", "PoseResult", "Progress", "WeightsResult"),
+    "settings": ("FitSettings", "MirrorSettings"),
+    "results": ("AnimWeights", "Example", "FitResult", "GltfResult", "MeshFit", "MirroredGroup", "MirrorResult",
+                "PoseResult", "Progress", "WeightsResult"),
     "frames": ("parse_frames",),
     "farm": ("Batch", "BatchResult", "JobResult", "load_jobs", "run_batch"),
     "farm.chunked": ("ChunkedWeights", "evaluate_chunks", "write_chunks"),
@@ -64,10 +66,13 @@ if TYPE_CHECKING:  # for type checkers and IDEs: the same names, eagerly
         export_gltf,
         files_read,
         fit,
+        mirror,
+        mirror_reads,
         points_cache_layer,
         pose,
         weights_layer,
         write_correctives,
+        write_mirror,
         write_points_cache,
         write_pose,
         write_stack,
@@ -98,9 +103,11 @@ if TYPE_CHECKING:  # for type checkers and IDEs: the same names, eagerly
         FitResult,
         GltfResult,
         MeshFit,
+        MirroredGroup,
+        MirrorResult,
         PoseResult,
         Progress,
         WeightsResult,
     )
-    from .settings import FitSettings  # noqa: F401
+    from .settings import FitSettings, MirrorSettings  # noqa: F401
     from .usd.schema import PSD_VERSION, DriverData  # noqa: F401

@@ -15,19 +15,22 @@ import time as _time
 import warnings
 from collections.abc import Sequence
 
-from . import __version__, atomic
+from . import __version__, atomic, objloop
 from .correctives import fit_regions, plan_mesh, plan_systems
 from .deformers import deformer_files, load_deformers
 from .errors import InputError, PsdWarning, where
 from .evaluate import animation_weights, correctives_by_animation, posed_points
 from .examples import gather_examples
 from .frames import frames_of
-from .groups import correctives_layer
-from .results import FitResult, GltfResult, PoseResult, Progress, WeightsResult
-from .settings import FitSettings, SettingError
+from .groups import correctives_layer, read_correctives, updated_layer
+from .mirror import mirror_groups
+from .obj.folder import check_obj_dir as check_obj_folder
+from .results import FitResult, GltfResult, MirrorResult, PoseResult, Progress, SculptsResult, WeightsResult
+from .settings import FitSettings, MirrorSettings, SettingError
 from .solve import cached_scene, solve_all
 from .usd import write as usdwrite
 from .usd.author import Layer
+from .usd.bindspace import read_bind_space
 from .usd.compose import compose
 from .usd.describe import describe as describe_file
 from .usd.gltf_source import read_gltf_source
@@ -39,6 +42,7 @@ __all__ = [  # noqa: RUF022 - in pipeline order; the public surface is psdbake/_
     "fit", "write_correctives", "evaluate", "weights_layer", "write_weights", "points_cache_layer",
     "write_points_cache", "pose", "write_pose", "write_stack", "describe", "open_asset", "files_read",
     "correctives_layer", "export_gltf",
+    "mirror", "mirror_reads", "write_mirror",
 ]
 
 
@@ -301,8 +305,84 @@ def pose(asset: str, poses: str, deformers: Sequence[str] = (), *, progress: Pro
     return PoseResult(asset, poses, tuple(times), tuple(m.path for m in meshes), layer, tuple(deformers))
 
 
-def write_pose(result: PoseResult, path: str) -> str:
-    return usdwrite.export_atomic(result.layer, path, files_read([result.asset, result.poses], result.deformers))
+def write_pose(result: PoseResult, path: str, obj_dir: str | None = None) -> str:
+    """Export EXAMPLES atomically; with obj_dir, also one OBJ per skinned mesh and time code
+    plus ``manifest.json`` there, all in the same commit (``objloop``)."""
+    inputs = files_read([result.asset, result.poses], result.deformers)
+    if obj_dir is None:
+        return usdwrite.export_atomic(result.layer, path, inputs)
+    objloop.write_pose_objs(result, path, obj_dir, inputs)
+    return path
+
+
+# --- sculpts: the OBJs of pose --obj-dir, sculpted -> EXAMPLES for fit --------------------------
+
+def check_obj_dir(obj_dir: str, inputs: Sequence[str] = ()) -> None:
+    """Refuse an OBJ folder pose cannot fill (before the work; exit 6)."""
+    check_obj_folder(obj_dir, inputs)
+
+
+def obj_files(result: PoseResult) -> list[str]:
+    """The OBJ file names ``write_pose(..., obj_dir)`` writes for result."""
+    return objloop.obj_files(result)
+
+
+def sculpts(asset: str, examples: str, obj_dir: str, *, scale: float | None = None,
+            up_axis: str | None = None) -> SculptsResult:
+    """Read back the sculpted OBJs of obj_dir (listed in its manifest) over EXAMPLES, the layer
+    ``pose`` wrote with them: each file checked (vertex count, faces, finite, near its posed
+    mesh), ``scale`` and ``up_axis`` applied first."""
+    return objloop.read_sculpts(asset, examples, obj_dir, scale=scale, up_axis=up_axis)
+
+
+def write_sculpts(result: SculptsResult, path: str) -> str:
+    """Export SCULPTED_EXAMPLES (EXAMPLES with the sculpted points) atomically; no input, OBJ
+    or manifest may be the output."""
+    usdwrite.export_all([(path, objloop.sculpts_layer(result))], [result.asset, result.examples],
+                        other_inputs=result.read)
+    return path
+
+
+# --- mirror: one side's correctives groups -> the other side's, in CORRECTIVES ------------------
+
+def mirror(asset: str, correctives: str, settings: MirrorSettings) -> MirrorResult:
+    """The other side's correctives groups, made from CORRECTIVES's groups (``settings.group``,
+    or every group whose drivers all have partners) by reflecting the rig's bind space
+    (``psdbake/mirror.py``); refuses a rig or mesh that is not mirror-symmetric."""
+    started = _time.perf_counter()
+    scene = open_asset(asset)
+    groups = read_correctives(asset, correctives)
+    meshes = {m.path: m for m in scene.skinned_meshes() if m.path in groups}
+    binds = {path: read_bind_space(scene, info) for path, info in meshes.items()}
+    made, skipped = mirror_groups(asset, correctives, groups, binds, meshes, settings)
+    return MirrorResult(asset, correctives, settings, tuple(made), tuple(skipped), _time.perf_counter() - started)
+
+
+def mirror_reads(asset: str, correctives: str, output: str) -> list[str]:
+    """Every file ``mirror`` reads that its output may not be: CORRECTIVES itself may be the
+    output (it is then updated in place, as ``fit --group`` updates its output)."""
+    reads = files_read([asset, correctives])
+    if os.path.realpath(output) != os.path.realpath(correctives):
+        return reads
+    return [f for f in reads if os.path.realpath(f) != os.path.realpath(correctives)]
+
+
+def write_mirror(result: MirrorResult, path: str) -> str:
+    """Export CORRECTIVES's groups with the mirrored ones written in (each replacing its
+    namesake) atomically to path. When path is CORRECTIVES itself, it is re-read and
+    replaced under the update lock, so concurrent group updates all land."""
+    inputs = mirror_reads(result.asset, result.correctives, path)
+    new: dict = {}
+    for g in result.groups:
+        new.setdefault(g.mesh, {})[g.group] = (g.driver_data, list(g.shapes))
+    doc = f"psdbake {__version__} mirror: rest-space correctives (inverse PSD), groups mirrored"
+    if os.path.realpath(path) != os.path.realpath(result.correctives):
+        usdwrite.export_all([(path, updated_layer(result.asset, result.correctives, new, doc))], inputs)
+        return path
+    atomic.check_output(path, inputs, tuple(usdwrite.FORMATS))
+    with atomic.updating(path):
+        usdwrite.export_all([(path, updated_layer(result.asset, path, new, doc))], inputs)
+    return path
 
 
 # --- views and descriptions --------------------------------------------------------------

@@ -33,7 +33,7 @@ from .groups import read_correctives
 from .posespace import POSE_SPACES
 from .rbf import KERNELS
 from .report import compare as compare_meshes
-from .settings import FitSettings
+from .settings import FitSettings, MirrorSettings
 from .usd import write as usdwrite
 from .usd.diagnostics import usd_diagnostics, usd_errors
 from .usd.schema import DEFAULT_GROUP
@@ -106,7 +106,7 @@ def cli() -> None:
 
 
 #: Library parameter -> the flag that sets it, for messages (``SettingError``).
-FLAGS = {"rtol": "--tolerance", "meshes": "--mesh", "drivers": "--driver"}
+FLAGS = {"rtol": "--tolerance", "meshes": "--mesh", "drivers": "--driver", "as_name": "--as"}
 
 _INPUT_PARAMS = ("asset", "examples", "correctives", "anim", "poses", "file", "layers", "jobs_file")
 
@@ -147,20 +147,58 @@ def _settings(drivers, kernel, sigma, degree, smoothing, no_rest_example, pose_s
 @click.argument("asset", type=str)
 @click.option("--anim", "poses", required=True, type=str, help="POSES layer: one pose per time code.")
 @click.option("-o", "--output", required=True, type=str, help="EXAMPLES layer to write.")
+@click.option("--obj-dir", metavar="DIR", default=None,
+              help="Also write one OBJ per skinned mesh and time code into DIR, plus DIR/manifest.json, for sculpting "
+                   "applications (read back with psdbake sculpts). Created if missing; a non-empty DIR must hold an "
+                   "earlier manifest (its unedited files are replaced).")
 @deformer_option
 @_common
-def pose_cmd(asset, poses, output, deformers, quiet, verbose, as_json) -> None:
+def pose_cmd(asset, poses, output, obj_dir, deformers, quiet, verbose, as_json) -> None:
     """Write the skinned character at every time code of POSES, for artists to sculpt."""
     ui = Ui(quiet, verbose, as_json)
-    atomic.check_outputs([(output, LAYER_FORMATS)], api.files_read([asset, poses], deformers))
+    reads = api.files_read([asset, poses], deformers)
+    atomic.check_outputs([(output, LAYER_FORMATS)], reads)
+    if obj_dir is not None:
+        api.check_obj_dir(obj_dir, reads)
     with ui.warnings(), ui.progress("posing") as progress:
         result = api.pose(asset, poses, deformers, progress=progress)
-        api.write_pose(result, output)
+        api.write_pose(result, output, obj_dir=obj_dir)
     summary = {"output": output, "times": list(result.times), "meshes": list(result.meshes)}
+    if obj_dir is not None:
+        summary.update(obj_dir=obj_dir, obj_files=api.obj_files(result))
     if as_json:
         click.echo(json.dumps(summary, sort_keys=True))
     ui.say(f"psdbake pose: {len(result.meshes)} mesh(es) at {len(result.times)} time code(s)")
+    if obj_dir is not None:
+        ui.say(f"wrote {output} and {len(api.obj_files(result))} OBJ file(s) in {obj_dir}: sculpt them keeping the vertex "
+               f"order, then run psdbake sculpts {asset} {output} --obj-dir {obj_dir} -o SCULPTED_EXAMPLES")
+        return
     ui.say(f"wrote {output}: sculpt the points at each time code, then run psdbake fit")
+
+
+@cli.command("sculpts")
+@click.argument("asset", type=str)
+@click.argument("examples", type=str)
+@click.option("--obj-dir", required=True, metavar="DIR",
+              help="The folder psdbake pose --obj-dir wrote, its OBJs sculpted (DIR/manifest.json lists them).")
+@click.option("-o", "--output", required=True, type=str, help="SCULPTED_EXAMPLES layer to write (what fit reads).")
+@click.option("--scale", type=float, default=None, metavar="S",
+              help="Multiply the OBJs' coordinates by S first (e.g. 0.01: the sculpts were exported in centimetres, "
+                   "the asset is in metres).")
+@click.option("--up-axis", type=click.Choice(["Y", "Z"], case_sensitive=False), default=None, metavar="Y|Z",
+              help="The OBJs' up axis, when the sculpting application exported them with another one than the asset's; "
+                   "they are turned to the asset's first.")
+@_common
+def sculpts_cmd(asset, examples, obj_dir, output, scale, up_axis, quiet, verbose, as_json) -> None:
+    """Read the sculpted OBJs of DIR back into EXAMPLES (the layer psdbake pose wrote with them):
+    each OBJ checked against the asset's mesh and its posed points, written as SCULPTED_EXAMPLES for fit."""
+    ui = Ui(quiet, verbose, as_json)
+    atomic.check_outputs([(output, LAYER_FORMATS)], api.files_read([asset, examples]))
+    with ui.warnings():
+        result = api.sculpts(asset, examples, obj_dir, scale=scale, up_axis=up_axis.upper() if up_axis else None)
+        api.write_sculpts(result, output)
+    ui.payload(console.sculpts_payload(result, output))
+    console.say_sculpts(ui, result, output)
 
 
 @cli.command("fit")
@@ -243,6 +281,35 @@ def eval_cmd(asset, correctives, anim, output, frames, points_cache, chunk_size,
                 cache = (points_cache, api.points_cache_layer(result, deformers, progress=progress))
         api.write_weights(result, output, points_cache=cache, deformers=deformers)
     console.say_eval(ui, result, output, points_cache)
+
+
+@cli.command("mirror")
+@click.argument("asset", type=str)
+@click.argument("correctives", type=str)
+@click.option("-o", "--output", required=True, type=str,
+              help="CORRECTIVES layer to write: CORRECTIVES's groups with the mirrored ones written in (may be "
+                   "CORRECTIVES itself, updated in place).")
+@click.option("--joints", "joint_rules", multiple=True, required=True, metavar="REGEX=REPLACEMENT",
+              help="Joint map (repeatable): a joint path takes the first rule whose REGEX it contains, rewritten with "
+                   "re.sub, e.g. 'L_=R_' or '(^|/)l_=\\1r_'. Group names are mapped the same way.")
+@click.option("--group", default=None, metavar="NAME",
+              help="Mirror this group only. Default: every group whose drivers all map to other joints.")
+@click.option("--as", "as_name", default=None, metavar="NAME",
+              help="With --group: the mirrored group's name (default: the joint map applied to NAME).")
+@click.option("--plane", type=click.Choice(["x", "y", "z"]), default="x", show_default=True,
+              help="Mirror plane: the skeleton-space plane through the origin normal to this axis.")
+@_common
+def mirror_cmd(asset, correctives, output, joint_rules, group, as_name, plane, quiet, verbose, as_json) -> None:
+    """Make the other side's correctives groups from one side's (a symmetric rig and mesh) and write them
+    into CORRECTIVES's groups."""
+    ui = Ui(quiet, verbose, as_json)
+    settings = MirrorSettings(joints=tuple(joint_rules), plane=plane, group=group, as_name=as_name)
+    atomic.check_outputs([(output, LAYER_FORMATS)], api.mirror_reads(asset, correctives, output))
+    with ui.warnings():
+        result = api.mirror(asset, correctives, settings)
+        api.write_mirror(result, output)
+    ui.payload(console.mirror_report(result, output))
+    console.say_mirror(ui, result, output)
 
 
 @cli.command("export-gltf")

@@ -18,7 +18,7 @@ from . import __version__
 from .errors import PsdWarning
 from .farm import JobResult
 from .farm.chunked import ChunkedWeights, WrittenChunks
-from .results import FitResult, Progress, WeightsResult
+from .results import FitResult, MirrorResult, Progress, SculptsResult, WeightsResult
 
 
 class Ui:
@@ -139,6 +139,37 @@ def say_fit(ui: Ui, result: FitResult, output: str) -> None:
     ui.say(f"wrote {output}")
 
 
+# --- mirror --------------------------------------------------------------------------------
+
+def mirror_report(result: MirrorResult, output: str) -> dict:
+    """The --json payload of ``psdbake mirror``: per mirrored group, what was paired and how closely."""
+    return {
+        "psdbake": __version__, "command": "mirror", "asset": result.asset, "correctives": result.correctives,
+        "output": output, "plane": result.settings.plane, "joints": list(result.settings.joints),
+        "groups": [{
+            "mesh": g.mesh, "source": g.source, "group": g.group, "drivers": [list(p) for p in g.drivers],
+            "channels": list(g.driver_data.channels), "gate_groups": list(g.driver_data.gate_groups),
+            "vertices": g.vertices, "worst_vertex_rel": g.worst_vertex, "worst_joint_rel": g.worst_joint,
+            "kernel": g.driver_data.kernel, "sigma": g.driver_data.sigma,
+        } for g in result.groups],
+        "skipped": list(result.skipped), "seconds": round(result.seconds, 6),
+    }
+
+
+def say_mirror(ui: Ui, result: MirrorResult, output: str) -> None:
+    ui.say(f"psdbake mirror: {len(result.groups)} group(s) mirrored about the {result.settings.plane} plane, "
+           f"{sum(g.vertices for g in result.groups)} vertices paired in {result.seconds:.2f} s")
+    for g in result.groups:
+        drivers = ", ".join(f"{a.split('/')[-1]} -> {b.split('/')[-1]}" for a, b in g.drivers)
+        ui.say(f"  <{g.mesh}>  {g.source} -> {g.group}  drivers: {drivers}  vertices: {g.vertices}  "
+               f"worst vertex: {g.worst_vertex:.2e} of the diagonal  worst joint: {g.worst_joint:.2e} of the skeleton")
+    if result.skipped:
+        ui.say(f"  skipped {len(result.skipped)} group(s):")
+        for line in result.skipped:
+            ui.say(f"    {line}")
+    ui.say(f"wrote {output}")
+
+
 # --- eval ----------------------------------------------------------------------------------
 
 def say_eval(ui: Ui, result: WeightsResult, output: str, points_cache: str | None) -> None:
@@ -219,3 +250,32 @@ def batch_lines(jobs_file: str, quiet: bool, verbose: int) -> Callable[[JobResul
                 click.echo(f"psdbake: warning: {jobs_file} {r.label}: {w}", err=True)
 
     return done
+
+
+# --- sculpts -------------------------------------------------------------------------------
+
+def sculpts_payload(result: SculptsResult, output: str) -> dict:
+    """The --json summary of ``psdbake sculpts``: per OBJ, what moved and how far."""
+    return {
+        "psdbake": __version__, "command": "sculpts", "asset": result.asset, "examples": result.examples,
+        "obj_dir": result.obj_dir, "output": output, "scale": result.scale, "up_axis": result.up_axis,
+        "files": [{"file": f.file, "mesh": f.mesh, "time": f.time, "points": len(f.points), "moved": f.moved,
+                   "max_displacement": f.max_displacement, "mean_displacement": f.mean_displacement,
+                   "max_displacement_rel": f.max_displacement / (f.diagonal or 1.0), "edited": f.edited}
+                  for f in result.files],
+        "warnings": list(result.warnings), "seconds": round(result.seconds, 6),
+    }
+
+
+def say_sculpts(ui: Ui, result: SculptsResult, output: str) -> None:
+    sculpted = sum(1 for f in result.files if f.moved)
+    ui.say(f"psdbake sculpts: {len(result.files)} OBJ file(s), {sculpted} with sculpted vertices, in {result.seconds:.2f} s")
+    for f in result.files:
+        if f.moved or ui.verbose:
+            ui.say(f"  {f.file}  <{f.mesh}> t={f.time:g}: {f.moved} of {len(f.points)} vertices moved, max "
+                   f"{f.max_displacement:.4g} ({f.max_displacement / (f.diagonal or 1.0):.2g} of the diagonal), mean "
+                   f"{f.mean_displacement:.4g}" + ("" if f.edited else "  (unedited)"))
+    untouched = len(result.files) - sculpted
+    if untouched and not ui.verbose:
+        ui.say(f"  {untouched} file(s) with no vertex moved (-v lists them)")
+    ui.say(f"wrote {output}: run psdbake fit {result.asset} {output} -o CORRECTIVES")

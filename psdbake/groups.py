@@ -14,6 +14,7 @@ from .channels import channel_names
 from .errors import InputError, PsdWarning, where
 from .results import FitResult, MeshFit
 from .usd import write as usdwrite
+from .usd.author import Layer
 from .usd.compose import open_layer
 from .usd.read import Scene, existing_blend_shapes, read_corrective_shapes
 from .usd.schema import BlendShapeData, DriverData, author_driver_data, psd_prims
@@ -116,10 +117,23 @@ def correctives_layer(result: FitResult, update: str | None = None):
         groups.setdefault(m.mesh, {})[m.group] = (m.driver_data, shapes_of(m))
     for note in cross_talk(result, groups):  # this fit's groups and the ones carried over
         warnings.warn(note, PsdWarning, stacklevel=2)
-    asset_scene = Scene([result.asset])
-    layer = usdwrite.new_layer(
-        f"psdbake {__version__} fit: rest-space correctives (inverse PSD)", metadata=usdwrite.asset_metadata(result.asset)
-    )
+    return groups_layer(result.asset, groups, f"psdbake {__version__} fit: rest-space correctives (inverse PSD)")
+
+
+def updated_layer(asset: str, base: str, new: Groups, doc: str) -> Layer:
+    """CORRECTIVES ``base`` (a layer over asset) with the groups ``new`` written into it: each
+    replaces its namesake on its mesh, every other group is carried over unchanged."""
+    groups = read_correctives(asset, base)
+    for mesh, per_group in new.items():
+        groups.setdefault(mesh, {}).update(per_group)
+    return groups_layer(asset, groups, doc)
+
+
+def groups_layer(asset: str, groups: Groups, doc: str) -> Layer:
+    """The correctives groups as an in-memory CORRECTIVES layer over asset (groups sorted by
+    name; the asset's own blend shapes kept first on each mesh)."""
+    asset_scene = Scene([asset])
+    layer = usdwrite.new_layer(doc, metadata=usdwrite.asset_metadata(asset))
     for mesh in sorted(groups):
         names = sorted(groups[mesh])
         if not names:

@@ -10,7 +10,7 @@ from numpy.typing import NDArray
 
 from .inverse import InverseResult
 from .normals import CorrectiveNormals
-from .settings import FitSettings
+from .settings import FitSettings, MirrorSettings
 from .usd.schema import DEFAULT_GROUP, BlendShapeData, DriverData
 
 Progress = Callable[[int, int, str], None]  # (done, total, what)
@@ -107,3 +107,58 @@ class PoseResult:
     meshes: tuple[str, ...]
     layer: object  # Sdf.Layer
     deformers: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True)
+class SculptFile:
+    """One sculpt read back from an OBJ (``psdbake sculpts``) and how far it moved."""
+
+    file: str  # the OBJ's path
+    mesh: str
+    time: float
+    points: NDArray[np.float32]  # (n, 3) the sculpt, mesh local space, as authored
+    moved: int  # vertices farther from the posed points than fit's unmoved tolerance
+    max_displacement: float
+    mean_displacement: float  # over the moved vertices (0 when none moved)
+    diagonal: float  # of the posed mesh's bounding box
+    edited: bool  # its bytes differ from what psdbake pose wrote
+
+
+@dataclass(frozen=True)
+class SculptsResult:
+    asset: str
+    examples: str
+    obj_dir: str
+    files: tuple[SculptFile, ...]
+    read: tuple[str, ...]  # the OBJ files and manifest read (no output may be one of them)
+    scale: float | None = None
+    up_axis: str | None = None
+    warnings: tuple[str, ...] = ()
+    seconds: float = 0.0
+
+
+@dataclass(frozen=True)
+class MirroredGroup:
+    """One correctives group made by ``psdbake mirror`` from another on the same mesh."""
+
+    mesh: str
+    source: str  # the group mirrored
+    group: str  # its mirror's name
+    driver_data: DriverData  # client-safe channels planned afresh
+    shapes: tuple[BlendShapeData, ...]  # one per channel, as written
+    drivers: tuple[tuple[str, str], ...]  # (driver, partner), sorted
+    vertices: int  # vertices the source group moves (each paired with its mirror image)
+    worst_vertex: float  # largest distance of a mirror image to its partner vertex, fraction of the diagonal
+    worst_joint: float  # largest distance of a mirror image to its partner joint, fraction of the skeleton's extent
+
+
+@dataclass(frozen=True)
+class MirrorResult:
+    """What ``psdbake mirror`` made: the mirrored groups, to be written into CORRECTIVES's groups."""
+
+    asset: str
+    correctives: str
+    settings: MirrorSettings
+    groups: tuple[MirroredGroup, ...]
+    skipped: tuple[str, ...] = ()  # whole-layer mode: groups left out, each with why
+    seconds: float = 0.0

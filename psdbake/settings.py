@@ -58,3 +58,43 @@ class FitSettings:
         if POSE_SPACES[self.pose_space].needs_twist_axis and self.twist_axis is None:
             raise SettingError("pose_space", self.pose_space, "needs twist_axis (the twist axis in each driver's "
                                "bind frame)")
+
+
+#: Mirror planes of ``psdbake mirror``: the skeleton-space plane through the origin normal to this axis.
+MIRROR_PLANES = ("x", "y", "z")
+
+
+def is_group_name(name: str) -> bool:
+    """A group name becomes a psd: attribute namespace: an identifier, not one of the schema's own names."""
+    return bool(re.fullmatch(r"[A-Za-z_][A-Za-z0-9_]*", name)) and name not in RESERVED_GROUP_NAMES
+
+
+@dataclass(frozen=True)
+class MirrorSettings:
+    """Options of ``psdbake mirror``: the joint map (``REGEX=REPLACEMENT`` rules), the mirror
+    plane, and one group (renamed ``as_name``) or, without ``group``, every mappable group."""
+
+    joints: tuple[str, ...]  # REGEX=REPLACEMENT rules: a name takes the first rule whose REGEX it contains
+    plane: str = "x"
+    group: str | None = None
+    as_name: str | None = None
+
+    def __post_init__(self) -> None:
+        if not self.joints:
+            raise SettingError("joints", "", "give at least one REGEX=REPLACEMENT rule (e.g. 'L_=R_')")
+        for rule in self.joints:
+            pattern, eq, _ = rule.rpartition("=")
+            if not eq or not pattern:
+                raise SettingError("joints", rule, "must be REGEX=REPLACEMENT (e.g. 'L_=R_' or '(^|/)l_=\\1r_')")
+            try:
+                re.compile(pattern)
+            except re.error as exc:
+                raise SettingError("joints", rule, f"REGEX is not a regular expression ({exc})") from None
+        if self.plane not in MIRROR_PLANES:
+            raise SettingError("plane", self.plane, f"choose one of {', '.join(MIRROR_PLANES)}")
+        if self.as_name is not None and self.group is None:
+            raise SettingError("as_name", self.as_name, "needs group (the group to mirror under this name)")
+        for name, value in (("group", self.group), ("as_name", self.as_name)):
+            if value is not None and not is_group_name(value):
+                raise SettingError(name, value, "must be an identifier (letters, digits, _; not "
+                                   f"{' or '.join(repr(n) for n in RESERVED_GROUP_NAMES)})")

@@ -134,6 +134,22 @@ FORMULA_ULPS = 16.0
 #: The RBF must give each example a weight of at least this at its own pose.
 SELF_WEIGHT_MIN = 0.99
 
+#: ``psdbake mirror``: a driver joint and its partner (and each of their ancestors that the
+#: joint map renames) must sit at mirror images of each other in skeleton bind space within
+#: this fraction of the skeleton's extent (the bounding-box diagonal of its joints' bind
+#: positions). Rigs are built and exported in float32 (~6e-8 of a coordinate), so an exactly
+#: symmetric rig lands 1000x inside it, while 1e-4 of a 2 m character is 0.2 mm: far below any
+#: asymmetry a rigger makes on purpose, and a joint that far off moves skinned points by at
+#: most about as much (2 x the offset at a half turn), so the mirrored pose is the mirror image.
+MIRROR_JOINT_RTOL = 1e-4
+
+#: ``psdbake mirror``: each vertex a group moves must have a mesh vertex within this fraction
+#: of the mesh's diagonal of its mirror image (skeleton bind space). float32 points carry
+#: ~6e-8 of a coordinate (at most ~1e-7 of the diagonal), so an exactly symmetric mesh from any
+#: tool passes 100x inside it; it is the round-trip guarantee itself (a partner that far off
+#: changes no offset, only where it applies, by less than the sculpts are reproduced to), and
+#: thousands of times below any mesh's edge length, so the nearest vertex is never a neighbour.
+MIRROR_VERTEX_RTOL = 1e-5
 
 #: Most whole frames one ``--frames START:END`` may name (eval, compare, batch chunk plans).
 #: 1,000,000 frames is 11.5 hours at 24 fps, 4.6 at 60: longer than any shot or film, so a

@@ -33,12 +33,14 @@ def files_read(inputs: Iterable[str | Sdf.Layer]) -> list[str]:
     return layer_files([p for p in inputs if p])
 
 
-def export_all(outputs: Sequence[tuple[str, Sdf.Layer | str]], inputs: Iterable[str] = ()) -> list[str]:
+def export_all(outputs: Sequence[tuple[str, Sdf.Layer | str]], inputs: Iterable[str] = (),
+               other_inputs: Iterable[str] = ()) -> list[str]:
     """Write several outputs together: layers (and small text files such as a JSON report,
     given as ``str``), every one to a temporary file first, then all renamed
     (``atomic.Transaction``), so a failure leaves every old output in place. ``inputs``
-    are expanded to every file they read; no output may be one of them."""
-    with atomic.Transaction(files_read(inputs)) as tx:
+    are expanded to every file they read; no output may be one of them, nor one of
+    ``other_inputs`` (files read that are not layers: ``sculpts``' OBJ files)."""
+    with atomic.Transaction([*files_read(inputs), *other_inputs]) as tx:
         for path, layer in outputs:
             if isinstance(layer, str):
                 tmp = tx.path(path, (".json",))
@@ -48,15 +50,20 @@ def export_all(outputs: Sequence[tuple[str, Sdf.Layer | str]], inputs: Iterable[
                 except OSError as exc:
                     raise OutputError(f"{path}: cannot write ({exc.strerror or exc})") from None
                 continue
-            tmp = tx.path(path, FORMATS)
-            args = FORMATS[os.path.splitext(path)[1].lower()]
-            try:
-                written, detail = layer.Export(tmp, args=args), ""
-            except Tf.ErrorException as exc:
-                written, detail = False, first_line(exc).replace(tmp, path)
-            if not written:
-                raise OutputError(f"{path}: cannot write: {_why_not_written(tmp, detail)}")
+            export_layer(layer, tx.path(path, FORMATS), path)
     return [path for path, _ in outputs]
+
+
+def export_layer(layer: Sdf.Layer, tmp: str, path: str) -> None:
+    """Write layer to tmp (a temporary path of an ``atomic.Transaction``, in path's format),
+    or raise OutputError naming path."""
+    args = FORMATS[os.path.splitext(path)[1].lower()]
+    try:
+        written, detail = layer.Export(tmp, args=args), ""
+    except Tf.ErrorException as exc:
+        written, detail = False, first_line(exc).replace(tmp, path)
+    if not written:
+        raise OutputError(f"{path}: cannot write: {_why_not_written(tmp, detail)}")
 
 
 def _why_not_written(tmp: str, detail: str) -> str:
