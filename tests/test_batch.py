@@ -176,6 +176,25 @@ output = "other.usda"
     assert [t.key for t in load_jobs(path).tasks] == [t.key for t in tasks]  # deterministic keys
 
 
+def test_pose_jobs_sharing_an_obj_dir_run_one_after_the_other(tmp_path):
+    """--obj-dir is an output (a folder): two pose jobs writing one never run at once."""
+    path = jobs_file(tmp_path, """
+[[pose]]
+asset = "a.usda"
+anim = "poses.usda"
+output = "ex1.usda"
+obj_dir = "sculpt"
+
+[[pose]]
+asset = "a.usda"
+anim = "poses.usda"
+output = "ex2.usda"
+obj_dir = "sculpt"
+""")
+    first, second = load_jobs(path).tasks
+    assert second.after == (first.key,) and str(tmp_path / "sculpt") in first.writes
+
+
 MANIFESTS = ("out/w.usda", "out/w.clipmanifest.usda", "out/p.usdc", "out/p.clipmanifest.usdc")
 
 

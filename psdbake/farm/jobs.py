@@ -26,7 +26,7 @@ from .tasks import Batch
 
 COMMANDS = ("pose", "fit", "eval", "stack")  # the commands a job may run, in the order messages list them
 _READS = frozenset({"asset", "examples", "poses", "anim", "correctives", "layers"})  # click parameter names
-_WRITES = frozenset({"output", "report", "points_cache"})
+_WRITES = frozenset({"output", "report", "points_cache", "obj_dir"})  # obj_dir: a folder, ordered like a file
 
 #: Largest jobs file read. A job is a few hundred bytes, so 1 MiB is thousands of jobs (more
 #: than a farm queue takes from one file); the cap keeps a wrong path (a huge log, a disk image)
