@@ -88,7 +88,7 @@ def fit_report(result: FitResult, output: str) -> dict:
             diag = inv.diagonal or 1.0
             examples.append({
                 "example": ex.label, "source": ex.source, "time": ex.time, "blend_shape": channel or None,
-                "vertices_solved": len(inv.indices), "evaluations": inv.evaluations,
+                "vertices_solved": len(inv.indices), "evaluations": inv.evaluations, "regime": inv.regime,
                 "max_residual": inv.max_residual, "rms_residual": inv.rms_residual,
                 "max_residual_rel": inv.max_residual / diag, "rms_residual_rel": inv.rms_residual / diag,
                 "tolerance": inv.atol, "missed": len(inv.missed),
@@ -121,12 +121,12 @@ def say_fit(ui: Ui, result: FitResult, output: str) -> None:
                f"degree: {d.degree}{cond}")
         width = max(28, *(len(ex.label) for ex in m.examples))
         ui.say(f"    {'example':<{width}} {'solved':>7} {'evals':>6} {'max/diag':>10} {'rms/diag':>10} {'missed':>7} "
-               f"{'seconds':>8}")
+               f"{'seconds':>8}  regime")
         for ex, inv in zip(m.examples, m.inverses, strict=True):
             diag = inv.diagonal or 1.0
             ui.say(
                 f"    {ex.label:<{width}} {len(inv.indices):>7} {inv.evaluations:>6} {inv.max_residual / diag:>10.2e} "
-                f"{inv.rms_residual / diag:>10.2e} {len(inv.missed):>7} {inv.seconds:>8.3f}"
+                f"{inv.rms_residual / diag:>10.2e} {len(inv.missed):>7} {inv.seconds:>8.3f}  {inv.regime}"
             )
     if result.skipped:
         ui.say(f"  skipped {len(result.skipped)} example(s) that move other joints than the drivers: "

@@ -54,6 +54,9 @@ class InverseResult:
     diagonal: float  # bounding-box diagonal of the skinned rest shape, the unit of tolerances
     atol: float  # absolute residual tolerance used
     seconds: float
+    #: how the example was solved: "per-vertex" (each output vertex depends on its own input
+    #: vertex only, as skinning: Powell in lockstep) or another regime the solver detected
+    regime: str = "per-vertex"
 
     @property
     def missed(self) -> NDArray[np.int64]:
