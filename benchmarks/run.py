@@ -11,7 +11,10 @@ the non-linear chain):
 - literal: the paper's method, scipy Powell per vertex with a whole-mesh black-box
   call per evaluation, timed on a sample of vertices and extrapolated;
 - one-shot: a forward-difference Jacobian and one linear solve per vertex;
-- closed form (LBS only): blend each vertex's matrices and solve, the practical floor.
+- closed form (LBS only): blend each vertex's matrices and solve, the practical floor;
+- Powell alone: ``invert_example_with(..., quasi_newton=False)``, the solver without the
+  Broyden refresh (before issue 15), interleaved per example with psdbake's own solve so
+  the "solver" table compares calls and seconds from the same run.
 
 Then the eval side: RBF weights over a long shot and the points cache against
 ``UsdSkel.BakeSkinning``. A fixed-width table goes to stdout, the full record to
@@ -47,7 +50,7 @@ from pxr import Gf, Sdf, Usd, UsdGeom, UsdSkel
 import psdbake
 from psdbake import api
 from psdbake import tolerances as tol
-from psdbake.inverse import InverseResult, invert_example
+from psdbake.inverse import InverseResult, invert_example, invert_example_with
 from psdbake.results import FitResult
 from psdbake.settings import FitSettings
 from psdbake.usd.read import Scene
@@ -218,6 +221,34 @@ def measure_psdbake(rig: rigs.Rig, scene: Scene) -> tuple[dict, list[InverseResu
     return summary, results
 
 
+def measure_solver(rig: rigs.Rig, scene: Scene) -> dict:
+    """Broyden refresh (psdbake's solver) against Powell alone, example by example, interleaved
+    (alternating which goes first) on fresh black boxes so both see the same machine state:
+    calls, seconds, max residual."""
+    sides: dict[str, list[dict]] = {"broyden": [], "powell": []}
+    order = (("broyden", True), ("powell", False))
+    for k, t in enumerate(rig.times):
+        for side, qn in order if k % 2 == 0 else order[::-1]:  # alternate who runs first
+            box = rig.blackbox(scene, t)
+            started = time.perf_counter()
+            res = invert_example_with(box, rig.rest, rig.sculpts[t], quasi_newton=qn)
+            seconds = time.perf_counter() - started
+            sides[side].append({"time": t, "seconds": seconds, "evaluations": res.evaluations,
+                                "qn_steps": res.qn_steps, "cycles": res.cycles, "missed": len(res.missed),
+                                "max_rel": res.max_residual / res.diagonal})
+    out: dict[str, Any] = {}
+    for side, rows in sides.items():
+        out[side] = {"seconds": _mean(rows, "seconds"), "evaluations": _mean(rows, "evaluations"),
+                     "max_evaluations": max(r["evaluations"] for r in rows), "max_rel": _mean(rows, "max_rel"),
+                     "worst_max_rel": max(r["max_rel"] for r in rows), "missed": sum(r["missed"] for r in rows),
+                     "examples": rows}
+    new, old = out["broyden"], out["powell"]
+    out["calls_ratio"] = old["evaluations"] / new["evaluations"]
+    out["seconds_ratio"] = old["seconds"] / new["seconds"]
+    out["worst_residual_ratio"] = new["worst_max_rel"] / old["worst_max_rel"] if old["worst_max_rel"] else None
+    return out
+
+
 def measure_fit(rig: rigs.Rig) -> tuple[dict, FitResult]:
     """One full ``api.fit`` of the rig from its EXAMPLES file (read, invert, RBF)."""
     settings = FitSettings(deformers=tuple(spec for spec, _ in rig.deformers))
@@ -317,6 +348,8 @@ def bench_rig(rig: rigs.Rig) -> tuple[dict, FitResult]:
     scene = rig.scene()
     log(f"{rig.name}: psdbake invert_example x{len(rig.times)}")
     psd, results = measure_psdbake(rig, scene)
+    log(f"{rig.name}: Broyden refresh vs Powell alone")
+    solver = measure_solver(rig, scene)
     log(f"{rig.name}: api.fit")
     fit, fit_result = measure_fit(rig)
     log(f"{rig.name}: one-shot linearisation")
@@ -337,7 +370,7 @@ def bench_rig(rig: rigs.Rig) -> tuple[dict, FitResult]:
         "rig": rig.name, "variant": rig.variant, "size": rig.size, "points": rig.points,
         "examples": len(rig.times), "build_seconds": rig.build_seconds,
         "blackbox_call_seconds": blackbox_call_seconds(rig, scene),
-        "psdbake": psd, "fit": fit, "literal": literal, "one_shot": one_shot, "closed_form": closed,
+        "psdbake": psd, "solver": solver, "fit": fit, "literal": literal, "one_shot": one_shot, "closed_form": closed,
         "ratios": ratios,
     }
     return record, fit_result
@@ -510,6 +543,7 @@ def render(report: dict) -> str:
         "  'rss MB' process peak RSS during invert_example, '+rss' that peak above the RSS at the call's start",
         f"  (max over examples; {rss}; freed memory the allocator reuses is not counted).",
     ]
+    out += render_solver(report)
     ev = report.get("eval")
     if ev:
         out += [
@@ -525,6 +559,37 @@ def render(report: dict) -> str:
     return "\n".join(out)
 
 
+SOLVER_COLUMNS: list[tuple[str, Callable[[dict], str]]] = [
+    ("rig", lambda r: r["rig"]),
+    ("calls/ex", lambda r: f"{r['solver']['broyden']['evaluations']:.2f}"),
+    ("max", lambda r: f"{r['solver']['broyden']['max_evaluations']}"),
+    ("old calls/ex", lambda r: f"{r['solver']['powell']['evaluations']:.2f}"),
+    ("calls old/new", lambda r: f"{r['solver']['calls_ratio']:.2f}"),
+    ("s/ex", lambda r: _s(r["solver"]["broyden"]["seconds"])),
+    ("old s/ex", lambda r: _s(r["solver"]["powell"]["seconds"])),
+    ("s old/new", lambda r: f"{r['solver']['seconds_ratio']:.2f}"),
+    ("worst max/diag", lambda r: _e(r["solver"]["broyden"]["worst_max_rel"])),
+    ("old worst", lambda r: _e(r["solver"]["powell"]["worst_max_rel"])),
+    ("missed", lambda r: f"{r['solver']['broyden']['missed']}/{r['solver']['powell']['missed']}"),
+]
+
+
+def render_solver(report: dict) -> list[str]:
+    """The solver table: Broyden-refreshed lockstep Powell against Powell alone, same run."""
+    recs = [r for r in report["rigs"] if r.get("solver")]
+    if not recs:
+        return []
+    heads = [h for h, _ in SOLVER_COLUMNS]
+    rows = [[fmt(r) for _, fmt in SOLVER_COLUMNS] for r in recs]
+    widths = [max([len(h), *(len(row[i]) for row in rows)]) for i, h in enumerate(heads)]
+    out = ["", "solver: Broyden refresh (psdbake) vs Powell alone after the linearised start (quasi_newton=False),",
+           "  interleaved per example in this run; calls = black-box calls per example (mean; 'max' the worst example)."]
+    for row in [heads, ["-" * w for w in widths], *rows]:
+        out.append("  ".join(c.rjust(w) if k else c.ljust(w) for k, (c, w) in enumerate(zip(row, widths, strict=True))))
+    out.append("  worst max/diag: largest per-example max residual / diagonal; missed: vertices above tolerance (new/old).")
+    return out
+
+
 def _jsonable(x: Any) -> Any:
     if isinstance(x, dict):
         return {str(k): _jsonable(v) for k, v in x.items()}
@@ -537,6 +602,35 @@ def _jsonable(x: Any) -> Any:
     return x
 
 
+def solver_only(json_path: str, sizes: Sequence[str] = ("13k", "100k"),
+                variants: Sequence[str] = ("lbs", "dqs", "lbs+bulge")) -> int:
+    """``--solver-only``: the solver table alone, written to stdout and beside ``json_path``."""
+    m = machine_info()
+    report: dict[str, Any] = {"mode": "solver-only", "machine": m, "rigs": []}
+    folder = tempfile.mkdtemp(prefix="psdbake-bench-")
+    try:
+        poses_layer, poses = rigs.write_poses(folder)
+        for size in sizes:
+            for variant in variants:
+                log(f"building {variant} {size}")
+                rig = rigs.build(folder, variant, size, poses, poses_layer)
+                log(f"{rig.name}: Broyden refresh vs Powell alone")
+                report["rigs"].append({"rig": rig.name, "variant": variant, "size": size, "points": rig.points,
+                                       "solver": measure_solver(rig, rig.scene())})
+    finally:
+        shutil.rmtree(folder, ignore_errors=True)
+    report["total_seconds"] = time.perf_counter() - _T0
+    print(f"psdbake {m['psdbake']} ({m['git']}) solver benchmark, total {report['total_seconds']:.0f} s; "
+          f"machine: {m['nproc']} cores, {m['cpu_model']}")
+    print("\n".join(render_solver(report)))
+    path = os.path.splitext(json_path)[0] + "_solver.json"
+    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
+    with open(path, "w") as f:
+        json.dump(_jsonable(report), f, indent=1)
+    log(f"wrote {os.path.relpath(path)}")
+    return 0
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the suite, print the table, write the JSON; exit 0."""
     parser = argparse.ArgumentParser(prog="python -m benchmarks.run", description=__doc__.splitlines()[0])
@@ -545,8 +639,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--profile", action="store_true",
                         help="also cProfile one invert_example per variant at the largest size")
     parser.add_argument("--keep", action="store_true", help="keep the generated rigs (prints the folder)")
+    parser.add_argument("--solver-only", action="store_true",
+                        help="only the solver table (Broyden refresh vs Powell alone) on the 13k and 100k rigs")
     args = parser.parse_args(argv)
 
+    if args.solver_only:
+        return solver_only(args.json)
     sizes = ["1.3k", "13k"] if args.quick else ["1.3k", "13k", "100k"]
     report: dict[str, Any] = {"mode": "quick" if args.quick else "full", "machine": machine_info(), "rigs": []}
     folder = tempfile.mkdtemp(prefix="psdbake-bench-")

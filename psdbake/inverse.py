@@ -10,8 +10,11 @@ All sculpted vertices are solved together by ``powell.minimize_lockstep`` (one
 black-box call evaluates every vertex's trial point), started from the one-shot
 linearisation: three extra calls give a forward-difference Jacobian J per vertex,
 whose inverse columns are conjugate directions for ``|J d - r|^2`` and whose
-solution ``J^-1 r`` is the starting point. Powell's own line minimisations and
-direction updates then handle whatever is not linear. This assumes each output
+solution ``J^-1 r`` is the starting point. Where that start misses the tolerance (a
+non-linear chain), each vertex's J takes a good-Broyden update from the step just
+observed and quasi-Newton steps follow (one call each, accepted only where the
+residual drops); Powell's own line minimisations and direction updates, along the
+refreshed conjugate directions, finish whatever the model cannot. This assumes each output
 vertex depends on its own input vertex only, as skinning does (the paper's
 per-vertex formulation); a user deformer that couples vertices is solved
 approximately.
@@ -57,6 +60,10 @@ class InverseResult:
     #: how the example was solved: "per-vertex" (each output vertex depends on its own input
     #: vertex only, as skinning: Powell in lockstep) or another regime the solver detected
     regime: str = "per-vertex"
+    #: quasi-Newton (Broyden) steps and Powell cycles after the linearised start (one call per
+    #: step; 3 per line minimisation in a cycle)
+    qn_steps: int = 0
+    cycles: int = 0
 
     @property
     def missed(self) -> NDArray[np.int64]:
@@ -88,10 +95,8 @@ def _conjugate_start(
     jac: NDArray[np.float64], r0: Points
 ) -> tuple[NDArray[np.float64], Points, NDArray[np.bool_]]:
     """Directions J^-1 e_j and start J^-1 r per vertex; identity/zero where J is singular."""
-    # Conditioning test without an SVD (a third of an LBS example's time at 100k vertices):
-    # |det J| against |J|_F^3 is zero for a singular J and ~1 for a rotation.
-    scale = np.einsum("kab,kab->k", jac, jac) ** 1.5
-    ok = np.isfinite(scale) & (np.abs(np.linalg.det(jac)) > tol.JACOBIAN_RCOND * np.maximum(scale, 1e-300))
+    # Conditioning test without an SVD (a third of an LBS example's time at 100k vertices).
+    ok = powell.well_conditioned(jac, tol.JACOBIAN_RCOND)
     directions = np.tile(np.eye(3), (len(jac), 1, 1))
     start = np.zeros_like(r0)
     if ok.any():
@@ -128,6 +133,21 @@ def invert_example(
     bounding-box diagonal of the skinned rest shape (never below the float32 floor of
     the data). Raises SculptOutOfRangeError for a vertex absurdly far from its skinned position.
     """
+    return invert_example_with(blackbox, rest, sculpt, rtol=rtol, max_cycles=max_cycles)
+
+
+def invert_example_with(
+    blackbox: BlackBox,
+    rest: Points,
+    sculpt: Points,
+    *,
+    rtol: float = tol.INVERSE_RTOL,
+    max_cycles: int = tol.POWELL_MAX_CYCLES,
+    quasi_newton: bool = True,
+) -> InverseResult:
+    """``invert_example`` with the solver's switches. ``quasi_newton=False`` skips the
+    Broyden refresh and runs Powell alone after the linearised start (the solver before
+    issue 15; kept for the benchmarks' side-by-side comparison)."""
     started = time.perf_counter()
     rest = np.asarray(rest, dtype=np.float64)
     sculpt = np.asarray(sculpt, dtype=np.float64)
@@ -161,11 +181,16 @@ def invert_example(
     r_start = residual(start)
     worse = np.einsum("ij,ij->i", r_start, r_start) > np.einsum("ij,ij->i", r0, r0)
     worse |= ~np.all(np.isfinite(r_start), axis=1)
+    if quasi_newton:
+        # The start was a full step from zero offset: its secant refines J where the start
+        # missed the tolerance (finite rows only; on affine skinning that is no vertex).
+        missed = ~(np.einsum("ij,ij->i", r_start, r_start) <= atol * atol)
+        powell.broyden_update(jac, missed, start, r0 - r_start, np.full(len(idx), floor))
     start[worse], r_start[worse] = 0.0, r0[worse]
 
     result = powell.minimize_lockstep(
         residual, start, directions=directions, jacobian=jac, r0=r_start,
-        atol=atol, min_step=floor, max_cycles=max_cycles,
+        atol=atol, min_step=floor, max_cycles=max_cycles, quasi_newton=quasi_newton,
     )
     return InverseResult(
         indices=idx,
@@ -176,4 +201,6 @@ def invert_example(
         diagonal=diagonal,
         atol=atol,
         seconds=time.perf_counter() - started,
+        qn_steps=result.qn_steps,
+        cycles=result.cycles,
     )
