@@ -65,6 +65,7 @@ bench: $(STAMP)
 	$(BIN)/python -m benchmarks.run
 	$(BIN)/python -m benchmarks.jobs
 	$(BIN)/python -m benchmarks.conditioning
+	$(BIN)/python -m benchmarks.coupled
 
 fuzz: $(STAMP)
 	$(BIN)/python -m tests.fuzz --mode $${MODE:-all} --cases $${CASES:-20000} --seed $${SEED:-0}

@@ -2,8 +2,9 @@
 
 The sculpts are ground truth made independently of psdbake's solver: for the
 skinning-only variants Pixar's ``UsdSkel.BakeSkinning`` of rest + a known rest-space
-offset (``generate.bake_sculpt``); for the non-linear chain the same UsdSkel black
-box followed by ``benchmarks.deformers.bulge`` evaluated at rest + offset, i.e.
+offset (``generate.bake_sculpt``); for the non-linear chains the same UsdSkel black
+box followed by the chain's deformer (``benchmarks.deformers.bulge``, or psdbake's reference
+Delta Mush for ``lbs+deltamush``) evaluated at rest + offset, i.e.
 sculpt = deformer(skinning(rest + offset)).
 """
 
@@ -20,7 +21,7 @@ import numpy as np
 from numpy.typing import NDArray
 from pxr import UsdSkel
 
-from psdbake.deformers import DeformerFactory
+from psdbake.deformers import DeformerFactory, load_deformers
 from psdbake.usd.blackbox import SkinningBlackBox
 from psdbake.usd.read import Scene
 
@@ -34,10 +35,15 @@ import generate  # noqa: E402  (fixtures/generate.py)
 
 MESH = generate.MESH
 DEFORMER_SPEC = "benchmarks.deformers:bulge"
+#: The coupling chain's deformer: psdbake's reference Delta Mush (10 iterations, step 0.5).
+DELTA_MUSH_SPEC = "psdbake.delta_mush:delta_mush"
 #: Sizes (rings, segments): about 1.3k, 13k and 100k points.
 SIZES = {"1.3k": (82, 16), "13k": (260, 50), "100k": (625, 160)}
 #: Variant -> (UsdSkel skinning method, user deformer chain).
 VARIANTS = {"lbs": ("classicLinear", False), "dqs": ("dualQuaternion", False), "lbs+bulge": ("classicLinear", True)}
+#: Chains whose deformer couples vertices (benchmarks/coupled.py), kept out of VARIANTS, which
+#: benchmarks/run.py and benchmarks/outputs.py loop over: variant -> (skinning, deformer spec).
+COUPLED_VARIANTS = {"lbs+deltamush": ("classicLinear", DELTA_MUSH_SPEC)}
 #: The sculpted band: x in [BAND_LO, BAND_HI] of the 5-unit tube, a third of its length.
 BAND_LO, BAND_HI = 0.9, 0.9 + generate.LENGTH / 3.0
 
@@ -125,7 +131,12 @@ def geom_bind_linear(asset: str) -> NDArray[np.float64]:
 def build(folder: str, variant: str, size: str, poses: dict[float, dict], poses_layer: str) -> Rig:
     """Write asset + examples for one (variant, size) into folder and return the Rig."""
     started = _time.perf_counter()
-    method, nonlinear = VARIANTS[variant]
+    if variant in COUPLED_VARIANTS:
+        method, spec = COUPLED_VARIANTS[variant]
+        chain: tuple[tuple[str, DeformerFactory], ...] = tuple(load_deformers([spec]))
+    else:
+        method, nonlinear = VARIANTS[variant]
+        chain = ((DEFORMER_SPEC, deformers.bulge),) if nonlinear else ()
     rings, segments = SIZES[size]
     tag = f"{variant.replace('+', '_')}_{size.replace('.', '_')}"
     asset = generate.build_arm(
@@ -134,10 +145,9 @@ def build(folder: str, variant: str, size: str, poses: dict[float, dict], poses_
     bind_pts = generate.tube_points(rings, segments)
     times = sorted(poses)
     offsets: Callable[[float], NDArray[np.float64]] = lambda t: band_offsets(bind_pts, poses[t])  # noqa: E731
-    chain: tuple[tuple[str, DeformerFactory], ...] = ((DEFORMER_SPEC, deformers.bulge),) if nonlinear else ()
     to_mesh = np.linalg.inv(geom_bind_linear(asset))  # bind-space offset -> authored mesh space
     truth = {t: offsets(t) @ to_mesh for t in times}
-    if not nonlinear:
+    if not chain:
         sculpts = generate.bake_sculpt(asset, poses_layer, times, offsets)
     else:
         # sculpt = deformer(BakeSkinning(rest + offset)), through psdbake's black box with the same chain

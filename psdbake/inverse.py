@@ -34,6 +34,8 @@ from . import tolerances as tol
 from .arrays import Points
 
 BlackBox = Callable[[Points], Points]
+#: ``invert_example_with(stop_if_coupled=True)`` stopped after the linearised start: the chain couples vertices.
+COUPLING_SEEN = "coupling seen"
 
 
 class SculptOutOfRangeError(ValueError):
@@ -80,15 +82,22 @@ class InverseResult:
 
 
 def _jacobians(
-    blackbox: BlackBox, rest: Points, idx: NDArray[np.int64], base: Points, step: float
-) -> NDArray[np.float64]:
-    """Forward-difference d posed / d rest at every sculpted vertex: 3 black-box calls."""
+    blackbox: BlackBox, rest: Points, idx: NDArray[np.int64], posed_rest: Points, step: float
+) -> tuple[NDArray[np.float64], bool]:
+    """Forward-difference d posed / d rest at every sculpted vertex: 3 black-box calls. Also
+    whether the chain couples vertices, for free: only sculpted vertices move in these calls,
+    so any other vertex whose output changes was moved by a neighbour (Delta Mush, smoothing)."""
     jac = np.empty((len(idx), 3, 3))
+    others = np.ones(len(rest), dtype=bool)
+    others[idx] = False
+    coupled = False
     for axis in range(3):
         moved = rest.copy()
         moved[idx, axis] += step
-        jac[:, :, axis] = (blackbox(moved)[idx] - base) / step
-    return jac
+        out = blackbox(moved)
+        jac[:, :, axis] = (out[idx] - posed_rest[idx]) / step
+        coupled |= bool(np.any(out[others] != posed_rest[others]))
+    return jac, coupled
 
 
 def _conjugate_start(
@@ -144,10 +153,13 @@ def invert_example_with(
     rtol: float = tol.INVERSE_RTOL,
     max_cycles: int = tol.POWELL_MAX_CYCLES,
     quasi_newton: bool = True,
+    stop_if_coupled: bool = False,
 ) -> InverseResult:
     """``invert_example`` with the solver's switches. ``quasi_newton=False`` skips the
     Broyden refresh and runs Powell alone after the linearised start (the solver before
-    issue 15; kept for the benchmarks' side-by-side comparison)."""
+    issue 15; kept for the benchmarks' side-by-side comparison). ``stop_if_coupled``: when
+    the Jacobian calls show the chain couples vertices and the linearised start misses the
+    tolerance, return there (regime ``COUPLING_SEEN``, 5 calls) for a joint solve to take over."""
     started = time.perf_counter()
     rest = np.asarray(rest, dtype=np.float64)
     sculpt = np.asarray(sculpt, dtype=np.float64)
@@ -169,7 +181,7 @@ def invert_example_with(
     target = sculpt[idx]
     r0 = target - posed_rest[idx]
     step = tol.JACOBIAN_STEP_RTOL * max(diagonal, floor)
-    jac = _jacobians(call, rest, idx, posed_rest[idx], step)
+    jac, coupled = _jacobians(call, rest, idx, posed_rest, step)
     directions, start, _ = _conjugate_start(jac, r0)
 
     def residual(offsets: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -181,6 +193,15 @@ def invert_example_with(
     r_start = residual(start)
     worse = np.einsum("ij,ij->i", r_start, r_start) > np.einsum("ij,ij->i", r0, r0)
     worse |= ~np.all(np.isfinite(r_start), axis=1)
+    if stop_if_coupled and coupled:
+        norms = np.linalg.norm(r_start, axis=1)
+        if not np.all(norms <= atol):
+            return InverseResult(
+                indices=idx, offsets=start, residual=np.where(np.isfinite(norms), norms, np.inf),
+                status=np.where(norms <= atol, powell.CONVERGED, powell.MAX_CYCLES).astype(np.int8),
+                evaluations=calls, diagonal=diagonal, atol=atol, seconds=time.perf_counter() - started,
+                regime=COUPLING_SEEN,
+            )
     if quasi_newton:
         # The start was a full step from zero offset: its secant refines J where the start
         # missed the tolerance (finite rows only; on affine skinning that is no vertex).

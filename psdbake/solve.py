@@ -15,9 +15,10 @@ import time as _time
 from collections.abc import Sequence
 from dataclasses import dataclass
 
+from . import coupled
 from .deformers import load_deformers
 from .errors import InputError, where
-from .inverse import InverseResult, SculptOutOfRangeError, invert_example
+from .inverse import InverseResult, SculptOutOfRangeError
 from .normals import CorrectiveNormals, PosedNormals, corrective_normals
 from .results import Progress
 from .usd.blackbox import SkinningBlackBox
@@ -51,7 +52,8 @@ def _invert(task: InverseTask) -> tuple[InverseResult, CorrectiveNormals | None]
     sculpt = scene.point_sample(open_layer(task.source), task.mesh, task.time)
     box = SkinningBlackBox(scene, task.mesh, task.time, load_deformers(task.deformers))
     try:
-        inverse = invert_example(box, rest, sculpt, rtol=task.rtol)
+        # probes the chain: per-vertex (Powell in lockstep) or coupled (Newton-Krylov), see InverseResult.regime
+        inverse = coupled.invert(box, rest, sculpt, rtol=task.rtol)
     except SculptOutOfRangeError as exc:
         raise InputError(f"{where(task.source, task.mesh, 'points')}: example at time {task.time:g}: {exc}") from None
     return inverse, _normal_offsets(task, scene, box, rest, sculpt, inverse)

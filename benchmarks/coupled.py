@@ -1,0 +1,102 @@
+"""Inverting a chain that couples vertices: LBS + Delta Mush (10 iterations, step 0.5).
+
+One table, three methods on the same examples (``benchmarks.rigs`` variant ``lbs+deltamush``,
+the 13k and 100k bench rigs):
+
+* per-vertex: ``inverse.invert_example`` as is (Powell in lockstep, assumes no coupling);
+* one-shot: cvShapeInverter's linearisation, a 3x3 Jacobian per vertex from 3 calls moving
+  every sculpted vertex together, D = J^-1 r, no iteration (its residual checked here);
+* coupled: ``coupled.invert`` (coupling probe, then Newton-Krylov).
+
+Every residual is measured here by running the full chain on rest + offsets. Usage:
+``python -m benchmarks.coupled [--examples N] [--examples-100k N]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import tempfile
+import time
+from collections.abc import Callable
+
+import numpy as np
+from numpy.typing import NDArray
+
+from psdbake import coupled
+from psdbake import tolerances as tol
+from psdbake.inverse import invert_example
+
+from . import rigs
+
+VARIANT = "lbs+deltamush"
+
+
+def one_shot(box: Callable[[NDArray[np.float64]], NDArray[np.float64]], rest: NDArray[np.float64],
+             sculpt: NDArray[np.float64]) -> tuple[NDArray[np.int64], NDArray[np.float64], int]:
+    """cvShapeInverter's method: (sculpted indices, offsets, calls)."""
+    base = box(rest)
+    diagonal, floor, idx = coupled._sculpted(rest, base, sculpt)
+    step = tol.JACOBIAN_STEP_RTOL * max(diagonal, floor)
+    jac = np.empty((len(idx), 3, 3))
+    for axis in range(3):
+        moved = rest.copy()
+        moved[idx, axis] += step
+        jac[:, :, axis] = (box(moved)[idx] - base[idx]) / step
+    offsets = np.linalg.solve(jac, (sculpt[idx] - base[idx])[:, :, None])[:, :, 0]
+    return idx, offsets, 4
+
+
+def measure(rig: rigs.Rig, times: list[float]) -> list[tuple[str, float, float, float, int, int]]:
+    """Per method: (method, calls/example, s/example, max residual / diagonal, missed, sculpted)."""
+    scene = rig.scene()
+    rows = []
+    for method in ("per-vertex", "one-shot", "coupled"):
+        calls = seconds = worst = 0.0
+        missed = sculpted = 0
+        for t in times:
+            box = rig.blackbox(scene, t)
+            sculpt = rig.sculpts[t]
+            started = time.perf_counter()
+            if method == "one-shot":
+                idx, offsets, n = one_shot(box, rig.rest, sculpt)
+            else:
+                res = (invert_example if method == "per-vertex" else coupled.invert)(box, rig.rest, sculpt)
+                idx, offsets, n = res.indices, res.offsets, res.evaluations
+            seconds += time.perf_counter() - started
+            calls += n
+            check = rig.blackbox(scene, t)  # the full chain on rest + offsets
+            base = check(rig.rest)
+            diagonal, floor, _ = coupled._sculpted(rig.rest, base, sculpt)
+            atol = max(tol.INVERSE_RTOL * diagonal, floor)
+            moved = rig.rest.copy()
+            moved[idx] += offsets
+            residual = np.linalg.norm(sculpt[idx] - check(moved)[idx], axis=1)
+            worst = max(worst, float(residual.max(initial=0.0)) / diagonal)
+            missed += int(np.count_nonzero(residual > atol))
+            sculpted += len(idx)
+        rows.append((method, calls / len(times), seconds / len(times), worst, missed, sculpted))
+    return rows
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--examples", type=int, default=8, help="examples on the 13k rig (of 8)")
+    parser.add_argument("--examples-100k", type=int, default=3, help="examples on the 100k rig (of 8)")
+    args = parser.parse_args()
+    print(f"# {VARIANT}: per-vertex vs one-shot vs coupled inverse (residuals by running the chain)")
+    print(f"{'rig':<20} {'examples':>8} {'method':<11} {'calls/ex':>9} {'s/ex':>8} {'max res/diag':>13} "
+          f"{'missed / sculpted':>18}")
+    with tempfile.TemporaryDirectory() as folder:
+        poses_layer, poses = rigs.write_poses(folder)
+        for size, count in (("13k", args.examples), ("100k", args.examples_100k)):
+            if count <= 0:
+                continue
+            rig = rigs.build(folder, VARIANT, size, poses, poses_layer)
+            times = rig.times[:count]
+            for method, calls, seconds, worst, missed, sculpted in measure(rig, times):
+                print(f"{rig.name:<20} {len(times):>8} {method:<11} {calls:>9.1f} {seconds:>8.2f} {worst:>13.2e} "
+                      f"{f'{missed} / {sculpted}':>18}", flush=True)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,276 @@
+"""The black-box inverse when the chain couples vertices (Delta Mush, corrective smooth, wraps).
+
+``invert`` is what ``fit`` runs per example. Whether the chain couples vertices shows in the
+per-vertex solver's own Jacobian calls (they move only sculpted vertices: any other output that
+changes was moved by a neighbour), so skinning stays at 5 calls per example. Where no unsculpted
+vertex can show it and the per-vertex solve misses, a **probe** call with a few well-separated
+sculpted vertices moved (farthest-point sample, deterministic) tells whether any *other*
+sculpted vertex's output moved. Skinning and per-vertex deformers leave every other output
+bit-identical; a coupling deformer moves the neighbours. Per-vertex chains keep
+``inverse.invert_example``'s result (Powell in lockstep, regime "per-vertex").
+
+Coupled chains (regime "coupled") are solved jointly, **matrix-free Newton-Krylov**::
+
+    minimise || sculpt[S] - F(rest + D)[S] ||^2     D: offsets on the sculpted vertices S
+
+* unknowns: the offsets of the sculpted vertices S only (a square system; vertices whose
+  output the sculpt did not move keep a zero offset, so the fit never spreads beyond it);
+* preconditioner: per-vertex 3x3 blocks from 3 calls moving *every* sculpted vertex along x,
+  then y, then z (what the per-vertex solver measures as its Jacobian; in the coupled case
+  the row sums of the Jacobian, which for a smoothing deformer is the skinning's own block);
+* Newton step: GMRES (right-preconditioned, Arnoldi with modified Gram-Schmidt) on
+  ``J delta = r``, each Jacobian-vector product one black-box call (forward difference, the
+  largest vertex move ``JVP_STEP_RTOL`` of the diagonal); it stops as soon as the linear
+  model predicts every vertex within a fraction of the tolerance;
+* then one call at ``rest + D`` checks the true residual; Newton repeats from there until
+  every sculpted vertex is within tolerance, the call budget is spent or a step fails to
+  improve (a step that does not is halved, up to ``BACKTRACKS`` times).
+
+Powell's per-vertex line searches are not used here: they assume a vertex's residual depends
+on its own offset only, which is exactly what a coupling deformer breaks.
+
+Statuses are the per-vertex ``powell`` codes: CONVERGED within tolerance (checked by running
+the full chain on rest + offsets), MAX_CYCLES the call budget ran out, STALLED Newton
+stopped improving, NONFINITE the chain returned non-finite values there.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from collections.abc import Callable
+
+import numpy as np
+from numpy.typing import NDArray
+
+from . import powell
+from . import tolerances as tol
+from .arrays import Points
+from .inverse import COUPLING_SEEN, BlackBox, InverseResult, SculptOutOfRangeError, invert_example_with
+
+#: Vertices moved by the coupling probe (a farthest-point sample of the sculpted vertices).
+PROBE_VERTICES = 16
+#: An unprobed vertex whose output moves by more than this fraction of the probed vertices'
+#: largest response means coupling. Per-vertex chains move it by exactly 0.
+COUPLING_RTOL = 1e-6
+#: Forward-difference step of a Jacobian-vector product: the largest vertex move, as a
+#: fraction of the diagonal. Small enough that Delta Mush's frame rotation stays linear,
+#: large enough that UsdSkel's float32 rounding (~1e-7 relative) stays under 1e-3 of it.
+JVP_STEP_RTOL = 1e-4
+#: GMRES stops when the linear model predicts every vertex within this fraction of atol.
+KRYLOV_TARGET = 0.25
+#: Inexact Newton: a step's GMRES stops once the model predicts the largest vertex residual
+#: reduced by this factor (or within KRYLOV_TARGET * atol). Solving the linear model further
+#: than the model is right only fits what the chain's smoothing nearly annihilates, with
+#: large high-frequency offsets.
+FORCING = 0.1
+#: Krylov vectors per Newton step (each one black-box call).
+KRYLOV_MAX = 40
+#: Trust region of a Newton step: its largest vertex move, in units of the largest residual.
+STEP_CAP = 20.0
+#: Halvings of a Newton step that does not reduce the residual before giving up.
+BACKTRACKS = 4
+#: Black-box calls of one coupled example, all included.
+MAX_EVALUATIONS = 160
+
+
+def _sculpted(rest: Points, posed_rest: Points, sculpt: Points) -> tuple[float, float, NDArray[np.int64]]:
+    """(diagonal, float32 floor, sculpted vertices): the same rule as ``inverse.invert_example``."""
+    diagonal = tol.bbox_diagonal(posed_rest)
+    moved_by = np.linalg.norm(sculpt - posed_rest, axis=1)
+    worst = int(np.argmax(moved_by)) if len(moved_by) else 0
+    if len(moved_by) and moved_by[worst] > tol.ABSURD_SCULPT_DIAGONALS * diagonal:
+        raise SculptOutOfRangeError(worst, float(moved_by[worst]), diagonal)
+    floor = tol.float32_floor(np.concatenate([posed_rest, rest]))
+    unmoved = max(tol.UNMOVED_RTOL * diagonal, floor)
+    return diagonal, floor, np.nonzero(moved_by > unmoved)[0].astype(np.int64)
+
+
+def probe_vertices(rest: Points, candidates: NDArray[np.int64], count: int = PROBE_VERTICES) -> NDArray[np.int64]:
+    """Up to ``count`` well-separated candidates: farthest-point sampling from the first one."""
+    if len(candidates) <= count:
+        return np.asarray(candidates, dtype=np.int64)
+    pts = rest[candidates]
+    chosen = [0]
+    dist = np.linalg.norm(pts - pts[0], axis=1)
+    for _ in range(count - 1):
+        k = int(np.argmax(dist))
+        chosen.append(k)
+        dist = np.minimum(dist, np.linalg.norm(pts - pts[k], axis=1))
+    return np.sort(candidates[np.array(chosen)])
+
+
+def is_coupled(call: BlackBox, rest: Points, base: Points, probed: NDArray[np.int64], step: float) -> bool:
+    """One call: does moving ``probed`` move any other vertex's output?"""
+    if len(probed) == 0 or len(probed) == len(rest):
+        return False
+    moved = rest.copy()
+    moved[probed] += step * np.array([0.8, 0.5, 0.3]) / np.sqrt(0.98)
+    change = np.linalg.norm(call(moved) - base, axis=1)
+    own = float(change[probed].max())
+    change[probed] = 0.0
+    others = float(change.max())
+    return bool(others > COUPLING_RTOL * max(own, step)) or not np.isfinite(others)
+
+
+def invert(blackbox: BlackBox, rest: Points, sculpt: Points, *, rtol: float = tol.INVERSE_RTOL) -> InverseResult:
+    """Solve the example per vertex, or jointly when the chain couples vertices, keeping the
+    better solution (``InverseResult.regime`` says which ran and which was kept).
+
+    The per-vertex solver's 3 Jacobian calls move only sculpted vertices, so they show for
+    free whether any other vertex's output moved: skinning (5 calls) and per-vertex deformers
+    pay nothing to find out. When they show coupling and the linearised start misses, the
+    joint Newton-Krylov solve takes over; should it leave more vertices above the tolerance
+    (a chain that jumps, as Delta Mush where skinning folds the mesh), the full per-vertex
+    solve runs too and the better is kept: fewer vertices missing the tolerance, then the
+    smaller worst residual, both measured by running the chain. A chain that couples only
+    vertices with no unsculpted neighbour is probed (2 calls) once the per-vertex solve misses."""
+    started = time.perf_counter()
+    rest = np.asarray(rest, dtype=np.float64)
+    sculpt = np.asarray(sculpt, dtype=np.float64)
+    first = invert_example_with(blackbox, rest, sculpt, rtol=rtol, stop_if_coupled=True)
+    if first.regime != COUPLING_SEEN and not len(first.missed):
+        return first
+    calls = first.evaluations
+
+    def call(points: Points) -> Points:
+        nonlocal calls
+        calls += 1
+        return blackbox(points)
+
+    base = call(rest)
+    diagonal, floor, idx = _sculpted(rest, base, sculpt)
+    if first.regime != COUPLING_SEEN:  # per-vertex ran to the end and missed: probe
+        step = tol.JACOBIAN_STEP_RTOL * max(diagonal, floor)
+        if not (len(idx) and is_coupled(call, rest, base, probe_vertices(rest, idx), step)):
+            return dataclasses.replace(first, evaluations=calls, seconds=time.perf_counter() - started)
+    joint = invert_coupled(call, rest, sculpt, base, idx, diagonal, floor, rtol=rtol, calls=lambda: calls,
+                           started=started)
+    per_vertex = first if first.regime != COUPLING_SEEN else None
+    if per_vertex is None and len(joint.missed):
+        per_vertex = invert_example_with(blackbox, rest, sculpt, rtol=rtol)
+        calls += per_vertex.evaluations
+    seconds = time.perf_counter() - started
+    if per_vertex is None or (len(joint.missed), joint.max_residual) <= (len(per_vertex.missed),
+                                                                         per_vertex.max_residual):
+        return dataclasses.replace(joint, evaluations=calls, seconds=seconds)
+    return dataclasses.replace(per_vertex, evaluations=calls, seconds=seconds,
+                               regime="coupled chain, per-vertex kept (Newton-Krylov missed more)")
+
+
+def invert_coupled(
+    call: BlackBox,
+    rest: Points,
+    sculpt: Points,
+    base: Points,
+    idx: NDArray[np.int64],
+    diagonal: float,
+    floor: float,
+    *,
+    rtol: float = tol.INVERSE_RTOL,
+    calls: Callable[[], int],
+    started: float,
+    max_evaluations: int = MAX_EVALUATIONS,
+) -> InverseResult:
+    """Newton-Krylov on the sculpted vertices' offsets (module docstring). ``base`` is
+    ``call(rest)``; ``calls()`` counts every call made through ``call``."""
+    atol = max(rtol * diagonal, floor)
+    target = sculpt[idx]
+    k = len(idx)
+
+    def evaluate(offsets: Points) -> Points:
+        moved = rest.copy()
+        moved[idx] += offsets
+        return call(moved)[idx]
+
+    # Per-vertex 3x3 blocks (row sums in the coupled case): the preconditioner.
+    jstep = tol.JACOBIAN_STEP_RTOL * max(diagonal, floor)
+    blocks = np.empty((k, 3, 3))
+    for axis in range(3):
+        moved = rest.copy()
+        moved[idx, axis] += jstep
+        blocks[:, :, axis] = (call(moved)[idx] - base[idx]) / jstep
+    scale = np.einsum("kab,kab->k", blocks, blocks) ** 1.5
+    ok = np.isfinite(scale) & (np.abs(np.linalg.det(blocks)) > tol.JACOBIAN_RCOND * np.maximum(scale, 1e-300))
+    inverse_blocks = np.tile(np.eye(3), (k, 1, 1))
+    if ok.any():
+        inverse_blocks[ok] = np.linalg.inv(blocks[ok])
+
+    def precondition(v: Points) -> Points:
+        return np.einsum("kab,kb->ka", inverse_blocks, v)
+
+    offsets = np.zeros((k, 3))
+    out = base[idx]
+    r = target - out
+    norms = np.linalg.norm(r, axis=1)
+    stalled = False
+    h_move = JVP_STEP_RTOL * max(diagonal, floor)
+    while np.isfinite(norms).all() and norms.max() > atol and calls() < max_evaluations - 2:
+        at, out_at = offsets, out
+
+        def jvp(z: Points, at: Points = at, out_at: Points = out_at) -> Points:
+            h = h_move / max(float(np.sqrt(np.mean(np.einsum("ij,ij->i", z, z)))), 1e-300)
+            return (evaluate(at + h * z) - out_at) / h
+
+        budget = min(KRYLOV_MAX, max_evaluations - 2 - calls())
+        target_lin = max(KRYLOV_TARGET * atol, FORCING * float(norms.max()))
+        delta = _gmres(jvp, precondition, r, target_lin, budget)
+        size = np.linalg.norm(r)
+        # Trust region: no vertex moves further than STEP_CAP times the largest residual.
+        lengths = np.linalg.norm(delta, axis=1)
+        cap = STEP_CAP * float(norms.max())
+        delta = delta * np.minimum(1.0, cap / np.maximum(lengths, 1e-300))[:, None]
+        for _ in range(BACKTRACKS + 1):  # the full step, then halvings
+            trial = offsets + delta
+            out_trial = evaluate(trial)
+            r_trial = target - out_trial
+            better = bool(np.all(np.isfinite(r_trial)) and np.linalg.norm(r_trial) < size)
+            if better or calls() >= max_evaluations - 1:
+                break
+            delta = 0.5 * delta
+        if not better:
+            stalled = True
+            break
+        offsets, out, r = trial, out_trial, r_trial
+        norms = np.linalg.norm(r, axis=1)
+
+    status = np.full(k, powell.STALLED if stalled else powell.MAX_CYCLES, dtype=np.int8)
+    status[norms <= atol] = powell.CONVERGED
+    status[~np.isfinite(norms)] = powell.NONFINITE
+    return InverseResult(
+        indices=idx, offsets=offsets, residual=norms, status=status, evaluations=calls(), diagonal=diagonal,
+        atol=atol, seconds=time.perf_counter() - started, regime="coupled",
+    )
+
+
+def _gmres(jvp: Callable[[Points], Points], precondition: Callable[[Points], Points], r: Points,
+           target: float, max_iter: int) -> Points:
+    """Right-preconditioned GMRES for ``J delta = r`` ((k, 3) vectors), at most ``max_iter``
+    products; stops once the linear model predicts every vertex's residual <= ``target``."""
+    shape = r.shape
+    b = r.ravel()
+    beta = float(np.linalg.norm(b))
+    if max_iter <= 0 or beta == 0.0:
+        return np.zeros(shape)
+    basis = np.zeros((max_iter + 1, b.size))
+    images = np.zeros((max_iter, b.size))  # J M^-1 v_j
+    directions = np.zeros((max_iter, b.size))  # M^-1 v_j
+    hess = np.zeros((max_iter + 1, max_iter))
+    basis[0] = b / beta
+    y = np.zeros(0)
+    for j in range(max_iter):
+        directions[j] = precondition(basis[j].reshape(shape)).ravel()
+        w = jvp(directions[j].reshape(shape)).ravel()
+        images[j] = w
+        for i in range(j + 1):  # modified Gram-Schmidt
+            hess[i, j] = basis[i] @ w
+            w = w - hess[i, j] * basis[i]
+        hess[j + 1, j] = np.linalg.norm(w)
+        rhs = np.zeros(j + 2)
+        rhs[0] = beta
+        y = np.asarray(np.linalg.lstsq(hess[: j + 2, : j + 1], rhs, rcond=None)[0], dtype=np.float64)
+        predicted = (b - y @ images[: j + 1]).reshape(shape)
+        if np.linalg.norm(predicted, axis=1).max() <= target or hess[j + 1, j] <= 1e-14 * beta:
+            break
+        basis[j + 1] = w / hess[j + 1, j]
+    return (y @ directions[: len(y)]).reshape(shape)

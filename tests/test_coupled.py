@@ -1,0 +1,126 @@
+"""Chains that couple vertices: the reference Delta Mush deformer, the coupling probe and the
+coupled inverse (``psdbake.coupled``), on a small bench rig (1.3k points)."""
+
+from __future__ import annotations
+
+import json
+import sys
+
+import numpy as np
+import pytest
+from conftest import ROOT, sculpt
+
+from psdbake import coupled
+from psdbake import tolerances as tol
+from psdbake.delta_mush import DeltaMush, make
+from psdbake.inverse import invert_example
+from psdbake.normals import Topology
+
+sys.path.insert(0, ROOT)
+from benchmarks import rigs
+
+#: Elbow bends small enough that LBS does not fold the elbow (a folded elbow makes Delta
+#: Mush's frames flip: the chain is then discontinuous there).
+POSES = {1.0: {"Elbow": ((0, 0, 1), 20.0), "Wrist": ((1, 0, 0), 25.0)},
+         2.0: {"Elbow": ((0, 0, 1), 28.0), "Wrist": ((1, 0, 0), -20.0)}}
+#: Black-box calls one coupled example may take here (measured: 20 and 29: the per-vertex
+#: linearised start, 5 calls, in which the coupling shows, then Newton-Krylov).
+CALL_BUDGET = 32
+
+
+@pytest.fixture(scope="module")
+def rig_folder(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("coupled")
+    poses_layer = rigs.generate.write_animation(str(folder / "poses.usda"), POSES)
+    return str(folder), poses_layer
+
+
+def _rig(rig_folder, variant: str) -> rigs.Rig:
+    folder, poses_layer = rig_folder
+    return rigs.build(folder, variant, "1.3k", POSES, poses_layer)
+
+
+def _tube() -> tuple[np.ndarray, Topology]:
+    counts, indices = rigs.generate.tube_faces(30, 12)
+    rest = rigs.generate.tube_points(30, 12)
+    return rest, Topology(np.array(counts), np.array(indices), len(rest))
+
+
+def test_delta_mush_identity_pose_returns_rest_and_couples_neighbours():
+    rest, topology = _tube()
+    for iterations, step in ((10, 0.5), (3, 0.2), (0, 0.5)):
+        dm = DeltaMush(rest, topology, iterations, step)
+        assert np.abs(dm(rest) - rest).max() <= 1e-14 * np.abs(rest).max()
+    dm = DeltaMush(rest, topology)
+    assert np.abs(dm.smooth(rest) - rest).max() > 1e-3  # it does smooth
+    moved = rest.copy()
+    moved[100] += 0.01
+    changed = np.nonzero(np.linalg.norm(dm(moved) - dm(rest), axis=1) > 1e-12)[0]
+    ring = topology.ring([100])
+    assert set(ring) <= set(changed) and len(changed) > len(ring)  # neighbours and beyond
+    # a rigid motion of the whole mesh moves the result rigidly
+    rot = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    assert np.abs(dm(rest @ rot.T + 0.3) - (rest @ rot.T + 0.3)).max() <= 1e-12
+    with pytest.raises(ValueError):
+        make(iterations=-1)
+
+
+@pytest.mark.parametrize("variant, expected", [("lbs+deltamush", True), ("lbs", False), ("lbs+bulge", False)])
+def test_probe_detects_coupling(rig_folder, variant, expected):
+    rig = _rig(rig_folder, variant)
+    scene = rig.scene()
+    for t in rig.times:
+        box = rig.blackbox(scene, t)
+        base = box(rig.rest)
+        diagonal, _, idx = coupled._sculpted(rig.rest, base, rig.sculpts[t])
+        probed = coupled.probe_vertices(rig.rest, idx)
+        assert len(probed) == coupled.PROBE_VERTICES
+        assert coupled.is_coupled(box, rig.rest, base, probed, tol.JACOBIAN_STEP_RTOL * diagonal) is expected
+        assert box.evaluations == 2  # the probe is one call
+
+
+def test_coupled_inverse_reaches_tolerance_within_budget(rig_folder):
+    rig = _rig(rig_folder, "lbs+deltamush")
+    scene = rig.scene()
+    for t in rig.times:
+        res = coupled.invert(rig.blackbox(scene, t), rig.rest, rig.sculpts[t])
+        assert res.regime == "coupled" and len(res.missed) == 0
+        assert res.evaluations <= CALL_BUDGET
+        moved = rig.rest.copy()
+        moved[res.indices] += res.offsets
+        residual = np.linalg.norm(rig.sculpts[t][res.indices] - rig.blackbox(scene, t)(moved)[res.indices], axis=1)
+        assert residual.max() <= res.atol
+        np.testing.assert_allclose(residual, res.residual, atol=1e-12)
+        # the per-vertex solver, as is, does not get there on this chain
+        per_vertex = invert_example(rig.blackbox(scene, t), rig.rest, rig.sculpts[t])
+        assert len(per_vertex.missed) > 0
+
+
+def test_per_vertex_chains_keep_the_per_vertex_solver(rig_folder):
+    rig = _rig(rig_folder, "lbs+bulge")
+    scene = rig.scene()
+    t = rig.times[0]
+    alone = invert_example(rig.blackbox(scene, t), rig.rest, rig.sculpts[t])
+    res = coupled.invert(rig.blackbox(scene, t), rig.rest, rig.sculpts[t])
+    # coupling shows (or not) in the per-vertex solver's own Jacobian calls: no extra call
+    assert res.regime == "per-vertex" and res.evaluations == alone.evaluations
+    np.testing.assert_array_equal(res.offsets, alone.offsets)
+    lbs = _rig(rig_folder, "lbs")
+    assert coupled.invert(lbs.blackbox(lbs.scene(), t), lbs.rest, lbs.sculpts[t]).evaluations == 5
+
+
+def test_fit_and_points_cache_with_delta_mush_end_to_end(run, rig_folder, tmp_path):
+    rig = _rig(rig_folder, "lbs+deltamush")
+    corr, report, weights, cache = (tmp_path / name for name in ("c.usda", "r.json", "w.usda", "cache.usda"))
+    spec = rigs.DELTA_MUSH_SPEC
+    code, _, err = run("fit", rig.asset, rig.examples, "-o", corr, "--deformer", spec, "--report", report, "-q")
+    assert code == 0, err
+    examples = json.loads(report.read_text())["meshes"][0]["examples"]
+    assert [ex["regime"] for ex in examples] == ["coupled"] * 2 and all(ex["missed"] == 0 for ex in examples)
+    code, _, err = run("eval", rig.asset, corr, "--anim", rig.poses_layer, "-o", weights, "--points-cache", cache,
+                       "--deformer", spec, "-q")
+    assert code == 0, err
+    for t in rig.times:  # the cache (skinning + correctives + Delta Mush) reproduces each sculpt
+        cached = sculpt(str(cache), rigs.MESH, t)
+        diagonal = tol.bbox_diagonal(rig.sculpts[t])
+        assert np.abs(cached - rig.sculpts[t]).max() <= 1e-5 * diagonal
