@@ -1,14 +1,17 @@
-"""Client-safe channels: every written weight in [0, 1], every name at most 63 bytes.
+"""Client-safe channels: written weights in [0, 1], every name at most 63 bytes.
 
 Real clients clamp blend-shape weights to a slider range ([0, 1] in Blender, whose USD
 importer never widens it) and cut shape-key names at 63 bytes, while a cardinal RBF weight
 b_s(x) is any real number. So each corrective s is written as up to two channels: a
-positive one carrying M+_s d'_s with weight clamp(b_s / M+_s, 0, 1), and a negative one
-carrying M-_s d'_s (M-_s < 0) with weight clamp(b_s / M-_s, 0, 1). M+_s and M-_s are
-guaranteed bounds of b_s over every pose (``weight_range``: interval arithmetic over the
-stored formula, the pose coordinates being bounded), so the clamp never cuts and the sum of
-the two channels is b_s d'_s exactly as the unclamped design, for BakeSkinning and Blender
-alike. A side whose bound is 0 (a combination is never negative) gets no channel.
+positive one carrying M+_s d'_s with weight max(0, b_s / M+_s), and a negative one carrying
+M-_s d'_s (M-_s < 0) with weight max(0, b_s / M-_s); the two add to b_s d'_s exactly as the
+unclamped design, for BakeSkinning and Blender alike. M+_s and M-_s (``channel_scales``) are
+the guaranteed bounds of b_s over every pose (``weight_range``: interval arithmetic over the
+stored formula, the pose coordinates being bounded) where those are within 2x of what the
+weights reach over sampled poses (``weights.sampled_range``), else 2x that reach: the bound of
+an ill-conditioned RBF can be 1e6 where its weights stay within a few units, and a channel
+weight of 1e-6 is one UsdSkel skips. A weight past its scale is written as is and warned
+about by ``eval``. A side no pose reaches gets no channel (a combination is never negative).
 """
 
 from __future__ import annotations
