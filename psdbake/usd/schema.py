@@ -93,7 +93,7 @@ class DriverData:
     #: v4: (shapes, coordinates): per shape, its unit direction in each gate group's pose coordinates
     gate_directions: NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, 0)))
     #: v4: the written channels (client-safe, see channels.py): each carries one output column
-    #: times a signed scale, its weight clamp(b_column / scale, 0, 1). Empty: the shapes themselves.
+    #: times a signed scale, its weight max(0, b_column / scale). Empty: the shapes themselves.
     channels: Sequence[str] = ()
     channel_columns: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
     channel_scales: NDArray[np.float64] = field(default_factory=lambda: np.zeros(0))
