@@ -24,7 +24,7 @@ from numpy.typing import NDArray
 
 from psdbake import coupled
 from psdbake import tolerances as tol
-from psdbake.inverse import invert_example
+from psdbake.inverse import invert_example, sculpted_vertices
 
 from . import rigs
 
@@ -35,7 +35,7 @@ def one_shot(box: Callable[[NDArray[np.float64]], NDArray[np.float64]], rest: ND
              sculpt: NDArray[np.float64]) -> tuple[NDArray[np.int64], NDArray[np.float64], int]:
     """cvShapeInverter's method: (sculpted indices, offsets, calls)."""
     base = box(rest)
-    diagonal, floor, idx = coupled._sculpted(rest, base, sculpt)
+    diagonal, floor, idx = sculpted_vertices(rest, base, sculpt)
     step = tol.JACOBIAN_STEP_RTOL * max(diagonal, floor)
     jac = np.empty((len(idx), 3, 3))
     for axis in range(3):
@@ -66,7 +66,7 @@ def measure(rig: rigs.Rig, times: list[float]) -> list[tuple[str, float, float, 
             calls += n
             check = rig.blackbox(scene, t)  # the full chain on rest + offsets
             base = check(rig.rest)
-            diagonal, floor, _ = coupled._sculpted(rig.rest, base, sculpt)
+            diagonal, floor, _ = sculpted_vertices(rig.rest, base, sculpt)
             atol = max(tol.INVERSE_RTOL * diagonal, floor)
             moved = rig.rest.copy()
             moved[idx] += offsets

@@ -8,7 +8,7 @@ M-_s d'_s (M-_s < 0) with weight max(0, b_s / M-_s); the two add to b_s d'_s exa
 unclamped design, for BakeSkinning and Blender alike. M+_s and M-_s (``channel_scales``) are
 the guaranteed bounds of b_s over every pose (``weight_range``: interval arithmetic over the
 stored formula, the pose coordinates being bounded) where those are within 2x of what the
-weights reach over sampled poses (``weights.sampled_range``), else 2x that reach: the bound of
+weights reach over sampled poses (``weights.sampled_ranges``), else 2x that reach: the bound of
 an ill-conditioned RBF can be 1e6 where its weights stay within a few units, and a channel
 weight of 1e-6 is one UsdSkel skips. A weight past its scale is written as is and warned
 about by ``eval``. A side no pose reaches gets no channel (a combination is never negative).

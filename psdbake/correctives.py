@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import warnings
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 
 import numpy as np
 from numpy.typing import NDArray
@@ -30,7 +30,7 @@ from .results import Example, MeshFit
 from .settings import FitSettings
 from .usd.read import Scene, SkinnedMesh
 from .usd.schema import BlendShapeData, DriverData
-from .weights import activation, pose_coordinates, rbf_weights, sampled_range, weights_at_pose
+from .weights import activation, pose_coordinates, rbf_weights, sampled_ranges, weights_at_pose
 
 Solved = tuple[InverseResult, CorrectiveNormals | None]
 
@@ -80,9 +80,10 @@ def fit_regions(asset: str, asset_scene: Scene, info: SkinnedMesh, examples: Seq
             fitted = _gated_by(fitted, below, asset)
             fitted = dataclasses.replace(fitted, shapes=tuple(_combination_shapes(fitted, below)))
         fits.append(fitted)
-    groups = {f.group: f.driver_data for f in fits}
-    anchors = _anchors(info, examples)
-    return sorted((_client_safe(f, groups, anchors) for f in fits), key=lambda f: f.group)
+    safe = client_safe({f.group: f.driver_data for f in fits}, {f.group: shapes_of(f) for f in fits},
+                       _anchors(info, examples))
+    return sorted((dataclasses.replace(f, driver_data=safe[f.group][0], shapes=tuple(safe[f.group][1])) for f in fits),
+                  key=lambda f: f.group)
 
 
 def _anchors(info: SkinnedMesh, examples: Sequence[Example]) -> dict[str, NDArray[np.float64]]:
@@ -91,15 +92,22 @@ def _anchors(info: SkinnedMesh, examples: Sequence[Example]) -> dict[str, NDArra
     return {j: np.unique(np.round(poses[:, i], 12), axis=0) for i, j in enumerate(info.joints)}
 
 
-def _client_safe(fit: MeshFit, groups: dict[str, DriverData], anchors: dict[str, NDArray[np.float64]]) -> MeshFit:
-    """The fit's correctives as client-safe channels (``channels``): each column split into a
-    positive and a negative channel scaled by the range of its weight (``channel_scales``)."""
-    data = fit.driver_data
-    bound = weight_range(data, groups)
-    sampled = sampled_range(list(groups.items()), fit.group, tol.CHANNEL_RANGE_SAMPLES, anchors)
-    names, columns, scales = plan_channels(list(data.shapes), *channel_scales(bound, sampled))
-    data = dataclasses.replace(data, channels=names, channel_columns=columns, channel_scales=scales)
-    return dataclasses.replace(fit, driver_data=data, shapes=tuple(split_shapes(shapes_of(fit), data)))
+def client_safe(groups: Mapping[str, DriverData], columns: Mapping[str, Sequence[BlendShapeData]],
+                anchors: Mapping[str, NDArray[np.float64]]) -> dict[str, tuple[DriverData, list[BlendShapeData]]]:
+    """group -> its driver data and BlendShapes as client-safe channels (``channels``), for
+    each group of ``columns`` (its BlendShapes, one per output column): each column split into
+    a positive and a negative channel scaled by the range of its weight (``channel_scales``).
+    ``groups``: every group of the mesh (gates and the sampled reach need them all, sampled
+    once); ``anchors``: each joint's sculpted rotations (``weights.sampled_ranges``)."""
+    sampled = sampled_ranges(sorted(groups.items()), tol.CHANNEL_RANGE_SAMPLES, anchors)
+    out = {}
+    for group, shapes in columns.items():
+        data = groups[group]
+        names, cols, scales = plan_channels(list(data.shapes), *channel_scales(weight_range(data, groups),
+                                                                                 sampled[group]))
+        data = dataclasses.replace(data, channels=names, channel_columns=cols, channel_scales=scales)
+        out[group] = (data, split_shapes(shapes, data))
+    return out
 
 
 def _dense(shape: BlendShapeData, n: int) -> tuple[NDArray[np.float64], NDArray[np.float64]]:

@@ -46,7 +46,7 @@ from numpy.typing import NDArray
 from . import powell
 from . import tolerances as tol
 from .arrays import Points
-from .inverse import COUPLING_SEEN, BlackBox, InverseResult, SculptOutOfRangeError, invert_example_with
+from .inverse import COUPLING_SEEN, BlackBox, InverseResult, invert_example_with, sculpted_vertices
 
 #: Vertices moved by the coupling probe (a farthest-point sample of the sculpted vertices).
 PROBE_VERTICES = 16
@@ -72,18 +72,6 @@ STEP_CAP = 20.0
 BACKTRACKS = 4
 #: Black-box calls of one coupled example, all included.
 MAX_EVALUATIONS = 160
-
-
-def _sculpted(rest: Points, posed_rest: Points, sculpt: Points) -> tuple[float, float, NDArray[np.int64]]:
-    """(diagonal, float32 floor, sculpted vertices): the same rule as ``inverse.invert_example``."""
-    diagonal = tol.bbox_diagonal(posed_rest)
-    moved_by = np.linalg.norm(sculpt - posed_rest, axis=1)
-    worst = int(np.argmax(moved_by)) if len(moved_by) else 0
-    if len(moved_by) and moved_by[worst] > tol.ABSURD_SCULPT_DIAGONALS * diagonal:
-        raise SculptOutOfRangeError(worst, float(moved_by[worst]), diagonal)
-    floor = tol.float32_floor(np.concatenate([posed_rest, rest]))
-    unmoved = max(tol.UNMOVED_RTOL * diagonal, floor)
-    return diagonal, floor, np.nonzero(moved_by > unmoved)[0].astype(np.int64)
 
 
 def probe_vertices(rest: Points, candidates: NDArray[np.int64], count: int = PROBE_VERTICES) -> NDArray[np.int64]:
@@ -139,7 +127,7 @@ def invert(blackbox: BlackBox, rest: Points, sculpt: Points, *, rtol: float = to
         return blackbox(points)
 
     base = call(rest)
-    diagonal, floor, idx = _sculpted(rest, base, sculpt)
+    diagonal, floor, idx = sculpted_vertices(rest, base, sculpt)
     if first.regime != COUPLING_SEEN:  # per-vertex ran to the end and missed: probe
         step = tol.JACOBIAN_STEP_RTOL * max(diagonal, floor)
         if not (len(idx) and is_coupled(call, rest, base, probe_vertices(rest, idx), step)):

@@ -115,7 +115,7 @@ def _conjugate_start(
     return directions, start, ok
 
 
-def _sculpted(rest: Points, posed_rest: Points, sculpt: Points) -> tuple[float, float, NDArray[np.int64]]:
+def sculpted_vertices(rest: Points, posed_rest: Points, sculpt: Points) -> tuple[float, float, NDArray[np.int64]]:
     """(bounding-box diagonal of the posed rest shape, float32 floor of the data, the vertices
     the sculpt moved); refuses a vertex absurdly far from its skinned position."""
     diagonal = tol.bbox_diagonal(posed_rest)
@@ -171,7 +171,7 @@ def invert_example_with(
         return blackbox(points)
 
     posed_rest = call(rest)
-    diagonal, floor, idx = _sculpted(rest, posed_rest, sculpt)
+    diagonal, floor, idx = sculpted_vertices(rest, posed_rest, sculpt)
     atol = max(rtol * diagonal, floor)
     if len(idx) == 0:
         return InverseResult(

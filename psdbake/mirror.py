@@ -4,7 +4,7 @@ For each group mirrored (one named group, or every group whose drivers all have 
 its drivers' partners (``symmetry.partners``, ``check_joints``), the partners of the
 vertices it moves (``symmetry.match_vertices``), its pose space reflected and its RBF
 refitted (``posemirror``), its offsets reflected onto the partner vertices, and its
-client-safe channels planned afresh, as fit plans them (``channels``). Works on what
+client-safe channels planned afresh, as fit plans them (``correctives.client_safe``). Works on what
 ``groups.read_correctives`` and ``usd.bindspace`` read; writes nothing.
 """
 
@@ -17,8 +17,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from . import posespace
-from . import tolerances as tol
-from .channels import channel_scales, plan_channels, split_shapes, weight_range
+from .correctives import client_safe
 from .drivers import channel_prefix
 from .errors import InputError, where
 from .groups import Groups
@@ -36,7 +35,6 @@ from .symmetry import JointMap, check_joints, match_vertices, partner_problem, p
 from .usd.bindspace import BindSpace
 from .usd.read import SkinnedMesh
 from .usd.schema import BlendShapeData, DriverData
-from .weights import sampled_range
 
 
 def mirror_groups(asset: str, label: str, groups: Groups, binds: Mapping[str, BindSpace],
@@ -58,13 +56,11 @@ def mirror_groups(asset: str, label: str, groups: Groups, binds: Mapping[str, Bi
             final[target] = data
             made[target] = (data, shapes, info)
         _check_gates(final, where(label, mesh))
-        anchors = sculpted_rotations(final)
-        for target in sorted(made):  # client-safe channels as fit plans them (correctives._client_safe)
-            data, columns, info = made[target]
-            sampled = sampled_range(sorted(final.items()), target, tol.CHANNEL_RANGE_SAMPLES, anchors)
-            chans, cols, scales = plan_channels(list(data.shapes), *channel_scales(weight_range(data, final), sampled))
-            data = dataclasses.replace(data, channels=chans, channel_columns=cols, channel_scales=scales)
-            out.append(dataclasses.replace(info, driver_data=data, shapes=tuple(split_shapes(columns, data))))
+        # client-safe channels as fit plans them
+        safe = client_safe(final, {target: made[target][1] for target in made}, sculpted_rotations(final))
+        for target in sorted(made):
+            data, shapes = safe[target]
+            out.append(dataclasses.replace(made[target][2], driver_data=data, shapes=tuple(shapes)))
     return out, skipped
 
 

@@ -75,7 +75,7 @@ def rotations_of(x: NDArray[np.float64], space: str, twist_axis: Sequence[float]
 
 def sculpted_rotations(groups: Mapping[str, DriverData]) -> dict[str, NDArray[np.float64]]:
     """joint -> the distinct rotations away from bind (k, 4) its groups' centres give it: the
-    anchors of the sampled channel reach (``weights.sampled_range``), which a fit takes from
+    anchors of the sampled channel reach (``weights.sampled_ranges``), which a fit takes from
     its examples (``correctives``) and a mirrored layer only has as centres. Coordinates left
     out of ``psd:dimensions`` are taken as 0 (constant across the centres, 0 at bind)."""
     found: dict[str, list[NDArray[np.float64]]] = {}

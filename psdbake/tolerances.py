@@ -76,7 +76,7 @@ GATE_ACTIVATION_MIN = 1e-3
 #: groups, far above UsdSkel's skipping of weights below 1e-6, and a pose beyond every sample
 #: has twice the sampled reach before a client clamps it.
 CHANNEL_HEADROOM = 2.0
-#: Poses drawn per driver joint to measure that reach (weights.sampled_range: between and
+#: Poses drawn per driver joint to measure that reach (weights.sampled_ranges: between and
 #: past the sculpts, every mix of joints, a quarter uniform over SO(3); fixed seed): 20,000
 #: cost ~0.1 s per group of 100 examples.
 CHANNEL_RANGE_SAMPLES = 20_000

@@ -157,10 +157,9 @@ def _index(joints: Sequence[str], data: DriverData) -> list[int]:
     return [list(joints).index(d) for d in data.drivers]
 
 
-def sampled_range(groups: Sequence[tuple[str, DriverData]], group: str, count: int,
-                  anchors: Mapping[str, NDArray[np.float64]], seed: int = 0
-                  ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """(min, max) per output column of one group's weights b over sampled poses of every
+def sampled_ranges(groups: Sequence[tuple[str, DriverData]], count: int, anchors: Mapping[str, NDArray[np.float64]],
+                   seed: int = 0) -> dict[str, tuple[NDArray[np.float64], NDArray[np.float64]]]:
+    """group -> (min, max) per output column of its weights b over sampled poses of every
     driver joint of the mesh's groups (one draw per joint, shared by the groups it drives;
     a fixed seed, so a fit is deterministic): what the weights actually reach, where the
     interval bound (``channels.weight_range``) can be loose by orders of magnitude.
@@ -185,5 +184,4 @@ def sampled_range(groups: Sequence[tuple[str, DriverData]], group: str, count: i
         quats = np.stack([draws[d].as_quat() for d in data.drivers], axis=1)  # (n, d, 4), frame-major
         return Rotation.from_quat(quats.reshape(-1, 4))
 
-    b = group_weights(groups, delta_of, n)[group]
-    return b.min(axis=0), b.max(axis=0)
+    return {g: (b.min(axis=0), b.max(axis=0)) for g, b in group_weights(groups, delta_of, n).items()}

@@ -70,14 +70,14 @@ def test_scales_keep_sampled_poses_in_range_and_examples_well_above_zero(tmp_pat
     result = api.fit(asset, [examples])
     groups = [(m.group, m.driver_data) for m in result.meshes]
     from psdbake.channels import channel_weights
-    from psdbake.weights import sampled_range
+    from psdbake.weights import sampled_ranges
 
     joints = result.meshes[0].joints
     poses = np.array([e.pose for m in result.meshes for e in m.examples])
     anchors = {j: poses[:, i] for i, j in enumerate(joints)}
     for m in result.meshes:
         data = m.driver_data
-        lo, hi = sampled_range(groups, m.group, 20_000, anchors, seed=12345)
+        lo, hi = sampled_ranges(groups, 20_000, anchors, seed=12345)[m.group]
         top = channel_weights(data, np.stack([lo, hi]))  # both extremes, per channel
         assert top.max() <= 1.0, (m.group, top.max())
         own = channel_weights(data, np.eye(len(data.shapes)))  # b = 1 at its own example, 0 elsewhere

@@ -13,7 +13,7 @@ from conftest import ROOT, sculpt
 from psdbake import coupled
 from psdbake import tolerances as tol
 from psdbake.delta_mush import DeltaMush, make
-from psdbake.inverse import invert_example
+from psdbake.inverse import invert_example, sculpted_vertices
 from psdbake.normals import Topology
 
 sys.path.insert(0, ROOT)
@@ -72,7 +72,7 @@ def test_probe_detects_coupling(rig_folder, variant, expected):
     for t in rig.times:
         box = rig.blackbox(scene, t)
         base = box(rig.rest)
-        diagonal, _, idx = coupled._sculpted(rig.rest, base, rig.sculpts[t])
+        diagonal, _, idx = sculpted_vertices(rig.rest, base, rig.sculpts[t])
         probed = coupled.probe_vertices(rig.rest, idx)
         assert len(probed) == coupled.PROBE_VERTICES
         assert coupled.is_coupled(box, rig.rest, base, probed, tol.JACOBIAN_STEP_RTOL * diagonal) is expected
