@@ -92,7 +92,8 @@ def fit_report(result: FitResult, output: str) -> dict:
                 "max_residual": inv.max_residual, "rms_residual": inv.rms_residual,
                 "max_residual_rel": inv.max_residual / diag, "rms_residual_rel": inv.rms_residual / diag,
                 "tolerance": inv.atol, "missed": len(inv.missed),
-                "missed_vertices": [int(i) for i in inv.missed[:100]], "seconds": round(inv.seconds, 6),
+                "missed_vertices": [int(i) for i in inv.missed[:100]], "missed_statuses": inv.missed_statuses,
+                "seconds": round(inv.seconds, 6),
             })
         d = m.driver_data
         meshes.append({
@@ -135,7 +136,14 @@ def say_fit(ui: Ui, result: FitResult, output: str) -> None:
         for line in result.layout:
             ui.say(f"  {line}")
     if result.missed:
-        ui.say(f"  DEGRADED: {result.missed} vertices missed the tolerance (see --report; --strict makes this fatal)")
+        why: dict[str, int] = {}
+        for m in result.meshes:
+            for inv in m.inverses:
+                for name, count in inv.missed_statuses.items():
+                    why[name] = why.get(name, 0) + count
+        detail = ", ".join(f"{name} {count}" for name, count in sorted(why.items()))
+        ui.say(f"  DEGRADED: {result.missed} vertices missed the tolerance ({detail}; see --report; --strict makes "
+               "this fatal)")
     ui.say(f"wrote {output}")
 
 

@@ -73,6 +73,13 @@ class InverseResult:
         return self.indices[self.status != powell.CONVERGED]
 
     @property
+    def missed_statuses(self) -> dict[str, int]:
+        """Why vertices missed: status name -> count (``stalled``, ``max_cycles``, ``nonfinite``).
+        A chain that snaps or jumps shows as stalled vertices, a budget spent as max_cycles."""
+        codes, counts = np.unique(self.status[self.status != powell.CONVERGED], return_counts=True)
+        return {powell.STATUS_NAMES[int(c)]: int(n) for c, n in zip(codes, counts, strict=True)}
+
+    @property
     def max_residual(self) -> float:
         return float(self.residual.max()) if len(self.residual) else 0.0
 

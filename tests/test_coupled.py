@@ -142,3 +142,50 @@ def test_a_folded_elbow_is_finished_from_the_per_vertex_solution(tmp_path):
     moved[res.indices] += res.offsets
     residual = np.linalg.norm(rig.sculpts[4.0][res.indices] - box(moved)[res.indices], axis=1)
     np.testing.assert_allclose(residual, res.residual, atol=1e-12)  # what it reports is what the chain gives
+
+
+SNAPPING_DEFORMER = '''
+import numpy as np
+from psdbake.delta_mush import make
+
+_mush = make()
+
+
+def snap(stage, mesh_path, time):
+    """Delta Mush, then every output coordinate rounded to a 1e-3 grid: coupled, not smooth."""
+    inner = _mush(stage, mesh_path, time)
+    return lambda points: np.round(inner(points) / 1e-3) * 1e-3
+'''
+
+
+def test_a_coupled_chain_that_snaps_to_a_grid_stalls_cleanly(run, rig_folder, tmp_path):
+    """A deformer that couples vertices and is not invertible (Delta Mush, then outputs snapped
+    to a 1e-3 grid, 3.8e-4 of this rig's diagonal: far above the 7.6e-6 tolerance) cannot
+    reach a sculpt that is off the grid. fit must say so per vertex and in its summary, in a
+    bounded number of calls, without a traceback; --strict refuses and writes nothing."""
+    rig = _rig(rig_folder, "lbs+deltamush")
+    deformer = tmp_path / "snapping.py"
+    deformer.write_text(SNAPPING_DEFORMER)
+    out, report = tmp_path / "c.usda", tmp_path / "r.json"
+    code, stdout, err = run("fit", rig.asset, rig.examples, "-o", out, "--deformer", f"{deformer}:snap",
+                            "--report", report)
+    assert code == 0, err
+    examples = json.loads(report.read_text())["meshes"][0]["examples"]
+    for ex in examples:
+        # every vertex misses (the grid is 50x the tolerance) and says why: the solver stalled
+        assert ex["missed"] == ex["vertices_solved"] > 0
+        assert ex["missed_statuses"] == {"stalled": ex["missed"]}
+        # bounded: the joint budget from zero and from the per-vertex solution, that solve, 6 more
+        scene = rig.scene()
+        box = rig.blackbox(scene, ex["time"])
+        per_vertex = invert_example(lambda p, box=box: np.round(box(p) / 1e-3) * 1e-3, rig.rest,
+                                    rig.sculpts[ex["time"]])
+        assert ex["evaluations"] <= 2 * coupled.MAX_EVALUATIONS + per_vertex.evaluations + 6
+        assert ex["regime"].startswith("coupled")
+    total = sum(ex["missed"] for ex in examples)
+    assert f"DEGRADED: {total} vertices missed the tolerance (stalled {total};" in stdout
+    assert "Traceback" not in err
+    strict = tmp_path / "strict.usda"
+    code, _, err = run("fit", rig.asset, rig.examples, "-o", strict, "--deformer", f"{deformer}:snap", "--strict")
+    assert code == 7 and not strict.exists()
+    assert len(err.strip().splitlines()) == 1 and "missed the tolerance" in err
