@@ -66,6 +66,9 @@ bench: $(STAMP)
 	$(BIN)/python -m benchmarks.jobs
 	$(BIN)/python -m benchmarks.conditioning
 	$(BIN)/python -m benchmarks.coupled
+	$(BIN)/python -m benchmarks.evalspeed
+	$(BIN)/python -m benchmarks.fitspeed
+	$(BIN)/python -m benchmarks.startup
 
 fuzz: $(STAMP)
 	$(BIN)/python -m tests.fuzz --mode $${MODE:-all} --cases $${CASES:-20000} --seed $${SEED:-0}

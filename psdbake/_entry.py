@@ -1,6 +1,8 @@
-"""The ``psdbake`` command's first code: Ctrl-C or SIGTERM while the heavy modules (USD, SciPy)
-load exits at once with ``psdbake: interrupted`` and 130 (as later), then ``cli.main``, which
-handles signals with clean-up."""
+"""The ``psdbake`` command's first code: Ctrl-C or SIGTERM while ``psdbake.cli`` loads (click and
+psdbake's light modules) exits at once with ``psdbake: interrupted`` and 130 (as later), then
+``cli.main``, which handles signals with clean-up. The heavy modules (numpy, USD, SciPy) load
+inside the command that needs them, under ``cli.main``'s handling: a signal while they load
+unwinds as ``KeyboardInterrupt`` before anything is written, with the same line and code."""
 
 from __future__ import annotations
 

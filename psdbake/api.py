@@ -6,6 +6,10 @@ pose:  ASSET + POSES -> plain UsdSkel skinning per time code -> EXAMPLES to scul
 
 Every function returns data (frozen dataclasses or in-memory layers); nothing here
 prints. ``write_*`` export layers atomically.
+
+The machinery of fit, mirror and the OBJ round trip (SciPy's interpolation and spatial
+modules among it) is imported by the functions that run it, so ``eval`` loads only what it
+uses (issue 16: every farm chunk pays its start-up).
 """
 
 from __future__ import annotations
@@ -15,27 +19,21 @@ import time as _time
 import warnings
 from collections.abc import Sequence
 
-from . import __version__, atomic, objloop
-from .correctives import fit_regions, plan_mesh, plan_systems
+from . import __version__, atomic
 from .deformers import deformer_files, load_deformers
 from .errors import InputError, PsdWarning, where
 from .evaluate import animation_weights, correctives_by_animation, posed_points
-from .examples import gather_examples
 from .frames import frames_of
 from .groups import correctives_layer, read_correctives, updated_layer
-from .mirror import mirror_groups
-from .obj.folder import check_obj_dir as check_obj_folder
 from .results import FitResult, GltfResult, MirrorResult, PoseResult, Progress, SculptsResult, WeightsResult
 from .settings import FitSettings, MirrorSettings, SettingError
-from .solve import cached_scene, solve_all
 from .usd import write as usdwrite
 from .usd.author import Layer
 from .usd.bindspace import read_bind_space
 from .usd.compose import compose
 from .usd.describe import describe as describe_file
 from .usd.gltf_source import read_gltf_source
-from .usd.normalbox import read_mesh_shading
-from .usd.read import Scene, animation_components
+from .usd.read import Scene, animation_components, open_layers
 from .usd.validate import require_finite_time_samples, require_psd_prims_skinned, validate_animation, validate_skinning
 
 __all__ = [  # noqa: RUF022 - in pipeline order; the public surface is psdbake/__init__.py
@@ -81,6 +79,10 @@ def fit(
     jobs: worker processes for the per-example inverses (None: 1, see ``solve.auto_jobs``).
     The output does not depend on it.
     """
+    from .correctives import fit_regions, plan_mesh, plan_systems
+    from .examples import gather_examples
+    from .solve import clear_caches, solve_all
+
     started = _time.perf_counter()
     if not example_files:
         raise InputError("fit needs at least one EXAMPLES file")
@@ -113,12 +115,14 @@ def fit(
                     if (info.path, e.source, e.time) in solved}
             fits += fit_regions(asset, asset_scene, info, examples, mine, plans[info.path], settings, notes,
                                 systems[info.path])
-            _note_normals(asset, asset_scene, info.path, notes)
+            _note_normals(asset, info.path, notes)
+        # for write_correctives: the asset's layers and the EXAMPLES files still open, so no input is parsed twice
+        held = {layer.identifier: layer for layer in [*asset_scene.file_layers(), *open_layers(example_files)]}
     finally:
-        cached_scene.cache_clear()  # the example stages die with the fit
+        clear_caches()  # the example stages die with the fit
     return FitResult(asset=asset, example_files=tuple(example_files), settings=settings, meshes=tuple(fits),
                      warnings=tuple(notes), seconds=_time.perf_counter() - started, skipped=tuple(skipped),
-                     layout=tuple(layout))
+                     layout=tuple(layout), input_layers=tuple(held[k] for k in sorted(held)))
 
 
 def _meshes_to_fit(asset: str, skinned: list[str], wanted: Sequence[str]) -> list[str]:
@@ -128,9 +132,11 @@ def _meshes_to_fit(asset: str, skinned: list[str], wanted: Sequence[str]) -> lis
     return [m for m in skinned if not wanted or m in wanted]
 
 
-def _note_normals(asset: str, asset_scene: Scene, mesh: str, notes: list[str]) -> None:
+def _note_normals(asset: str, mesh: str, notes: list[str]) -> None:
     """Warn when a mesh authors shading normals psdbake cannot give normalOffsets to."""
-    why_not = read_mesh_shading(asset_scene.prim(mesh), asset).why_not
+    from .solve import cached_shading
+
+    why_not = cached_shading(asset, mesh).why_not  # read once for the solves and this note
     if why_not and not why_not.startswith(("no authored normals", "not a Mesh")):
         msg = f"{where(asset, mesh)}: no normalOffsets written: {why_not}"
         notes.append(msg)
@@ -227,7 +233,11 @@ def points_cache_layer(result: WeightsResult, deformers: Sequence[str] = (), *, 
     (the correctives are ordinary blend shapes there), then the deformer chain.
     """
     chain = load_deformers(deformers)
-    scene = Scene([weights_layer(result), result.anim, result.correctives, result.asset], label=result.correctives)
+    # WEIGHTS only drives UsdSkel here: without the asset's metadata, which would open the
+    # asset once more before the stage does (a second parse of a large .usda)
+    drive = usdwrite.weights_layer("psdbake eval: weights driving the points cache",
+                                   [(a.animation, a.channels, a.times, a.weights) for a in result.animations], result.fps)
+    scene = Scene([drive, result.anim, result.correctives, result.asset], label=result.correctives)
     times = sorted({float(t) for a in result.animations for t in a.times})
     meshes = scene.skinned_meshes()
     return usdwrite.points_layer(
@@ -308,6 +318,8 @@ def pose(asset: str, poses: str, deformers: Sequence[str] = (), *, progress: Pro
 def write_pose(result: PoseResult, path: str, obj_dir: str | None = None) -> str:
     """Export EXAMPLES atomically; with obj_dir, also one OBJ per skinned mesh and time code
     plus ``manifest.json`` there, all in the same commit (``objloop``)."""
+    from . import objloop
+
     inputs = files_read([result.asset, result.poses], result.deformers)
     if obj_dir is None:
         return usdwrite.export_atomic(result.layer, path, inputs)
@@ -319,11 +331,15 @@ def write_pose(result: PoseResult, path: str, obj_dir: str | None = None) -> str
 
 def check_obj_dir(obj_dir: str, inputs: Sequence[str] = ()) -> None:
     """Refuse an OBJ folder pose cannot fill (before the work; exit 6)."""
+    from .obj.folder import check_obj_dir as check_obj_folder
+
     check_obj_folder(obj_dir, inputs)
 
 
 def obj_files(result: PoseResult) -> list[str]:
     """The OBJ file names ``write_pose(..., obj_dir)`` writes for result."""
+    from . import objloop
+
     return objloop.obj_files(result)
 
 
@@ -332,12 +348,16 @@ def sculpts(asset: str, examples: str, obj_dir: str, *, scale: float | None = No
     """Read back the sculpted OBJs of obj_dir (listed in its manifest) over EXAMPLES, the layer
     ``pose`` wrote with them: each file checked (vertex count, faces, finite, near its posed
     mesh), ``scale`` and ``up_axis`` applied first."""
+    from . import objloop
+
     return objloop.read_sculpts(asset, examples, obj_dir, scale=scale, up_axis=up_axis)
 
 
 def write_sculpts(result: SculptsResult, path: str) -> str:
     """Export SCULPTED_EXAMPLES (EXAMPLES with the sculpted points) atomically; no input, OBJ
     or manifest may be the output."""
+    from . import objloop
+
     usdwrite.export_all([(path, objloop.sculpts_layer(result))], [result.asset, result.examples],
                         other_inputs=result.read)
     return path
@@ -349,6 +369,8 @@ def mirror(asset: str, correctives: str, settings: MirrorSettings) -> MirrorResu
     """The other side's correctives groups, made from CORRECTIVES's groups (``settings.group``,
     or every group whose drivers all have partners) by reflecting the rig's bind space
     (``psdbake/mirror.py``); refuses a rig or mesh that is not mirror-symmetric."""
+    from .mirror import mirror_groups
+
     started = _time.perf_counter()
     scene = open_asset(asset)
     groups = read_correctives(asset, correctives)

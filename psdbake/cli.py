@@ -3,6 +3,12 @@
 It parses options, calls one library function per command, renders a summary and
 maps errors to exit codes in one place (``main``). No numerics and no USD here.
 
+Start-up: this module imports click and psdbake's light modules only (``names``,
+``tolerances``, ``errors``, ``console``); each command imports the library it calls inside
+its body, and USD's diagnostics are trapped when a command runs (``_Command.invoke``). So
+``psdbake --help``, option parsing and usage errors load no numpy, SciPy or USD
+(tests/test_startup.py; ``python -m benchmarks.startup`` measures it).
+
 Exit codes: 0 success, 1 unexpected failure, 2 usage error, 3 bad input,
 4 ill-posed fit, 5 deformer failure, 6 output not writable, 7 ``--strict`` and some
 vertices missed tolerance, 130 interrupted. ``batch`` exits with its first failed
@@ -18,30 +24,23 @@ import re
 import signal
 import sys
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import click
 
-from . import __version__, api, atomic, console, farm, report
+from . import __version__, console
 from . import tolerances as tol
 from .console import Ui
-from .deformers import load_deformers
 from .errors import PsdError, SettingError, StrictError, UsdDataError
-from .farm import chunked
-from .farm.plan import ChunkUsageError
-from .frames import parse_frames
-from .groups import read_correctives
-from .posespace import POSE_SPACES
-from .rbf import KERNELS
-from .report import compare as compare_meshes
-from .settings import FitSettings, MirrorSettings
-from .usd import write as usdwrite
-from .usd.diagnostics import usd_diagnostics, usd_errors
-from .usd.schema import DEFAULT_GROUP
+from .names import DEFAULT_GROUP, KERNEL_NAMES, LAYER_FORMATS, POSE_SPACE_NAMES
+
+if TYPE_CHECKING:
+    from .settings import FitSettings
 
 EXIT_INTERNAL, EXIT_USAGE, EXIT_INTERRUPTED = 1, 2, 130
 
 
-LAYER_FORMATS = tuple(usdwrite.FORMATS)
 REPORT_FORMATS = (".json",)
 
 
@@ -64,14 +63,14 @@ deformer_option = click.option(
 _RBF_OPTIONS = [
     click.option("--driver", "drivers", multiple=True, metavar="JOINT",
                  help="Driver joint (path or unique name; repeatable). Default: every joint rotated in any example."),
-    click.option("--kernel", type=click.Choice(sorted(KERNELS)), default="gaussian", show_default=True),
+    click.option("--kernel", type=click.Choice(sorted(KERNEL_NAMES)), default="gaussian", show_default=True),
     click.option("--sigma", type=float, default=None,
                  help="Kernel width in radians. Default: mean distance between example poses."),
     click.option("--degree", type=int, default=None,
                  help="Polynomial degree (-1: none). Default: the kernel's minimum (none for gaussian)."),
     click.option("--smoothing", type=float, default=0.0, show_default=True, help="RBF smoothing (0 interpolates exactly)."),
     click.option("--no-rest-example", is_flag=True, help="Do not add the bind pose as an implicit zero example."),
-    click.option("--pose-space", type=click.Choice(list(POSE_SPACES)),
+    click.option("--pose-space", type=click.Choice(list(POSE_SPACE_NAMES)),
                  default="rotationVector", show_default=True, help="Pose coordinates of each driver joint (README)."),
     click.option("--twist-axis", type=(float, float, float), default=None, metavar="X Y Z",
                  help="swingTwist: the twist axis in each driver's bind frame, e.g. 1 0 0 for a bone along x."),
@@ -111,23 +110,42 @@ FLAGS = {"rtol": "--tolerance", "meshes": "--mesh", "drivers": "--driver", "as_n
 _INPUT_PARAMS = ("asset", "examples", "correctives", "anim", "poses", "file", "layers", "jobs_file")
 
 
+@dataclass
+class _Run:
+    """What ``main`` hands its command (as click's ``ctx.obj``): the list that collects USD's
+    diagnostics while the command runs, for ``main`` to show once it has succeeded."""
+
+    usd_messages: list[str] = field(default_factory=list)
+
+
 class _Command(click.Command):
     """A psdbake command: when USD refuses the inputs' data past psdbake's own checks
-    (``UsdDataError``), the message names this command's input files."""
+    (``UsdDataError``), the message names this command's input files. Run from ``main``, USD's
+    own diagnostics are trapped from here on (not before: options are parsed and ``--help``
+    printed without loading USD)."""
 
     def invoke(self, ctx: click.Context):
+        from .usd.dependencies import layers_kept_open
+        from .usd.diagnostics import usd_diagnostics, usd_errors
+
         files: list[str] = []
         for name in _INPUT_PARAMS:
             value = ctx.params.get(name)
             files += [str(v) for v in value] if isinstance(value, (list, tuple)) else [str(value)] if value else []
-        try:
-            with usd_errors():
-                return super().invoke(ctx)
-        except UnicodeDecodeError:  # a name or string in the data is not UTF-8 (a damaged file)
-            raise UsdDataError(f"{', '.join(files) or 'the inputs'}: a name or string in the data is not UTF-8 "
-                               "text") from None
-        except UsdDataError as exc:
-            raise UsdDataError(f"{', '.join(files) or 'the inputs'}: {exc}") from None
+        run = ctx.find_object(_Run)  # None under click's CliRunner: USD's diagnostics go to stderr, as ever
+        trap: contextlib.AbstractContextManager[list[str]] = usd_diagnostics() if run else contextlib.nullcontext([])
+        with trap as found, layers_kept_open():  # the inputs' walk parses each file once for the command
+            try:
+                with usd_errors():
+                    result = super().invoke(ctx)
+            except UnicodeDecodeError:  # a name or string in the data is not UTF-8 (a damaged file)
+                raise UsdDataError(f"{', '.join(files) or 'the inputs'}: a name or string in the data is not UTF-8 "
+                                   "text") from None
+            except UsdDataError as exc:
+                raise UsdDataError(f"{', '.join(files) or 'the inputs'}: {exc}") from None
+        if run is not None:
+            run.usd_messages += found
+        return result
 
 
 cli.command_class = _Command
@@ -136,6 +154,8 @@ cli.command_class = _Command
 def _settings(drivers, kernel, sigma, degree, smoothing, no_rest_example, pose_space, twist_axis, clamp_weights,
               normalize_weights, deformers, **more) -> FitSettings:
     """FitSettings from the shared RBF options (``rbf_options``) and a command's own."""
+    from .settings import FitSettings
+
     return FitSettings(
         drivers=tuple(drivers), kernel=kernel, sigma=sigma, degree=degree, smoothing=smoothing,
         rest_example=not no_rest_example, pose_space=pose_space, twist_axis=twist_axis,
@@ -155,6 +175,8 @@ def _settings(drivers, kernel, sigma, degree, smoothing, no_rest_example, pose_s
 @_common
 def pose_cmd(asset, poses, output, obj_dir, deformers, quiet, verbose, as_json) -> None:
     """Write the skinned character at every time code of POSES, for artists to sculpt."""
+    from . import api, atomic
+
     ui = Ui(quiet, verbose, as_json)
     reads = api.files_read([asset, poses], deformers)
     atomic.check_outputs([(output, LAYER_FORMATS)], reads)
@@ -192,6 +214,8 @@ def pose_cmd(asset, poses, output, obj_dir, deformers, quiet, verbose, as_json) 
 def sculpts_cmd(asset, examples, obj_dir, output, scale, up_axis, quiet, verbose, as_json) -> None:
     """Read the sculpted OBJs of DIR back into EXAMPLES (the layer psdbake pose wrote with them):
     each OBJ checked against the asset's mesh and its posed points, written as SCULPTED_EXAMPLES for fit."""
+    from . import api, atomic
+
     ui = Ui(quiet, verbose, as_json)
     atomic.check_outputs([(output, LAYER_FORMATS)], api.files_read([asset, examples]))
     with ui.warnings():
@@ -224,6 +248,9 @@ def fit_cmd(asset, examples, output, drivers, kernel, sigma, degree, smoothing, 
             twist_axis, clamp_weights, normalize_weights, tolerance, meshes, group, report, strict, jobs, deformers,
             quiet, verbose, as_json) -> None:
     """Fit rest-space corrective BlendShapes and their RBF drivers from sculpted EXAMPLES."""
+    from . import api, atomic
+    from .groups import read_correctives
+
     ui = Ui(quiet, verbose, as_json)
     settings = _settings(drivers, kernel, sigma, degree, smoothing, no_rest_example, pose_space, twist_axis,
                          clamp_weights, normalize_weights, deformers, rtol=tolerance, meshes=tuple(meshes),
@@ -263,6 +290,10 @@ def fit_cmd(asset, examples, output, drivers, kernel, sigma, degree, smoothing, 
 def eval_cmd(asset, correctives, anim, output, frames, points_cache, chunk_size, chunk, deformers, quiet, verbose,
              as_json) -> None:
     """Compute the correctives' weights over ANIM and write them as a WEIGHTS layer."""
+    from . import api, atomic
+    from .deformers import load_deformers
+    from .frames import parse_frames
+
     ui = Ui(quiet, verbose, as_json)
     if chunk_size is not None or chunk is not None:
         _eval_chunked(ui, asset, correctives, anim, output, frames, points_cache, chunk_size, chunk, deformers)
@@ -302,6 +333,9 @@ def eval_cmd(asset, correctives, anim, output, frames, points_cache, chunk_size,
 def mirror_cmd(asset, correctives, output, joint_rules, group, as_name, plane, quiet, verbose, as_json) -> None:
     """Make the other side's correctives groups from one side's (a symmetric rig and mesh) and write them
     into CORRECTIVES's groups."""
+    from . import api, atomic
+    from .settings import MirrorSettings
+
     ui = Ui(quiet, verbose, as_json)
     settings = MirrorSettings(joints=tuple(joint_rules), plane=plane, group=group, as_name=as_name)
     atomic.check_outputs([(output, LAYER_FORMATS)], api.mirror_reads(asset, correctives, output))
@@ -323,6 +357,9 @@ def mirror_cmd(asset, correctives, output, joint_rules, group, as_name, plane, q
 def export_gltf_cmd(asset, correctives, anim, output, frames, quiet, verbose, as_json) -> None:
     """Write a skinned glTF 2.0 binary for game engines: meshes, skin, joint animation, the correctives
     as morph targets and eval's weights animating them."""
+    from . import api
+    from .frames import parse_frames
+
     ui = Ui(quiet, verbose, as_json)
     with ui.warnings(), ui.progress("weights") as progress:  # the output is checked before any work
         result = api.export_gltf(asset, correctives, anim, output, frames=parse_frames(frames), progress=progress)
@@ -336,6 +373,12 @@ def export_gltf_cmd(asset, correctives, anim, output, frames, quiet, verbose, as
 def _eval_chunked(ui: Ui, asset, correctives, anim, output, frames, points_cache, chunk_size, chunk,
                   deformers) -> None:
     """eval --chunk-size N [--chunk K]: chunk layers plus the value-clip manifest(s) (psdbake.farm.chunked)."""
+    from . import api, atomic
+    from .deformers import load_deformers
+    from .farm import chunked
+    from .farm.plan import ChunkUsageError
+    from .frames import parse_frames
+
     if chunk_size is None:
         raise ChunkUsageError("--chunk needs --chunk-size (every farm task must cut the shot the same way)")
     if chunk_size < 1:
@@ -374,6 +417,10 @@ def compare_cmd(asset, examples, anim, report_dir, vertex, mesh, frames, views, 
                 deformers, quiet, verbose, as_json) -> None:
     """Fit EXAMPLES, then compare plain skinning, forward PSD and inverse PSD (same RBF weights)
     at every frame of ANIM; write an HTML report with figures and per-frame statistics."""
+    from . import api, report
+    from .frames import parse_frames
+    from .report import compare as compare_meshes
+
     ui = Ui(quiet, verbose, as_json)
     settings = _settings(drivers, kernel, sigma, degree, smoothing, no_rest_example, pose_space, twist_axis,
                          clamp_weights, normalize_weights, deformers, meshes=(mesh,) if mesh else (),
@@ -396,6 +443,8 @@ def compare_cmd(asset, examples, anim, report_dir, vertex, mesh, frames, views, 
 @click.option("--json", "as_json", is_flag=True, help="Print the summary as JSON.")
 def inspect_cmd(file, as_json) -> None:
     """What FILE holds: skeletons, skinned meshes, animations, examples and psd: correctives."""
+    from . import api
+
     info = api.describe(file)
     if as_json:
         click.echo(json.dumps(info, indent=2, sort_keys=True))
@@ -409,6 +458,8 @@ def inspect_cmd(file, as_json) -> None:
 def stack_cmd(output, layers) -> None:
     """Write OUTPUT sublayering LAYERS, given weakest first (ASSET CORRECTIVES ANIM WEIGHTS),
     so any UsdSkel viewer shows the corrected character."""
+    from . import api
+
     api.write_stack(output, layers)
     click.echo(f"wrote {output}")
 
@@ -429,6 +480,8 @@ def batch_cmd(jobs_file, workers, scheduler, retries, dry_run, quiet, verbose, a
     A job reading a file other jobs write runs after them; jobs writing one file run in file
     order. One line per finished job on stderr; the exit code is the first failed job's.
     """
+    from . import farm
+
     ui = Ui(quiet, verbose, as_json)
     jobs = farm.load_jobs(jobs_file, {name: cli.commands[name] for name in farm.COMMANDS})  # the CLI is the job schema
     if dry_run:
@@ -465,15 +518,15 @@ def main(argv: Sequence[str] | None = None) -> None:
     with contextlib.suppress(ValueError):  # only the main thread may set handlers
         signal.signal(signal.SIGTERM, _terminate)
     quiet = any(a in ("-q", "--quiet", "--json") for a in (argv if argv is not None else sys.argv[1:]))
+    run = _Run()
     try:
-        with usd_diagnostics() as usd_messages:
-            # make_context + invoke rather than cli.main: click's main echoes a blank line on
-            # Ctrl-C (for the terminal's ^C), and a refusal must be exactly one line
-            args = list(argv) if argv is not None else sys.argv[1:]
-            with cli.make_context("psdbake", args) as ctx:
-                cli.invoke(ctx)
+        # make_context + invoke rather than cli.main: click's main echoes a blank line on
+        # Ctrl-C (for the terminal's ^C), and a refusal must be exactly one line
+        args = list(argv) if argv is not None else sys.argv[1:]
+        with cli.make_context("psdbake", args, obj=run) as ctx:
+            cli.invoke(ctx)
         if not quiet:
-            for message in dict.fromkeys(usd_messages):  # USD repeats itself; once is enough
+            for message in dict.fromkeys(run.usd_messages):  # USD repeats itself; once is enough
                 click.echo(f"psdbake: warning: USD: {message}", err=True)
     except click.exceptions.Exit as exc:  # --help, --version
         sys.exit(exc.exit_code)

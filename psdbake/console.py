@@ -10,15 +10,17 @@ import json
 import sys
 import warnings
 from collections.abc import Callable, Iterator
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import click
 
 from . import __version__
 from .errors import PsdWarning
-from .farm import JobResult
-from .farm.chunked import ChunkedWeights, WrittenChunks
-from .results import FitResult, MirrorResult, Progress, SculptsResult, WeightsResult
+
+if TYPE_CHECKING:  # the results are only read here: importing them would load numpy and USD with --help
+    from .farm import JobResult
+    from .farm.chunked import ChunkedWeights, WrittenChunks
+    from .results import FitResult, MirrorResult, Progress, SculptsResult, WeightsResult
 
 
 class Ui:

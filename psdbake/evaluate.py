@@ -20,6 +20,7 @@ from .deformers import DeformerFactory
 from .errors import InputError, PsdWarning, where
 from .results import AnimWeights, Progress
 from .usd.blackbox import FLOAT32_MAX, SkinningBlackBox
+from .usd.posedpoints import PosedPoints, RestPoints
 from .usd.read import Scene, SkinnedMesh
 from .usd.schema import DriverData
 from .usd.validate import check_corrective_indices, require_finite_time_samples, validate_animation
@@ -107,14 +108,15 @@ def _bounded_channels(b: NDArray[np.float64], data: DriverData, group: str, time
 
 def posed_points(rest_scene: Scene, scene: Scene, meshes: Sequence[SkinnedMesh], times: Sequence[float],
                  chain: Sequence[tuple[str, DeformerFactory]], progress: Progress | None
-                 ) -> Iterator[tuple[str, float, NDArray[np.float64]]]:
+                 ) -> Iterator[tuple[str, float, PosedPoints]]:
     """(mesh, time, points) for every mesh and time: the black box applied to the rest points
-    (``pose``'s examples to sculpt, ``eval``'s points cache)."""
+    (``pose``'s examples to sculpt, ``eval``'s points cache), as USD stores them. The rest
+    points and the work space are made once per mesh, not once per frame."""
     total, done = len(meshes) * len(times), 0
     for info in meshes:
-        rest = rest_scene.rest_points(info.path)
+        rest = RestPoints(rest_scene.rest_points(info.path))
         for t in times:
-            yield info.path, t, SkinningBlackBox(scene, info.path, t, chain)(rest)
+            yield info.path, t, SkinningBlackBox(scene, info.path, t, chain).posed(rest)
             done += 1
             if progress:
                 progress(done, total, info.path)

@@ -116,7 +116,7 @@ def _conjugate_start(
     directions = np.tile(np.eye(3), (len(jac), 1, 1))
     start = np.zeros_like(r0)
     if ok.any():
-        inv = np.linalg.inv(jac[ok])
+        inv = powell.inverse3(jac[ok])  # adjugate / det: well-conditioned blocks only
         directions[ok] = np.transpose(inv, (0, 2, 1))  # row j = column j of J^-1
         start[ok] = np.einsum("kab,kb->ka", inv, r0[ok])
     return directions, start, ok

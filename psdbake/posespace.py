@@ -35,9 +35,10 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.spatial.transform import Rotation
 
 from .arrays import Matrices, Quaternions
+from .names import POSE_SPACE_NAMES
+from .quaternions import RotationLike, Rotations
 
 #: Transform entries beyond float32's range: UsdSkel skins in float32, so such a joint or
 #: prim transform cannot be evaluated (and squaring its entries overflows float64).
@@ -56,28 +57,29 @@ def undefined_rotations(matrices: Matrices) -> NDArray[np.bool_]:
     return ~usable | np.any(norms < 1e-12, axis=-1) | (frame < 1e-9)
 
 
-def rotations(matrices: Matrices) -> Rotation:
-    """Rotation part of row-vector transforms, as column-convention scipy rotations."""
+def rotations(matrices: Matrices) -> Rotations:
+    """Rotation part of row-vector transforms, as column-convention rotations (``quaternions``:
+    scipy's ``Rotation`` without loading ``scipy.spatial``, bit for bit)."""
     m = np.asarray(matrices, dtype=np.float64)[..., :3, :3]
     norms = np.linalg.norm(m, axis=-1, keepdims=True)
     m = m / np.where(norms > 0, norms, 1.0)
     # A mirrored joint (negative scale, common in mirrored rigs) is a reflection: negating
     # the 3x3 block leaves a proper rotation; bind and posed frames flip alike, so delta is kept.
     m = np.where(np.linalg.det(m)[..., None, None] < 0, -m, m)
-    return Rotation.from_matrix(np.swapaxes(m, -1, -2).reshape(-1, 3, 3))
+    return Rotations.from_matrix(np.swapaxes(m, -1, -2).reshape(-1, 3, 3))
 
 
-def relative_rotations(bind_local: Matrices, local: Matrices) -> Rotation:
+def relative_rotations(bind_local: Matrices, local: Matrices) -> Rotations:
     """delta_j = R_bind_j^-1 R_j for each joint (the rotation away from the bind pose)."""
     return rotations(bind_local).inv() * rotations(local)
 
 
-def relative_from_quaternions(bind_rotations: Quaternions, local: Matrices) -> Rotation:
+def relative_from_quaternions(bind_rotations: Quaternions, local: Matrices) -> Rotations:
     """As ``relative_rotations`` with the bind rotations given as stored quaternions."""
-    return Rotation.from_quat(bind_rotations).inv() * rotations(local)
+    return Rotations.from_quat(bind_rotations).inv() * rotations(local)
 
 
-def swing_twist(delta: Rotation, axis: NDArray[np.float64]) -> tuple[Rotation, NDArray[np.float64]]:
+def swing_twist(delta: RotationLike, axis: NDArray[np.float64]) -> tuple[Rotations, NDArray[np.float64]]:
     """delta = swing * twist, twist about axis; returns (swing, signed twist angle)."""
     a = np.asarray(axis, dtype=np.float64) / np.linalg.norm(axis)
     q = delta.as_quat().reshape(-1, 4)
@@ -85,21 +87,21 @@ def swing_twist(delta: Rotation, axis: NDArray[np.float64]) -> tuple[Rotation, N
     twist_q = np.concatenate([proj, q[:, 3:4]], axis=1)
     norm = np.linalg.norm(twist_q, axis=1, keepdims=True)
     twist_q = np.where(norm > 1e-12, twist_q / np.where(norm > 0, norm, 1.0), [0.0, 0.0, 0.0, 1.0])
-    twist = Rotation.from_quat(twist_q)
+    twist = Rotations.from_quat(twist_q)
     angle = 2.0 * np.arctan2(twist_q[:, :3] @ a, twist_q[:, 3])
     angle = (angle + np.pi) % (2.0 * np.pi) - np.pi
-    return Rotation.from_quat(q) * twist.inv(), angle
+    return Rotations.from_quat(q) * twist.inv(), angle
 
 
-def _rotation_vector(delta: Rotation, twist_axis: NDArray[np.float64] | None) -> NDArray[np.float64]:
+def _rotation_vector(delta: Rotations, twist_axis: NDArray[np.float64] | None) -> NDArray[np.float64]:
     return delta.as_rotvec().reshape(-1)
 
 
-def _chordal(delta: Rotation, twist_axis: NDArray[np.float64] | None) -> NDArray[np.float64]:
+def _chordal(delta: Rotations, twist_axis: NDArray[np.float64] | None) -> NDArray[np.float64]:
     return (delta.as_matrix().reshape(-1, 3, 3) - np.eye(3)).reshape(-1)
 
 
-def _swing_twist(delta: Rotation, twist_axis: NDArray[np.float64] | None) -> NDArray[np.float64]:
+def _swing_twist(delta: Rotations, twist_axis: NDArray[np.float64] | None) -> NDArray[np.float64]:
     if twist_axis is None:
         raise ValueError("swingTwist pose space needs a twist axis")
     swing, twist = swing_twist(delta, twist_axis)
@@ -111,25 +113,27 @@ class PoseSpace:
     """One way of turning a driver's rotation into RBF coordinates (``psd:poseSpace``)."""
 
     width: int  # coordinates per driver
-    coordinates: Callable[[Rotation, NDArray[np.float64] | None], NDArray[np.float64]]
+    coordinates: Callable[[Rotations, NDArray[np.float64] | None], NDArray[np.float64]]
     needs_twist_axis: bool = False
     bound: float = np.pi  # no coordinate of any rotation exceeds this in magnitude (channels.py)
 
 
-#: The pose spaces, by their ``psd:poseSpace`` token: the CLI's choices, the fit's and the
-#: reader's validation all read this registry, so a new pose space is one entry here.
-POSE_SPACES: dict[str, PoseSpace] = {
-    "rotationVector": PoseSpace(3, _rotation_vector),
-    "swingTwist": PoseSpace(4, _swing_twist, needs_twist_axis=True),
-    "quaternion": PoseSpace(9, _chordal, bound=2.0),  # entries of R - I
-}
+#: The pose spaces, by their ``psd:poseSpace`` token (``names.POSE_SPACE_NAMES``, the same
+#: order): the CLI's choices, the fit's and the reader's validation all read these, so a new
+#: pose space is one name there and one entry here.
+POSE_SPACES: dict[str, PoseSpace] = dict(zip(POSE_SPACE_NAMES, (
+    PoseSpace(3, _rotation_vector),  # rotationVector
+    PoseSpace(4, _swing_twist, needs_twist_axis=True),  # swingTwist
+    PoseSpace(9, _chordal, bound=2.0),  # quaternion: entries of R - I
+), strict=True))
 
 
-def features(delta: Rotation, space: str = "rotationVector", twist_axis=None) -> NDArray[np.float64]:
-    """Pose coordinates of the joints' relative rotations, concatenated: (width j,)."""
+def features(delta: RotationLike, space: str = "rotationVector", twist_axis=None) -> NDArray[np.float64]:
+    """Pose coordinates of the joints' relative rotations, concatenated: (width j,). delta may
+    be scipy's ``Rotation`` too (the same quaternions, so the same coordinates)."""
     if space not in POSE_SPACES:
         raise ValueError(f"unknown pose space {space!r}: choose one of {', '.join(POSE_SPACES)}")
-    return POSE_SPACES[space].coordinates(delta, twist_axis)
+    return POSE_SPACES[space].coordinates(Rotations(delta.as_quat()), twist_axis)
 
 
 def pose_coordinates(bind_local: Matrices, local: Matrices, space: str = "rotationVector",

@@ -21,22 +21,23 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.spatial.distance import cdist
 
 from . import tolerances as tol
 from .errors import FitError
+from .names import KERNEL_NAMES
 
-#: phi(r) for r = eps |x - c|, exactly as scipy.interpolate.RBFInterpolator defines them.
-KERNELS = {
-    "gaussian": lambda r: np.exp(-(r**2)),
-    "linear": lambda r: -r,
-    "thin_plate_spline": lambda r: np.where(r > 0, r**2 * np.log(np.where(r > 0, r, 1.0)), 0.0),
-    "cubic": lambda r: r**3,
-    "quintic": lambda r: -(r**5),
-    "multiquadric": lambda r: -np.sqrt(r**2 + 1.0),
-    "inverse_multiquadric": lambda r: 1.0 / np.sqrt(r**2 + 1.0),
-    "inverse_quadratic": lambda r: 1.0 / (r**2 + 1.0),
-}
+#: phi(r) for r = eps |x - c|, exactly as scipy.interpolate.RBFInterpolator defines them, by
+#: ``names.KERNEL_NAMES`` (the same order).
+KERNELS = dict(zip(KERNEL_NAMES, (
+    lambda r: np.exp(-(r**2)),  # gaussian
+    lambda r: -r,  # linear
+    lambda r: np.where(r > 0, r**2 * np.log(np.where(r > 0, r, 1.0)), 0.0),  # thin_plate_spline
+    lambda r: r**3,  # cubic
+    lambda r: -(r**5),  # quintic
+    lambda r: -np.sqrt(r**2 + 1.0),  # multiquadric
+    lambda r: 1.0 / np.sqrt(r**2 + 1.0),  # inverse_multiquadric
+    lambda r: 1.0 / (r**2 + 1.0),  # inverse_quadratic
+), strict=True))
 
 
 #: Kernels that need at least this polynomial degree to be well posed (scipy's rule).
@@ -80,12 +81,29 @@ def formula_basis(x: NDArray[np.float64], centers: NDArray[np.float64], kernel: 
                   ) -> NDArray[np.float64]:
     """The documented formula's basis at x (over dims): [phi(eps |x - c_i|) ..., monomials of xhat ...].
     The fit builds its system from this too, so what is checked is what is stored."""
-    basis = KERNELS[kernel](epsilon * cdist(x, centers))
+    basis = KERNELS[kernel](epsilon * distances(x, centers))
     if len(powers):
         xhat = (x - shift) / scale
         poly = np.prod(xhat[:, None, :] ** powers[None, :, :], axis=2)
         basis = np.concatenate([basis, poly], axis=1)
     return basis
+
+
+def distances(x: NDArray[np.float64], centers: NDArray[np.float64]) -> NDArray[np.float64]:
+    """|x_i - c_j| (n, k) for x (n, d) and centres (k, d): scipy's ``cdist(x, centers)`` bit for
+    bit, its squares summed coordinate by coordinate in order and each sum's root taken once.
+
+    Why not cdist: importing it loads ``scipy.spatial`` whole (~0.3 s, k-d trees, Qhull,
+    ``scipy.sparse``), which ``psdbake eval`` paid before its first frame (issue 16). Separate
+    multiplies and adds in numpy (never fused) give cdist's bits; tests/test_quaternions.py
+    holds the two equal on random input.
+    """
+    x, centers = np.asarray(x, dtype=np.float64), np.asarray(centers, dtype=np.float64)
+    total = np.zeros((x.shape[0], centers.shape[0]))
+    for d in range(x.shape[1]):
+        diff = x[:, d, None] - centers[None, :, d]
+        total += diff * diff
+    return np.sqrt(total)
 
 
 def row_independent_product(a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -130,14 +148,14 @@ def auto_sigma(centers: NDArray[np.float64]) -> float:
     sigma's starting point, sigma0 (``plan_rbf`` shrinks it when the system is ill-conditioned)."""
     if len(centers) < 2:
         return tol.DEFAULT_SIGMA
-    d = cdist(centers, centers)
+    d = distances(centers, centers)
     sigma = float(d[np.triu_indices(len(centers), k=1)].mean())
     return sigma if sigma > 0 else tol.DEFAULT_SIGMA
 
 
 def check_distinct(centers: NDArray[np.float64], labels: Sequence[str]) -> list[tuple[str, str, float]]:
     """Raise on duplicate poses; return near-duplicate pairs (label, label, distance)."""
-    d = cdist(centers, centers)
+    d = distances(centers, centers)
     close = np.argwhere(np.triu(d < tol.NEAR_DUPLICATE_POSE_ATOL, k=1))
     near = []
     for i, j in close:

@@ -59,6 +59,9 @@ class FitResult:
     seconds: float = 0.0
     skipped: tuple[str, ...] = ()  # examples the explicit drivers do not move (labels, with the mesh)
     layout: tuple[str, ...] = ()  # why a mesh's correctives are one global group instead of local ones
+    #: the input files' layers (``Sdf.Layer``), kept open so that writing CORRECTIVES reads
+    #: no input again: a 1M-point .usda asset took seconds to parse each time
+    input_layers: tuple[object, ...] = field(default=(), repr=False, compare=False)
 
     @property
     def missed(self) -> int:

@@ -14,7 +14,7 @@ import numpy as np
 from . import tolerances as tol
 from .errors import SettingError
 from .posespace import POSE_SPACES
-from .rbf import KERNELS
+from .rbf_model import KERNELS
 from .usd.schema import RESERVED_GROUP_NAMES
 
 

@@ -11,18 +11,19 @@ from collections.abc import Callable, Mapping, Sequence
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.spatial.transform import Rotation
 
-from . import posespace, rbf
+from . import posespace
 from .channels import channel_weights
 from .errors import InputError
+from .quaternions import RotationLike, Rotations
+from .rbf_model import KERNELS, CardinalRbf
 from .usd.schema import DriverData
 
 
-def rbf_from_driver_data(data: DriverData) -> rbf.CardinalRbf:
-    if data.kernel not in rbf.KERNELS:
+def rbf_from_driver_data(data: DriverData) -> CardinalRbf:
+    if data.kernel not in KERNELS:
         raise InputError(f"psd:kernel {data.kernel!r} is unknown")
-    return rbf.CardinalRbf(
+    return CardinalRbf(
         centers=data.centers, kernel=data.kernel, sigma=data.sigma, degree=data.degree,
         smoothing=data.smoothing, coefficients=data.coefficients, powers=data.powers,
         shift=data.shift, scale=data.scale, dims=data.dims,
@@ -45,7 +46,7 @@ def driver_weights(data: DriverData, local: NDArray[np.float64]) -> NDArray[np.f
     return weights_of_rotations(data, relative_rotations(data, local), len(local))
 
 
-def relative_rotations(data: DriverData, local: NDArray[np.float64]) -> Rotation:
+def relative_rotations(data: DriverData, local: NDArray[np.float64]) -> Rotations:
     """The group's drivers' rotations (f * d) away from their stored bind rotations, for
     their local transforms (f, d, 4, 4)."""
     f = len(local)
@@ -65,7 +66,7 @@ def gate_activation(data: DriverData, x: NDArray[np.float64]) -> NDArray[np.floa
     return out
 
 
-def pose_coordinates(data: DriverData, delta: Rotation, f: int) -> NDArray[np.float64]:
+def pose_coordinates(data: DriverData, delta: RotationLike, f: int) -> NDArray[np.float64]:
     """(f, width * d): the group's pose-space coordinates of its drivers' rotations (f * d)."""
     width = posespace.POSE_SPACES[data.pose_space].width
     return posespace.features(delta, data.pose_space, data.twist_axis).reshape(f, width * len(data.drivers))
@@ -110,7 +111,7 @@ def apply_options(data: DriverData, w: NDArray[np.float64]) -> NDArray[np.float6
     return w
 
 
-def weights_of_rotations(data: DriverData, delta: Rotation, f: int) -> NDArray[np.float64]:
+def weights_of_rotations(data: DriverData, delta: RotationLike, f: int) -> NDArray[np.float64]:
     """Weights (f, s) of a group without group gates, for its drivers' rotations away from
     their bind pose (f * d rotations)."""
     if data.gate_groups:
@@ -118,7 +119,7 @@ def weights_of_rotations(data: DriverData, delta: Rotation, f: int) -> NDArray[n
     return apply_options(data, rbf_weights(data, pose_coordinates(data, delta, f)))
 
 
-def group_weights(groups: Sequence[tuple[str, DriverData]], delta_of: Callable[[DriverData], Rotation], f: int
+def group_weights(groups: Sequence[tuple[str, DriverData]], delta_of: Callable[[DriverData], RotationLike], f: int
                   ) -> dict[str, NDArray[np.float64]]:
     """group -> weights (f, s) of one mesh's groups, combinations included: a group's RBF
     weights times the ``activation`` of each group in its ``gate_groups`` (a facial rig's
@@ -149,7 +150,7 @@ def weights_at_pose(groups: Sequence[tuple[str, DriverData]], pose: NDArray[np.f
                     ) -> dict[str, NDArray[np.float64]]:
     """group -> written channel weights (1, c) at an example's pose: every joint's rotation
     away from bind, (J, 4) quaternions in skeleton order ``joints``."""
-    b = group_weights(groups, lambda data: Rotation.from_quat(pose[_index(joints, data)]), 1)
+    b = group_weights(groups, lambda data: Rotations.from_quat(pose[_index(joints, data)]), 1)
     return {g: channel_weights(data, b[g]) for g, data in groups}
 
 
@@ -169,6 +170,8 @@ def sampled_ranges(groups: Sequence[tuple[str, DriverData]], count: int, anchors
     bind pose is always one) turned by a factor in [0, 1.5] (up to half again past the
     sculpt), so every mix of joints the examples bend appears; a quarter of the draws are
     uniform over SO(3), for poses far from every sculpt."""
+    from scipy.spatial.transform import Rotation  # fit only: eval's imports stay clear of scipy.spatial
+
     joints = sorted({d for _, data in groups for d in data.drivers})
     rng = np.random.default_rng(seed)
     near, far = count - count // 4, count // 4
@@ -180,7 +183,7 @@ def sampled_ranges(groups: Sequence[tuple[str, DriverData]], count: int, anchors
                                          Rotation.random(far, random_state=rng)])
     n = count + 1
 
-    def delta_of(data: DriverData) -> Rotation:
+    def delta_of(data: DriverData) -> RotationLike:
         quats = np.stack([draws[d].as_quat() for d in data.drivers], axis=1)  # (n, d, 4), frame-major
         return Rotation.from_quat(quats.reshape(-1, 4))
 

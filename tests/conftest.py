@@ -63,6 +63,17 @@ def run_cli(*args) -> tuple[int, str, str]:
         return exc.value.code, out.read().decode("utf-8", "replace"), err.read().decode("utf-8", "replace")
 
 
+@pytest.fixture(autouse=True)
+def fixtures_stay_as_on_disk():
+    """No test may edit a bundled fixture's layer in memory: USD keeps an open layer for every
+    later FindOrOpen in this process, so such an edit changes what later tests read (a points
+    cache once came out in another space, depending on test order). Edit a copy instead."""
+    yield
+    dirty = [layer.identifier for layer in Sdf.Layer.GetLoadedLayers()
+             if not layer.anonymous and layer.dirty and os.path.realpath(layer.realPath).startswith(FIXTURES + os.sep)]
+    assert not dirty, f"a test edited fixture layers in memory: {dirty}"
+
+
 @pytest.fixture
 def cli():
     """The in-process CLI runner (``run_cli``) as a fixture."""

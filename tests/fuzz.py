@@ -981,7 +981,9 @@ def _worker(mode: str, seed: int, folder: str, err_path: str) -> None:
     log = os.open(err_path + ".log", os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
     os.dup2(log, 2)  # USD's diagnostics while mutating, and any fuzzer error
     capture = _Capture(err_path)
-    import psdbake.cli  # noqa: F401  (imported before the first case: its time is not a case's)
+    # the CLI and the library it loads per command, before the first case: their time is not a case's
+    import psdbake.api
+    import psdbake.cli  # noqa: F401
 
     _pristine()
     if mode == "usdc":

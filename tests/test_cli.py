@@ -6,6 +6,7 @@ import json
 import os
 import re
 import select
+import shutil
 import subprocess
 import sys
 import time
@@ -309,13 +310,14 @@ def test_inspect_warns_of_a_layout_blender_misplaces(run, tmp_path):
     code, out, err = run("inspect", fixture("character", "character.usda"), "--json")
     assert code == 0 and json.loads(out)["warnings"] == [] and "warning" not in err
     fixed = tmp_path / "arm_fixed.usda"
-    stage = Usd.Stage.Open(ASSET)
+    shutil.copyfile(ASSET, fixed)  # edited as a copy: the fixture's layer stays as on disk for later tests
+    stage = Usd.Stage.Open(str(fixed))
     cache = UsdGeom.XformCache()
     skel = cache.GetLocalToWorldTransform(stage.GetPrimAtPath(generate.SKEL))
     geo_parent = cache.GetParentToWorldTransform(stage.GetPrimAtPath("/Arm/Geo"))
     geo = UsdGeom.Xformable(stage.GetPrimAtPath("/Arm/Geo"))
     geo.ClearXformOpOrder()
     geo.AddTransformOp().Set(skel * geo_parent.GetInverse())  # world = local * parent (row vectors)
-    stage.GetRootLayer().Export(str(fixed))
+    stage.GetRootLayer().Save()
     code, out, _ = run("inspect", fixed, "--json")
     assert code == 0 and json.loads(out)["warnings"] == []

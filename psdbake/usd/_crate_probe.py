@@ -58,9 +58,23 @@ def read_every_value(identifier: str) -> None:
 
 def _decode(value: Any) -> None:
     """Names and strings as Python text: token and string arrays decode their elements only
-    when read, so read them here (a damaged token table is not UTF-8)."""
-    if type(value).__name__ in ("TokenArray", "StringArray", "list", "tuple", "dict"):
-        str(list(value.values()) if isinstance(value, dict) else list(value))
+    when read, so read them here (a damaged token table is not UTF-8). A dict item by item,
+    numeric arrays left out: they hold no text, and ``timeSamples`` is a dict of them (printing
+    a million points as text took most of a 1M-point fit; ``QueryTimeSample`` reads their bits)."""
+    if isinstance(value, dict):
+        for key, item in value.items():
+            str(key)
+            if isinstance(item, dict):
+                _decode(item)
+            elif not _numeric_array(item):
+                repr(item)  # as str(list) of the values did
+    elif type(value).__name__ in ("TokenArray", "StringArray", "list", "tuple"):
+        str(list(value))
+
+
+def _numeric_array(value: Any) -> bool:
+    """A Vt array of numbers, vectors, matrices or quaternions: no text in it."""
+    return type(value).__module__ == "pxr.Vt" and type(value).__name__ not in ("TokenArray", "StringArray")
 
 
 def _compose(layer) -> None:

@@ -128,7 +128,7 @@ class Scene:
                     skeleton=skeleton,
                     skel_root=root,
                     joints=joints,
-                    point_count=len(self.rest_points(path)),
+                    point_count=self._point_count(path),
                 )
             )
         return out
@@ -178,6 +178,13 @@ class Scene:
     def prim(self, path: str) -> Usd.Prim:
         return self.stage.GetPrimAtPath(path)
 
+    def file_layers(self) -> tuple[Sdf.Layer, ...]:
+        """Every file layer the stage reads (sorted by identifier; in-memory ones left out):
+        what a caller holds to read the same files again later without parsing them twice
+        (USD finds an open layer instead of reading its file)."""
+        return tuple(sorted((layer for layer in self.stage.GetUsedLayers() if not layer.anonymous),
+                            key=lambda layer: layer.identifier))
+
     def driver_groups(self, mesh: str) -> list[tuple[str, DriverData]]:
         """Every correctives group's psd: driver data on mesh, validated against the bound
         skeleton's joints, sorted by group name; empty if the mesh has none."""
@@ -199,6 +206,19 @@ class Scene:
         if not np.all(np.isfinite(pts)):
             raise InputError(f"{where(self.label, mesh, 'points')}: rest points contain NaN or inf")
         return pts
+
+    def _point_count(self, mesh: str) -> int:
+        """``len(self.rest_points(mesh))``, refusing the same points, without their float64
+        copy: UsdGeom's float32 array read in place (25 ms of copying at 1M points, and a fit
+        lists the skinned meshes several times). Anything unusual takes rest_points' path."""
+        value = UsdGeom.PointBased(self.prim(mesh)).GetPointsAttr().Get(Usd.TimeCode.Default())
+        try:
+            view = np.asarray(value)
+        except (TypeError, ValueError):
+            view = None
+        if view is not None and view.dtype.kind == "f" and view.size % 3 == 0 and np.isfinite(view).all():
+            return view.size // 3
+        return len(self.rest_points(mesh))
 
     def animation_times(self, mesh: str) -> list[float]:
         """Authored time samples of the skeleton's animation (joints and blend shapes)."""
@@ -308,9 +328,8 @@ class Scene:
 
 
 
-def read_corrective_shapes(scene: Scene, mesh: str, channels: Sequence[str]) -> list[BlendShapeData]:
-    """The BlendShapes behind the given channels of mesh (to carry groups a fit does not
-    touch into the updated CORRECTIVES layer unchanged)."""
+def corrective_targets(scene: Scene, mesh: str, channels: Sequence[str]) -> list[Usd.Prim]:
+    """The BlendShape prim behind each of the given channels of mesh, in order."""
     names, targets = existing_blend_shapes(scene, mesh)
     by_channel = dict(zip(names, targets, strict=True))
     out = []
@@ -319,8 +338,21 @@ def read_corrective_shapes(scene: Scene, mesh: str, channels: Sequence[str]) -> 
         prim = scene.prim(target) if target else None
         if not prim or not prim.IsA(UsdSkel.BlendShape):
             raise InputError(f"{where(scene.label, mesh, 'skel:blendShapeTargets')}: no BlendShape for channel {channel!r}")
-        out.append(read_blend_shape(prim, channel))
+        out.append(prim)
     return out
+
+
+def open_layers(paths: Sequence[str]) -> tuple[Sdf.Layer, ...]:
+    """The layers of these files that are open now (by anyone); none is opened or parsed."""
+    found = (Sdf.Layer.Find(path) for path in paths)
+    return tuple(layer for layer in found if layer)
+
+
+def read_corrective_shapes(scene: Scene, mesh: str, channels: Sequence[str]) -> list[BlendShapeData]:
+    """The BlendShapes behind the given channels of mesh (to carry groups a fit does not
+    touch into the updated CORRECTIVES layer unchanged)."""
+    return [read_blend_shape(prim, channel)
+            for prim, channel in zip(corrective_targets(scene, mesh, channels), channels, strict=True)]
 
 
 

@@ -20,8 +20,9 @@ from numpy.typing import NDArray
 from pxr import Gf, Sdf, Usd, UsdSkel, Vt
 
 from ..errors import InputError, where
+from ..names import DEFAULT_GROUP
 from ..posespace import POSE_SPACES
-from ..rbf import KERNELS
+from ..rbf_model import KERNELS
 from .author import attribute, double_array, int_array, over, quatd_array
 
 #: Version of the psd: attribute schema written by this psdbake.
@@ -29,8 +30,6 @@ PSD_VERSION = 4
 #: psd: schema versions this psdbake reads (1: one flat group, read as group "main"; 2: groups;
 #: 3: groups with optional joint gates; 4: combinations gated by the groups they sit on).
 READABLE_PSD_VERSIONS = (1, 2, 3, 4)
-#: The group a v1 layer's flat psd: data belongs to, and fit's group when none is named.
-DEFAULT_GROUP = "main"
 #: Group names become attribute namespaces: identifiers, and not the schema's own names.
 RESERVED_GROUP_NAMES = ("version", "groups")
 
@@ -375,11 +374,17 @@ class _GroupReader:
         return tuple(float(v) for v in axis)
 
 
+def read_point_indices(prim: Usd.Prim) -> NDArray[np.int64]:
+    """A BlendShape prim's pointIndices alone: what eval checks, without reading (for a
+    ``.usdc``, unpacking) the offsets it never uses."""
+    return np.array(UsdSkel.BlendShape(prim).GetPointIndicesAttr().Get() or [], dtype=np.int64)
+
+
 def read_blend_shape(prim: Usd.Prim, channel: str) -> BlendShapeData:
     """A BlendShape prim's data (to carry groups a fit does not touch into an updated layer)."""
     shape = UsdSkel.BlendShape(prim)
     offsets = np.array(shape.GetOffsetsAttr().Get() or [], dtype=np.float64).reshape(-1, 3)
-    indices = np.array(shape.GetPointIndicesAttr().Get() or [], dtype=np.int64)
+    indices = read_point_indices(prim)
     normals = shape.GetNormalOffsetsAttr().Get()
     return BlendShapeData(
         name=prim.GetName(), channel=channel, indices=indices, offsets=offsets,

@@ -16,8 +16,8 @@ from pxr import Usd, UsdGeom, UsdSkel
 
 from ..errors import InputError, where
 from .compose import open_layer
-from .read import Scene, matrices, read_corrective_shapes
-from .schema import psd_prims
+from .read import Scene, corrective_targets, matrices
+from .schema import psd_prims, read_point_indices
 
 #: What decides how UsdSkel skins a mesh: the binding (UsdSkelBindingAPI, inherited down
 #: namespace), and on Skeleton and BlendShape prims their joints, bind pose and offsets.
@@ -87,10 +87,16 @@ def require_psd_prims_skinned(scene: Scene, correctives: str, asset: str) -> Non
 
 def check_corrective_indices(scene: Scene, mesh: str, channels: Sequence[str], point_count: int) -> None:
     """The BlendShapes behind channels must index only the mesh's points (a CORRECTIVES layer
-    fitted on a denser mesh at the same path would be silently clipped by UsdSkel)."""
-    for shape in read_corrective_shapes(scene, mesh, channels):
-        if len(shape.indices) and (shape.indices.min() < 0 or shape.indices.max() >= point_count):
-            raise InputError(f"{where(scene.label, mesh + '/' + shape.name, 'pointIndices')}: indices outside the "
+    fitted on a denser mesh at the same path would be silently clipped by UsdSkel). Reads
+    each shape's pointIndices once, and never its offsets."""
+    seen: set[str] = set()
+    for prim in corrective_targets(scene, mesh, channels):
+        if str(prim.GetPath()) in seen:
+            continue
+        seen.add(str(prim.GetPath()))
+        indices = read_point_indices(prim)
+        if len(indices) and (indices.min() < 0 or indices.max() >= point_count):
+            raise InputError(f"{where(scene.label, mesh + '/' + prim.GetName(), 'pointIndices')}: indices outside the "
                              f"{point_count} points of the asset's mesh")
 
 

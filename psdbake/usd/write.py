@@ -17,14 +17,15 @@ from pxr import Sdf, Tf, Usd, UsdGeom, Vt
 
 from .. import atomic
 from ..errors import InputError, OutputError
+from ..names import LAYER_FORMATS
 from .author import apply_binding_api, attribute, define, float_array, int_array, over, relationship, vec3f_array
 from .dependencies import layer_files
 from .diagnostics import first_line
 from .schema import BlendShapeData
 
-#: Output layer formats by extension, with the arguments USD's ``Export`` needs for each
-#: (``.usd`` is written as a binary crate): a new output format is one entry here.
-FORMATS: dict[str, dict[str, str]] = {".usda": {}, ".usdc": {}, ".usd": {"format": "usdc"}}
+#: Output layer formats by extension (``names.LAYER_FORMATS``, in order), with the arguments
+#: USD's ``Export`` needs for each (``.usd`` is written as a binary crate).
+FORMATS: dict[str, dict[str, str]] = dict(zip(LAYER_FORMATS, ({}, {}, {"format": "usdc"}), strict=True))
 
 
 def files_read(inputs: Iterable[str | Sdf.Layer]) -> list[str]:
@@ -199,7 +200,8 @@ def points_layer(doc: str, skel_roots: Sequence[str], samples, times: Sequence[f
                  metadata: dict | None = None, blocked: Iterable[tuple[str, str]] = ()) -> Sdf.Layer:
     """A points cache: SkelRoots become Xforms (no UsdSkel needed), points + extent per time.
 
-    samples: iterable of (mesh path, time, points (n, 3)).
+    samples: iterable of (mesh path, time, PosedPoints): points and extent as authored
+        (``posedpoints``: made there without a per-point conversion, and shared, not copied, here).
     blocked: (mesh, attribute) shading normals of the asset to block: at rest they would
         shade the posed points wrongly; blocked, renderers derive normals from the points.
     """
@@ -209,12 +211,15 @@ def points_layer(doc: str, skel_roots: Sequence[str], samples, times: Sequence[f
         define(layer, root, "Xform")
     for mesh, name in sorted(blocked):
         attribute(over(layer, mesh), name, t_.Normal3fArray).default = Sdf.ValueBlock()
-    for mesh, t, pts in samples:
-        spec = over(layer, mesh)
-        points = attribute(spec, "points", t_.Point3fArray)
-        extent = attribute(spec, "extent", t_.Float3Array)
-        layer.SetTimeSample(points.path, float(t), vec3f_array(pts))
-        layer.SetTimeSample(extent.path, float(t), vec3f_array(np.stack([pts.min(axis=0), pts.max(axis=0)])))
+    paths: dict[str, tuple[Sdf.Path, Sdf.Path]] = {}
+    for mesh, t, posed in samples:
+        if mesh not in paths:
+            spec = over(layer, mesh)
+            paths[mesh] = (attribute(spec, "points", t_.Point3fArray).path,
+                           attribute(spec, "extent", t_.Float3Array).path)
+        points, extent = paths[mesh]
+        layer.SetTimeSample(points, float(t), posed.points)
+        layer.SetTimeSample(extent, float(t), posed.extent)
     return layer
 
 
@@ -224,7 +229,7 @@ def examples_layer(doc: str, animations, samples, times: Sequence[float], fps: f
 
     animations: iterable of (skeleton path, anim path, joints, channels, samples) with
         samples [(t, translations, rotations, scales, weights)] (see read.animation_components).
-    samples: iterable of (mesh path, time, points (n, 3)).
+    samples: iterable of (mesh path, time, PosedPoints) (``posedpoints``).
     """
     layer = new_layer(doc, times, fps, metadata)
     t_ = Sdf.ValueTypeNames
@@ -247,9 +252,9 @@ def examples_layer(doc: str, animations, samples, times: Sequence[float], fps: f
             layer.SetTimeSample(sc.path, t, scales)
             if bw is not None:
                 layer.SetTimeSample(bw.path, t, weights)
-    for mesh, t, pts in samples:
+    for mesh, t, posed in samples:
         attr = attribute(over(layer, mesh), "points", t_.Point3fArray)
-        layer.SetTimeSample(attr.path, float(t), vec3f_array(pts))
+        layer.SetTimeSample(attr.path, float(t), posed.points)
     return layer
 
 

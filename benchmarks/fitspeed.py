@@ -1,0 +1,263 @@
+"""Fit speed at film scale (issue 16): what a whole ``psdbake fit`` costs against UsdSkel's own skinning.
+
+Two measurements, each on ``.usda`` and on ``.usdc`` inputs (the output in the same format):
+
+- **100k points, one example**: the fit end to end (``psdbake fit`` as the command runs it:
+  the input checks and crate probe, reading, the inverse, the RBF, writing CORRECTIVES),
+  excluding process start-up, divided by one ``UsdSkel.SkinningQuery.ComputeSkinnedPoints``
+  call of the same mesh at the example's pose, timed in the same process just before and just
+  after the fit (the median of 30 calls). The ratio is in *skinning-equivalents*: the inverse itself needs
+  5 black-box calls, the rest is reading, checking and writing.
+- **1M points, 8 examples**: seconds (the fit, and the whole process: start-up and a warm-up
+  fit of the small arm fixture included) and peak
+  resident memory: the psdbake process's own high-water mark (``VmHWM``) and its children's
+  (the crate probe, ``resource.getrusage(RUSAGE_CHILDREN)``).
+
+Both show the time spent waiting for the crate probe (``psdbake.usd.integrity``: binary
+inputs are read whole in a child process before psdbake opens them), whose Python and USD
+start-up alone is ~0.17 s, about 100 skinnings of the 100k mesh: the 100k ratio is given with
+and without it.
+
+Every fit runs in a fresh process (so no layer or probe result is reused across repeats),
+after a warm-up fit of the small arm fixture in the same format (process start-up: imports,
+USD's plug-ins; it shares no file with the measured fit), and the formats are interleaved
+repeat by repeat: the machines are shared and noisy, so the figures quoted are medians, and
+ratios come from the same process.
+
+Run: ``python -m benchmarks.fitspeed`` (part of ``make bench``); ``--folder DIR`` keeps the
+generated rigs there and reuses them on the next run; ``--profile`` prints each format's
+cProfile of one extra fit at each size.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from typing import Any
+
+from . import rigs
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+#: (size, examples, default repeats): the two rigs of the issue's targets.
+CASES = (("100k", 1, 5), ("1M", 8, 3))
+FORMATS = (".usda", ".usdc")
+#: ComputeSkinnedPoints calls per timing (their median is the unit).
+SKIN_CALLS = 15
+
+
+def _vm_hwm_mib() -> float:
+    with open("/proc/self/status") as fh:
+        for line in fh:
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1]) / 1024.0
+    return float("nan")
+
+
+def skinning_seconds(asset: str, examples: str, time_code: float, calls: int = SKIN_CALLS) -> list[float]:
+    """Seconds of ``calls`` ``ComputeSkinnedPoints`` of the rig's mesh at time_code (copies of
+    the rest points made beforehand: the call skins in place). The stage is its own and dies
+    on return, so nothing it opened is left for a fit to find."""
+    from pxr import Sdf, Usd, UsdGeom, UsdSkel, Vt
+
+    root = Sdf.Layer.CreateAnonymous(".usda")
+    root.subLayerPaths.append(examples)
+    root.subLayerPaths.append(asset)
+    stage = Usd.Stage.Open(root)
+    cache = UsdSkel.Cache()
+    skel_root = UsdSkel.Root(stage.GetPrimAtPath(rigs.generate.ROOT))
+    cache.Populate(skel_root, Usd.PrimDefaultPredicate)
+    query = cache.GetSkinningQuery(stage.GetPrimAtPath(rigs.MESH))
+    skel_query = cache.GetSkelQuery(UsdSkel.Skeleton(stage.GetPrimAtPath(rigs.generate.SKEL)))
+    tc = Usd.TimeCode(time_code)
+    xforms = skel_query.ComputeSkinningTransforms(tc)
+    rest = UsdGeom.Mesh(stage.GetPrimAtPath(rigs.MESH)).GetPointsAttr().Get()
+    copies = [Vt.Vec3fArray(rest) for _ in range(calls + 1)]
+    query.ComputeSkinnedPoints(xforms, copies[-1], tc)  # warm UsdSkel's worker threads
+    seconds = []
+    for points in copies[:-1]:
+        started = time.perf_counter()
+        if not query.ComputeSkinnedPoints(xforms, points, tc):
+            raise RuntimeError("ComputeSkinnedPoints failed")
+        seconds.append(time.perf_counter() - started)
+    return seconds
+
+
+def _fit(asset: str, examples: str, out: str) -> None:
+    """``psdbake fit ASSET EXAMPLES -o OUT -q``, as the command runs it."""
+    from psdbake.cli import main as psdbake_main
+
+    try:
+        psdbake_main(["fit", asset, examples, "-o", out, "-q"])
+    except SystemExit as exc:  # the command's exit, as from the shell
+        if exc.code:
+            raise
+
+
+def _time_crate_probes() -> list[float]:
+    """Seconds of each crate probe run from now on in this process: psdbake reads binary
+    inputs whole in a child process first (``psdbake.usd.integrity``), whose Python and USD
+    start-up alone is ~0.17 s; recorded around ``subprocess.run`` of ``_crate_probe.py``."""
+    spent: list[float] = []
+    run = subprocess.run
+
+    def timed(argv: Any, *args: Any, **kwargs: Any) -> Any:
+        started = time.perf_counter()
+        try:
+            return run(argv, *args, **kwargs)
+        finally:
+            if any("_crate_probe" in str(a) for a in argv):
+                spent.append(time.perf_counter() - started)
+
+    subprocess.run = timed
+    return spent
+
+
+def child(asset: str, examples: str, out: str, warm: list[str], skin_time: float | None, profile: bool) -> None:
+    """One fit in this (fresh) process, timed after process start-up; prints one JSON line.
+
+    Start-up is the interpreter, the imports (psdbake loads fit's modules when a fit first
+    runs) and USD's one-time set-up (plug-in registry, file formats): a warm-up fit of the
+    small arm fixture in the same format, warm = (asset, examples, out), pays it first. It
+    shares no file with the measured fit, so no layer or crate-probe result carries over."""
+    _fit(*warm)
+    # UsdSkel skins on every core, so its time follows the machine's load: timed just before
+    # and just after the fit, the unit is the median of both
+    skins = skinning_seconds(asset, examples, skin_time) if skin_time is not None else []
+    probes = _time_crate_probes()
+    started = time.perf_counter()
+    if profile:
+        import cProfile
+        import pstats
+
+        prof = cProfile.Profile()
+        prof.runcall(_fit, asset, examples, out)
+        seconds = time.perf_counter() - started
+        pstats.Stats(prof, stream=sys.stderr).sort_stats("cumulative").print_stats(45)
+    else:
+        _fit(asset, examples, out)
+        seconds = time.perf_counter() - started
+    import resource
+
+    record = {"seconds": seconds, "probe_seconds": sum(probes), "rss_mib": _vm_hwm_mib(),
+              "children_rss_mib": resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024.0}
+    if skin_time is not None:
+        record["skin_seconds"] = statistics.median(skins + skinning_seconds(asset, examples, skin_time))
+    print(json.dumps(record), flush=True)
+
+
+def _run_child(asset: str, examples: str, out: str, warm: list[str], skin_time: float | None,
+               profile: bool = False) -> dict:
+    argv = [sys.executable, "-m", "benchmarks.fitspeed", "--child", asset, examples, out, "--warm", *warm]
+    if skin_time is not None:
+        argv += ["--skin-time", repr(skin_time)]
+    if profile:
+        argv.append("--profile")
+    started = time.perf_counter()
+    done = subprocess.run(argv, capture_output=True, text=True, check=False, cwd=ROOT)
+    wall = time.perf_counter() - started
+    if done.returncode != 0:
+        raise SystemExit(f"fit of {examples} failed (exit {done.returncode}):\n{done.stderr[-3000:]}")
+    if profile:
+        print(done.stderr, file=sys.stderr)
+    record = json.loads(done.stdout.strip().splitlines()[-1])
+    record["wall"] = wall
+    return record
+
+
+def _with_usdc(paths: list[str]) -> None:
+    """A .usdc copy beside each .usda (USD's own crate writer, values unchanged)."""
+    from pxr import Sdf
+
+    for path in paths:
+        if not Sdf.Layer.FindOrOpen(path).Export(os.path.splitext(path)[0] + ".usdc"):
+            raise SystemExit(f"cannot write {path} as .usdc")
+
+
+def build(folder: str, size: str, count: int) -> dict[str, tuple[str, str]]:
+    """The lbs rig of size with count examples (times 1..count), as .usda and .usdc
+    ({format: (asset, examples)}); reused when already in folder."""
+    here = os.path.join(folder, f"{size}_{count}")
+    os.makedirs(here, exist_ok=True)
+    tag = f"lbs_{size.replace('.', '_')}"
+    files = {ext: (os.path.join(here, tag + ext), os.path.join(here, f"{tag}_examples{ext}")) for ext in FORMATS}
+    if not all(os.path.exists(p) for pair in files.values() for p in pair):
+        poses_layer, poses = rigs.write_poses(here, count)
+        rig = rigs.build(here, "lbs", size, poses, poses_layer)
+        _with_usdc([rig.asset, rig.examples])
+    return files
+
+
+def warm_up_files(folder: str) -> dict[str, list[str]]:
+    """{format: [asset, examples, output]} of the small arm fixture, for each child's warm-up."""
+    here = os.path.join(folder, "warm")
+    os.makedirs(here, exist_ok=True)
+    names = ("arm_lbs", "arm_lbs_examples")
+    for name in names:
+        shutil.copy(os.path.join(ROOT, "fixtures", f"{name}.usda"), here)
+    _with_usdc([os.path.join(here, f"{name}.usda") for name in names])
+    return {ext: [*(os.path.join(here, name + ext) for name in names), os.path.join(here, f"out{ext}")]
+            for ext in FORMATS}
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--folder", help="keep the rigs here (reused when present); default: a temporary folder")
+    parser.add_argument("--repeats-100k", type=int, default=CASES[0][2])
+    parser.add_argument("--repeats-1m", type=int, default=CASES[1][2])
+    parser.add_argument("--only", choices=[c[0] for c in CASES], help="one size only")
+    parser.add_argument("--profile", action="store_true", help="cProfile one extra fit per size and format (stderr)")
+    parser.add_argument("--child", nargs=3, metavar=("ASSET", "EXAMPLES", "OUT"), help=argparse.SUPPRESS)
+    parser.add_argument("--warm", nargs=3, help=argparse.SUPPRESS)
+    parser.add_argument("--skin-time", type=float, default=None, help=argparse.SUPPRESS)
+    args = parser.parse_args(argv)
+    if args.child:
+        child(*args.child, args.warm, args.skin_time, args.profile)
+        return
+    repeats = {"100k": args.repeats_100k, "1M": args.repeats_1m}
+    lines = []
+    with tempfile.TemporaryDirectory() as scratch:
+        folder = args.folder or scratch
+        os.makedirs(folder, exist_ok=True)
+        warm = warm_up_files(scratch)
+        for size, count, _ in CASES:
+            if args.only and size != args.only:
+                continue
+            files = build(folder, size, count)
+            skin = 1.0 if size == "100k" else None  # the first example's time
+            runs: dict[str, list[dict]] = {ext: [] for ext in FORMATS}
+            for _ in range(repeats[size]):
+                for ext in FORMATS:  # interleaved: a slow spell of the machine hits both formats
+                    out = os.path.join(scratch, f"corr_{size}{ext}")
+                    runs[ext].append(_run_child(*files[ext], out, warm[ext], skin))
+            if args.profile:
+                for ext in FORMATS:
+                    print(f"--- profile: {size}, {count} example(s), {ext} ---", file=sys.stderr)
+                    _run_child(*files[ext], os.path.join(scratch, f"corr_{size}{ext}"), warm[ext], None, profile=True)
+            lines += [_row(size, count, ext, runs[ext]) for ext in FORMATS]
+    print("psdbake fit end to end (the command, after process start-up), lbs rig; medians of fresh processes, "
+          "formats interleaved:")
+    print("\n".join(lines))
+
+
+def _row(size: str, count: int, ext: str, runs: list[dict]) -> str:
+    med = {k: statistics.median(r[k] for r in runs) for k in runs[0]}
+    head = f"  {size:>4} x{count} {ext}  fit {med['seconds']:6.3f} s (crate probe {med['probe_seconds']:5.3f} s)"
+    if "skin_seconds" in med:  # ratios per process, then their median
+        ratio = statistics.median(r["seconds"] / r["skin_seconds"] for r in runs)
+        bare = statistics.median((r["seconds"] - r["probe_seconds"]) / r["skin_seconds"] for r in runs)
+        return (f"{head}  ComputeSkinnedPoints {1000 * med['skin_seconds']:5.2f} ms: {ratio:4.0f} "
+                f"skinning-equivalents, {bare:4.0f} without the probe  (n={len(runs)})")
+    return (f"{head}  {med['wall']:6.2f} s the whole process  peak RSS {med['rss_mib']:5.0f} MiB "
+            f"(probe child {med['children_rss_mib']:4.0f} MiB)  (n={len(runs)})")
+
+
+if __name__ == "__main__":
+    main()
