@@ -11,7 +11,9 @@ the figures are medians and every ratio compares numbers from the same run):
   diagonal) and every cached extent must be the exact [min, max] of its points.
 - **Eval vs example count**: ``psdbake eval`` of a EVAL_FRAMES-frame shot with CORRECTIVES of
   8, 32 and 128 examples (13k points), as ``.usda`` and ``.usdc``. Each eval runs in a fresh
-  process (so no layer or crate-probe result carries over) after a warm-up eval of the arm
+  process with an empty crate-probe verdict cache (``PSDBAKE_CACHE_DIR``) of its own, so no
+  layer or probe result carries over (a ``.usdc`` is a first read: hashed, probed and
+  remembered; ``benchmarks.fitspeed`` shows a verified read beside it), after a warm-up eval of the arm
   fixture in the same process (interpreter, imports, USD's plug-ins): 'command' is the eval
   alone; 'wall' is a plain ``psdbake eval`` process, start-up included. The issue's target is
   the eval time independent of the example count within 20%.
@@ -195,7 +197,9 @@ def child(asset: str, corr: str, anim: str, out: str, warm_corr: str) -> None:
 
 
 def _run(argv: list[str], what: str) -> subprocess.CompletedProcess:
-    done = subprocess.run(argv, cwd=ROOT, capture_output=True, text=True, check=False, stdin=subprocess.DEVNULL)
+    with tempfile.TemporaryDirectory(prefix="psdbake-cache-") as cache:  # nothing remembered from earlier runs
+        done = subprocess.run(argv, cwd=ROOT, capture_output=True, text=True, check=False, stdin=subprocess.DEVNULL,
+                              env={**os.environ, "PSDBAKE_CACHE_DIR": cache})
     if done.returncode != 0:
         raise SystemExit(f"{what} failed (exit {done.returncode}):\n{done.stderr}")
     return done

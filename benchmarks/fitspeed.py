@@ -15,14 +15,20 @@ Two measurements, each on ``.usda`` and on ``.usdc`` inputs (the output in the s
 
 Both show the time spent waiting for the crate probe (``psdbake.usd.integrity``: binary
 inputs are read whole in a child process before psdbake opens them), whose Python and USD
-start-up alone is ~0.17 s, about 100 skinnings of the 100k mesh: the 100k ratio is given with
-and without it.
+start-up alone is ~0.17 s, about 100 skinnings of the 100k mesh, and each is measured in the
+two states a binary input can be in, side by side:
 
-Every fit runs in a fresh process (so no layer or probe result is reused across repeats),
-after a warm-up fit of the small arm fixture in the same format (process start-up: imports,
-USD's plug-ins; it shares no file with the measured fit), and the formats are interleaved
-repeat by repeat: the machines are shared and noisy, so the figures quoted are medians, and
-ratios come from the same process.
+- **first read**: the probe's verdict cache (``PSDBAKE_CACHE_DIR``) empty, so the inputs are
+  hashed, probed, hashed again and their verdicts stored (the first fit of a new asset);
+- **verified**: the same cache folder again, so the inputs are hashed and found (what every
+  farm chunk and batch job after the first sees). The cache look-up (the hashing) is shown.
+
+Every fit runs in a fresh process (so no layer or in-process probe result is reused), after a
+warm-up fit of the small arm fixture in the same format (process start-up: imports, USD's
+plug-ins; it shares no file with the measured fit); each repeat gets an empty cache folder of
+its own for its first read, and its verified fit follows with that folder. Formats are
+interleaved repeat by repeat: the machines are shared and noisy, so the figures quoted are
+medians, and ratios come from the same process.
 
 Run: ``python -m benchmarks.fitspeed`` (part of ``make bench``); ``--folder DIR`` keeps the
 generated rigs there and reuses them on the next run; ``--profile`` prints each format's
@@ -51,6 +57,8 @@ CASES = (("100k", 1, 5), ("1M", 8, 3))
 FORMATS = (".usda", ".usdc")
 #: ComputeSkinnedPoints calls per timing (their median is the unit).
 SKIN_CALLS = 15
+#: The inputs' probe verdicts not yet cached (an empty cache folder), then cached (the same folder).
+STATES = ("first read", "verified")
 
 
 def _vm_hwm_mib() -> float:
@@ -120,6 +128,25 @@ def _time_crate_probes() -> list[float]:
     return spent
 
 
+def _time_cache_lookups() -> list[float]:
+    """Seconds of each look-up of a probe verdict from now on in this process (hashing the
+    file: ``psdbake.usd.integrity._verdict_entry``; a first read hashes twice, around the probe)."""
+    from psdbake.usd import integrity
+
+    spent: list[float] = []
+    entry = integrity._verdict_entry
+
+    def timed(path: str) -> str | None:
+        started = time.perf_counter()
+        try:
+            return entry(path)
+        finally:
+            spent.append(time.perf_counter() - started)
+
+    integrity._verdict_entry = timed
+    return spent
+
+
 def child(asset: str, examples: str, out: str, warm: list[str], skin_time: float | None, profile: bool) -> None:
     """One fit in this (fresh) process, timed after process start-up; prints one JSON line.
 
@@ -131,7 +158,7 @@ def child(asset: str, examples: str, out: str, warm: list[str], skin_time: float
     # UsdSkel skins on every core, so its time follows the machine's load: timed just before
     # and just after the fit, the unit is the median of both
     skins = skinning_seconds(asset, examples, skin_time) if skin_time is not None else []
-    probes = _time_crate_probes()
+    probes, lookups = _time_crate_probes(), _time_cache_lookups()
     started = time.perf_counter()
     if profile:
         import cProfile
@@ -146,22 +173,24 @@ def child(asset: str, examples: str, out: str, warm: list[str], skin_time: float
         seconds = time.perf_counter() - started
     import resource
 
-    record = {"seconds": seconds, "probe_seconds": sum(probes), "rss_mib": _vm_hwm_mib(),
+    record = {"seconds": seconds, "probe_seconds": sum(probes), "lookup_seconds": sum(lookups), "rss_mib": _vm_hwm_mib(),
               "children_rss_mib": resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024.0}
     if skin_time is not None:
         record["skin_seconds"] = statistics.median(skins + skinning_seconds(asset, examples, skin_time))
     print(json.dumps(record), flush=True)
 
 
-def _run_child(asset: str, examples: str, out: str, warm: list[str], skin_time: float | None,
+def _run_child(asset: str, examples: str, out: str, warm: list[str], skin_time: float | None, cache: str,
                profile: bool = False) -> dict:
+    """One measured fit in a fresh process whose probe-verdict cache is the folder cache."""
     argv = [sys.executable, "-m", "benchmarks.fitspeed", "--child", asset, examples, out, "--warm", *warm]
     if skin_time is not None:
         argv += ["--skin-time", repr(skin_time)]
     if profile:
         argv.append("--profile")
     started = time.perf_counter()
-    done = subprocess.run(argv, capture_output=True, text=True, check=False, cwd=ROOT)
+    done = subprocess.run(argv, capture_output=True, text=True, check=False, cwd=ROOT,
+                          env={**os.environ, "PSDBAKE_CACHE_DIR": cache})
     wall = time.perf_counter() - started
     if done.returncode != 0:
         raise SystemExit(f"fit of {examples} failed (exit {done.returncode}):\n{done.stderr[-3000:]}")
@@ -232,31 +261,40 @@ def main(argv: list[str] | None = None) -> None:
                 continue
             files = build(folder, size, count)
             skin = 1.0 if size == "100k" else None  # the first example's time
-            runs: dict[str, list[dict]] = {ext: [] for ext in FORMATS}
+            runs: dict[str, dict[str, list[dict]]] = {ext: {state: [] for state in STATES} for ext in FORMATS}
             for _ in range(repeats[size]):
                 for ext in FORMATS:  # interleaved: a slow spell of the machine hits both formats
                     out = os.path.join(scratch, f"corr_{size}{ext}")
-                    runs[ext].append(_run_child(*files[ext], out, warm[ext], skin))
+                    cache = tempfile.mkdtemp(prefix="cache-", dir=scratch)  # empty: the first read fills it
+                    for state in STATES:
+                        runs[ext][state].append(_run_child(*files[ext], out, warm[ext], skin, cache))
+                    if runs[ext]["verified"][-1]["probe_seconds"]:
+                        raise SystemExit(f"{files[ext]}: probed again with its verdicts in {cache}")
             if args.profile:
                 for ext in FORMATS:
-                    print(f"--- profile: {size}, {count} example(s), {ext} ---", file=sys.stderr)
-                    _run_child(*files[ext], os.path.join(scratch, f"corr_{size}{ext}"), warm[ext], None, profile=True)
+                    print(f"--- profile: {size}, {count} example(s), {ext}, first read ---", file=sys.stderr)
+                    _run_child(*files[ext], os.path.join(scratch, f"corr_{size}{ext}"), warm[ext], None,
+                               tempfile.mkdtemp(prefix="cache-", dir=scratch), profile=True)
             lines += [_row(size, count, ext, runs[ext]) for ext in FORMATS]
     print("psdbake fit end to end (the command, after process start-up), lbs rig; medians of fresh processes, "
-          "formats interleaved:")
+          "formats interleaved; first read (probe verdicts not cached) | verified (cached):")
     print("\n".join(lines))
 
 
-def _row(size: str, count: int, ext: str, runs: list[dict]) -> str:
-    med = {k: statistics.median(r[k] for r in runs) for k in runs[0]}
-    head = f"  {size:>4} x{count} {ext}  fit {med['seconds']:6.3f} s (crate probe {med['probe_seconds']:5.3f} s)"
-    if "skin_seconds" in med:  # ratios per process, then their median
-        ratio = statistics.median(r["seconds"] / r["skin_seconds"] for r in runs)
-        bare = statistics.median((r["seconds"] - r["probe_seconds"]) / r["skin_seconds"] for r in runs)
-        return (f"{head}  ComputeSkinnedPoints {1000 * med['skin_seconds']:5.2f} ms: {ratio:4.0f} "
-                f"skinning-equivalents, {bare:4.0f} without the probe  (n={len(runs)})")
-    return (f"{head}  {med['wall']:6.2f} s the whole process  peak RSS {med['rss_mib']:5.0f} MiB "
-            f"(probe child {med['children_rss_mib']:4.0f} MiB)  (n={len(runs)})")
+def _row(size: str, count: int, ext: str, runs: dict[str, list[dict]]) -> str:
+    med = {state: {k: statistics.median(r[k] for r in rs) for k in rs[0]} for state, rs in runs.items()}
+    first, verified = med["first read"], med["verified"]
+    head = (f"  {size:>4} x{count} {ext}  fit {first['seconds']:6.3f} s (probe {first['probe_seconds']:5.3f} s, "
+            f"hash {first['lookup_seconds']:5.3f} s) | {verified['seconds']:6.3f} s (hash {verified['lookup_seconds']:5.3f} s)")
+    n = f"(n={len(runs['verified'])})"
+    if "skin_seconds" in first:  # ratios per process, then their median
+        ratio = {state: statistics.median(r["seconds"] / r["skin_seconds"] for r in rs) for state, rs in runs.items()}
+        bare = statistics.median((r["seconds"] - r["probe_seconds"]) / r["skin_seconds"] for r in runs["first read"])
+        skin = statistics.median(r["skin_seconds"] for rs in runs.values() for r in rs)
+        return (f"{head}  ComputeSkinnedPoints {1000 * skin:5.2f} ms: {ratio['first read']:4.0f} | "
+                f"{ratio['verified']:4.0f} skinning-equivalents ({bare:4.0f} first read without the probe)  {n}")
+    return (f"{head}  the whole process {first['wall']:6.2f} | {verified['wall']:6.2f} s  peak RSS "
+            f"{first['rss_mib']:5.0f} | {verified['rss_mib']:5.0f} MiB (probe child {first['children_rss_mib']:4.0f} MiB)  {n}")
 
 
 if __name__ == "__main__":

@@ -3,10 +3,12 @@ and ``run``), Pixar's bake of a stack (``bake``, read with ``points``)."""
 
 from __future__ import annotations
 
+import atexit
 import hashlib
 import io
 import os
 import re
+import shutil
 import sys
 import tempfile
 from collections.abc import Iterable
@@ -18,6 +20,11 @@ from pxr import Gf, Sdf, Usd, UsdGeom, UsdSkel
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 FIXTURES = os.path.join(ROOT, "fixtures")
 sys.path[:0] = [ROOT, FIXTURES]
+# The crate probe's verdict cache (psdbake.usd.integrity) in a folder of the session's own,
+# set for this process and every psdbake it starts: tests never write to the user's home
+# and never inherit verdicts from other runs. Tests of the cache itself monkeypatch it.
+os.environ["PSDBAKE_CACHE_DIR"] = tempfile.mkdtemp(prefix="psdbake-test-cache-")
+atexit.register(shutil.rmtree, os.environ["PSDBAKE_CACHE_DIR"], ignore_errors=True)
 
 
 import generate  # noqa: E402, F401  (fixtures/generate.py, re-exported for the tests)

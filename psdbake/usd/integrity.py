@@ -4,18 +4,42 @@ USD's crate reader (``.usdc``, ``.usdz``) unpacks values lazily, and a corrupt f
 (bits flipped on a disk, a copy cut short) can fail late — while a fit is half done —
 or crash the reader outright (SIGSEGV, abort), which no Python code can turn into a
 message. So each crate file an input reaches is first read whole by
-``_crate_probe.py`` in a process of its own (about 0.2 s per command, once per file
-per process): a file it cannot read, or that crashes it, is refused in one line naming
-it. Text layers are parsed whole when opened, so they need no probe.
+``_crate_probe.py`` in a process of its own (about 0.2 s per command: the child's Python
+and USD start-up): a file it cannot read, or that crashes it, is refused in one line
+naming it. Text layers are parsed whole when opened, so they need no probe.
+
+A file the probe read whole is remembered twice over. Within a process, by its real
+path, size and mtime (``_checked``), so an unchanged file is neither probed nor hashed
+again. Across
+processes — every farm chunk and batch job reads the same unchanged inputs again — by
+content: an empty file in the cache folder (``cache_folder``) named by the SHA-256 of
+the file's bytes, its extension, USD's version and the probe's own source. The verdict
+is a function of exactly those: the same bytes, read by the same reader through the same
+file format, by the same probe, give the same verdict, wherever the file lies and
+whatever its mtime. So a cache hit is as good as probing again, and an edited
+file, a new USD or a changed probe is probed afresh. Only files that passed are stored
+(a refused file is probed, and refused, every time), and only when the bytes hashed
+again after the probe are the ones hashed before it (a file replaced meanwhile is not
+vouched for). A layer a file reaches (sublayer, reference) is checked as a file of its
+own by the dependency walk, under its own key. The cache is an optimisation only: a
+folder that cannot be made, read or written is skipped without a word (read-only homes),
+and any entry may be deleted at any time. ``PSDBAKE_CACHE_DIR=`` (empty) turns it off.
+Whoever can write the folder can make psdbake skip the probe of a file, which at worst
+brings back the crash the probe exists to prevent: it is the user's own (``~/.cache``).
+SHA-256 rather than BLAKE2b: OpenSSL's SHA-256 runs at ~1.8 GB/s here against
+hashlib's BLAKE2b at ~1.3 GB/s (2.4 ms for the 100k-point rig's two files, 70 ms at 1M).
 """
 
 from __future__ import annotations
 
+import functools
+import hashlib
 import json
 import os
 import signal
 import subprocess
 import sys
+import tempfile
 
 from ..errors import InputError
 from .diagnostics import first_line
@@ -24,6 +48,10 @@ _PROBE = os.path.join(os.path.dirname(os.path.abspath(__file__)), "_crate_probe.
 #: A corrupt size field can make the reader loop over a huge count: the probe gets this long.
 PROBE_SECONDS = 120.0
 _checked: dict[tuple[str, int, int], None] = {}  # (real path, size, mtime) of files already read whole
+#: Environment variable naming the cache folder; set but empty, no cache.
+CACHE_ENV = "PSDBAKE_CACHE_DIR"
+#: Subfolder of the cache folder holding one empty file per crate file the probe passed.
+_VERDICTS = "crate-probe-ok"
 
 
 def is_crate(path: str) -> bool:
@@ -45,10 +73,85 @@ def _key(path: str) -> tuple[str, int, int]:
     return os.path.realpath(path), st.st_size, st.st_mtime_ns
 
 
+def cache_folder() -> str | None:
+    """The folder of psdbake's caches, None when turned off: ``$PSDBAKE_CACHE_DIR`` when set
+    (empty: off), else ``$XDG_CACHE_HOME/psdbake``, else ``~/.cache/psdbake`` (the XDG
+    base-directory rules: a relative ``XDG_CACHE_HOME`` is ignored). It need not exist."""
+    chosen = os.environ.get(CACHE_ENV)
+    if chosen is not None:
+        return chosen or None
+    xdg = os.environ.get("XDG_CACHE_HOME", "")
+    base = xdg if os.path.isabs(xdg) else os.path.join(os.path.expanduser("~"), ".cache")
+    return os.path.join(base, "psdbake") if os.path.isabs(base) else None
+
+
+@functools.cache
+def _reader_and_probe() -> bytes:
+    """What besides a file's bytes decides the probe's verdict: USD's version (imported here,
+    not with this module: pxr is loaded by the time a layer is checked) and the probe's source."""
+    from pxr import Usd
+
+    with open(_PROBE, "rb") as fh:
+        probe = hashlib.sha256(fh.read()).hexdigest()
+    return f"psdbake crate probe\0usd {'.'.join(map(str, Usd.GetVersion()))}\0probe {probe}\0".encode()
+
+
+def _verdict_entry(path: str) -> str | None:
+    """The cache entry that says path's bytes passed the probe (None when the cache is off or
+    path cannot be read): named by SHA-256 of the reader, the probe, path's extension (USD
+    picks its file format by it, and the probe opens a ``.usdz`` as a package) and its bytes."""
+    folder = cache_folder()
+    if folder is None:
+        return None
+    try:
+        key = hashlib.sha256(_reader_and_probe())
+        key.update(os.path.splitext(path)[1].lower().encode() + b"\0")
+        with open(path, "rb") as fh:
+            key.update(hashlib.file_digest(fh, "sha256").digest())
+    except (OSError, ValueError):
+        return None
+    return os.path.join(folder, _VERDICTS, key.hexdigest())
+
+
+def _remember(path: str, entry: str | None) -> None:
+    """Store the entry (an empty file, made under a temporary name and renamed into place, so
+    a reader never sees half of one) if path still holds the bytes it was named for: a file
+    replaced while the probe read it is not vouched for. Any failure is silently skipped."""
+    if entry is None or _verdict_entry(path) != entry:
+        return
+    try:
+        os.makedirs(os.path.dirname(entry), exist_ok=True)
+        fd, temp = tempfile.mkstemp(prefix=".tmp-", dir=os.path.dirname(entry))
+        os.close(fd)
+        try:
+            os.replace(temp, entry)
+        except OSError:
+            os.unlink(temp)
+            raise
+    except (OSError, ValueError):  # ValueError: a NUL in PSDBAKE_CACHE_DIR
+        pass
+
+
 def require_readable_crates(paths: list[str]) -> None:
     """Read every crate file among paths whole in a child process; raise InputError naming
-    the first one that cannot be read or crashes USD's reader."""
-    todo = [p for p in dict.fromkeys(paths) if os.path.isfile(p) and is_crate(p) and _key(p) not in _checked]
+    the first one that cannot be read or crashes USD's reader. A file already read whole in
+    this process, or whose bytes passed the same probe under the same USD before (the cache
+    folder), is not read again."""
+    todo: list[str] = []
+    keys: dict[str, tuple[str, int, int]] = {}
+    entries: dict[str, str | None] = {}
+    for path in dict.fromkeys(paths):
+        if not (os.path.isfile(path) and is_crate(path)):
+            continue
+        key = _key(path)  # before hashing: a file changed after it is not taken as checked
+        if key in _checked:
+            continue
+        entry = _verdict_entry(path)
+        if entry is not None and os.path.isfile(entry):
+            _checked[key] = None
+            continue
+        todo.append(path)
+        keys[path], entries[path] = key, entry
     if not todo:
         return
     try:
@@ -62,7 +165,9 @@ def require_readable_crates(paths: list[str]) -> None:
         if word == "reading":
             reading = int(rest)
         elif word == "ok":
-            _checked[_key(todo[int(rest)])] = None
+            path = todo[int(rest)]
+            _checked[keys[path]] = None
+            _remember(path, entries[path])
         elif word == "error":
             index, _, error = rest.partition(" ")
             reading = int(index)
