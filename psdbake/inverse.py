@@ -95,15 +95,17 @@ def _jacobians(
     whether the chain couples vertices, for free: only sculpted vertices move in these calls,
     so any other vertex whose output changes was moved by a neighbour (Delta Mush, smoothing)."""
     jac = np.empty((len(idx), 3, 3))
-    others = np.ones(len(rest), dtype=bool)
-    others[idx] = False
     coupled = False
+    base = posed_rest[idx]
+    moved = rest.copy()
     for axis in range(3):
-        moved = rest.copy()
         moved[idx, axis] += step
         out = blackbox(moved)
-        jac[:, :, axis] = (out[idx] - posed_rest[idx]) / step
-        coupled |= bool(np.any(out[others] != posed_rest[others]))
+        moved[idx, axis] = rest[idx, axis]  # back to rest for the next axis
+        jac[:, :, axis] = (out[idx] - base) / step
+        changed = out != posed_rest  # (n, 3): one temporary, not two copies of the other rows
+        changed[idx] = False
+        coupled |= bool(changed.any())
     return jac, coupled
 
 

@@ -26,7 +26,7 @@ from pxr import Usd, UsdGeom, UsdSkel, Vt
 from ..arrays import Points
 from ..deformers import DeformerFactory, PointFn
 from ..errors import DeformerError, InputError, where
-from .posedpoints import PosedPoints, RestPoints
+from .posedpoints import PosedPoints, RestPoints, writable
 from .read import Scene
 
 FLOAT32_MAX = float(np.finfo(np.float32).max)
@@ -137,24 +137,21 @@ class SkinningBlackBox:
 
     def skin(self, points: Points) -> Points:
         """Blend shapes + UsdSkel skinning + skel->local, without the user deformers."""
-        vt = Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(points, dtype=np.float32))
+        vt = Vt.Vec3fArray(len(points))
+        writable(vt)[...] = points  # rounded to float32 as astype rounds, in one pass (no FromNumpy copy)
         self._skin_vt(vt)
         # Element-wise rather than posed @ linear: a small (n,3)x(3,3) product goes to
-        # multithreaded BLAS, which fights UsdSkel's worker threads (measured 15x slower). Column
-        # by column over contiguous rows x, y, z: an (n, 1) x (3,) broadcast runs 3-element inner
-        # loops (4.4 ms against 0.45 at 100k points); the same products and sums in the same
-        # order, ((x l0k + y l1k) + z l2k) + t_k, so the same bits.
-        lin, skel = self._linear, np.asarray(vt).reshape(-1, 3).T.astype(np.float64, order="C")
-        local = np.empty((skel.shape[1], 3))
-        for k in range(3):
-            column = skel[0] * lin[0, k]
-            column += skel[1] * lin[1, k]
-            column += skel[2] * lin[2, k]
-            column += self._translate[k]
-            local[:, k] = column
-        # one pass: NaN fails the comparison, inf and float32 overflow exceed the bound
-        if not np.abs(local).max(initial=0.0) <= FLOAT32_MAX:
+        # multithreaded BLAS, which fights UsdSkel's worker threads (measured 15x slower). Axis
+        # by axis over contiguous rows x, y, z (RestPoints.to_local's formula): an (n, 1) x (3,)
+        # broadcast runs 3-element inner loops (4.4 ms against 0.45 at 100k points); the same
+        # products and sums in the same order, ((x l0k + y l1k) + z l2k) + t_k, so the same bits.
+        rows = RestPoints.to_local_rows(vt, self._linear, self._translate)
+        # NaN fails both comparisons, inf and float32 overflow exceed the bound
+        if not (rows.max(initial=0.0) <= FLOAT32_MAX and rows.min(initial=0.0) >= -FLOAT32_MAX):
             raise self._overflow()
+        local = np.empty((rows.shape[1], 3))
+        for k in range(3):  # one long strided loop per axis
+            local[:, k] = rows[k]
         return local
 
     def __call__(self, points: Points) -> Points:

@@ -33,7 +33,7 @@ from ..arrays import Points
 Axes = NDArray[np.float64]  # (3, n) one row per axis: x, y, z of every point
 
 
-def _writable(array: Vt.Vec3fArray) -> NDArray[np.float32]:
+def writable(array: Vt.Vec3fArray) -> NDArray[np.float32]:
     """A writable (n, 3) view of a VtArray this module has just made and shares with nobody.
 
     Vt exports its buffer read-only because VtArrays are copy-on-write: writing into storage
@@ -71,7 +71,7 @@ class PosedPoints:
     def of(cls, points: Points) -> PosedPoints:
         """From (n, 3) float64 points (the user deformers' output): rounded to float32."""
         out = Vt.Vec3fArray(len(points))
-        _writable(out)[...] = points
+        writable(out)[...] = points
         columns = [points[:, k] for k in range(3)]
         lo, hi = np.array([c.min() for c in columns]), np.array([c.max() for c in columns])
         return cls(out, _extent(lo, hi, points))
@@ -89,16 +89,24 @@ class RestPoints:
     def vt(self) -> Vt.Vec3fArray:
         """A new VtArray of the rest points, for UsdSkel to deform in place."""
         out = Vt.Vec3fArray(len(self.float32))
-        _writable(out)[...] = self.float32
+        writable(out)[...] = self.float32
         return out
 
     def to_local(self, skinned: Vt.Vec3fArray, linear: NDArray[np.float64], translate: NDArray[np.float64]) -> Axes:
+        """Skeleton space -> mesh local space (``to_local_rows``) into this mesh's work buffers:
+        the result is overwritten at the next call."""
+        return RestPoints.to_local_rows(skinned, linear, translate, (self._skel, self._local, self._term))
+
+    @staticmethod
+    def to_local_rows(skinned: Vt.Vec3fArray, linear: NDArray[np.float64], translate: NDArray[np.float64],
+                      buffers: tuple[Axes, Axes, Axes] | None = None) -> Axes:
         """Skeleton space -> mesh local space, p . linear + translate (row vectors), axis by axis:
         local[k] = ((x linear[0, k] + y linear[1, k]) + z linear[2, k]) + translate[k] in float64,
-        the element-wise formula of ``SkinningBlackBox.skin``. The result is a work buffer,
-        overwritten at the next call."""
-        skel, local, term = self._skel, self._local, self._term
-        np.copyto(skel, np.asarray(skinned).T)  # float32 -> float64, exact
+        the one formula of the black box (``SkinningBlackBox.skin``) and the points cache.
+        ``buffers`` (skel, local, term), each (3, n), are used as work space when given."""
+        view = np.asarray(skinned)
+        skel, local, term = buffers or (np.empty((3, len(view))), np.empty((3, len(view))), np.empty((3, len(view))))
+        np.copyto(skel, view.T)  # float32 -> float64, exact
         np.multiply(linear[0][:, None], skel[0], out=local)
         np.multiply(linear[1][:, None], skel[1], out=term)
         local += term
@@ -111,7 +119,7 @@ class RestPoints:
     def stored(skinned: Vt.Vec3fArray, local: Axes, lo: NDArray[np.float64], hi: NDArray[np.float64]) -> PosedPoints:
         """local (rounded to float32) written over skinned, a VtArray of ``vt()`` that UsdSkel
         deformed (so no one else holds it), with the extent of the bounds lo and hi."""
-        out = _writable(skinned)
+        out = writable(skinned)
         for k in range(3):  # axis by axis: one long strided loop each, 3x faster than out.T[...] = local
             out[:, k] = local[k]
         return PosedPoints(skinned, _extent(lo, hi, local.T))
