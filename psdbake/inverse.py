@@ -114,11 +114,10 @@ def _conjugate_start(
 ) -> tuple[NDArray[np.float64], Points, NDArray[np.bool_]]:
     """Directions J^-1 e_j and start J^-1 r per vertex; identity/zero where J is singular."""
     # Conditioning test without an SVD (a third of an LBS example's time at 100k vertices).
-    ok = powell.well_conditioned(jac, tol.JACOBIAN_RCOND)
+    ok, inv = powell.conditioned_inverses(jac, tol.JACOBIAN_RCOND)  # adjugate / det, where well-conditioned
     directions = np.tile(np.eye(3), (len(jac), 1, 1))
     start = np.zeros_like(r0)
     if ok.any():
-        inv = powell.inverse3(jac[ok])  # adjugate / det: well-conditioned blocks only
         directions[ok] = np.transpose(inv, (0, 2, 1))  # row j = column j of J^-1
         start[ok] = np.einsum("kab,kb->ka", inv, r0[ok])
     return directions, start, ok
@@ -132,7 +131,7 @@ def sculpted_vertices(rest: Points, posed_rest: Points, sculpt: Points) -> tuple
     worst = int(np.argmax(moved_by)) if len(moved_by) else 0
     if len(moved_by) and moved_by[worst] > tol.ABSURD_SCULPT_DIAGONALS * diagonal:
         raise SculptOutOfRangeError(worst, float(moved_by[worst]), diagonal)
-    floor = tol.float32_floor(np.concatenate([posed_rest, rest]))
+    floor = max(tol.float32_floor(posed_rest), tol.float32_floor(rest))  # the floor of both, no joined copy
     unmoved = max(tol.UNMOVED_RTOL * diagonal, floor)
     return diagonal, floor, np.nonzero(moved_by > unmoved)[0].astype(np.int64)
 

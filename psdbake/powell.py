@@ -205,6 +205,19 @@ def well_conditioned(jac: NDArray[np.float64], rcond: float = QN_RCOND) -> NDArr
         return np.isfinite(scale) & (np.abs(det3(jac)) > rcond * np.maximum(scale, 1e-300))
 
 
+def conditioned_inverses(jac: NDArray[np.float64], rcond: float = QN_RCOND
+                         ) -> tuple[NDArray[np.bool_], NDArray[np.float64]]:
+    """``well_conditioned(jac, rcond)`` and ``inverse3`` of the blocks that pass, from one set of
+    cofactors (the same values as the two calls: every operation is per block)."""
+    *cofactors, det = _cofactors(jac)
+    scale = np.einsum("kab,kab->k", jac, jac) ** 1.5
+    with np.errstate(invalid="ignore", over="ignore", divide="ignore"):
+        ok = np.isfinite(scale) & (np.abs(det) > rcond * np.maximum(scale, 1e-300))
+        c00, c01, c02, c10, c11, c12, c20, c21, c22 = (c[ok] for c in cofactors)
+        adjugate = np.stack([c00, c10, c20, c01, c11, c21, c02, c12, c22], axis=1)
+        return ok, (adjugate / det[ok][:, None]).reshape(-1, 3, 3)
+
+
 def broyden_update(
     jac: NDArray[np.float64], mask: NDArray[np.bool_], step: Offsets, decrease: Residuals, min_step: NDArray[np.float64]
 ) -> None:
@@ -321,9 +334,9 @@ def minimize_lockstep(
         jacobian = np.array(jacobian, dtype=np.float64)  # a copy: updated in place
         qn_steps = _quasi_newton(state, jacobian, status, settle, floor, ftol, max_qn_steps)
         refresh = status == RUNNING
-        refresh[refresh] = well_conditioned(jacobian[refresh])
+        refresh[refresh], inverses = conditioned_inverses(jacobian[refresh])
         if refresh.any():
-            direc[refresh] = np.transpose(inverse3(jacobian[refresh]), (0, 2, 1))  # row j = J^-1 e_j
+            direc[refresh] = np.transpose(inverses, (0, 2, 1))  # row j = J^-1 e_j
     cycles = 0
     while (status == RUNNING).any() and cycles < max_cycles:
         cycles += 1

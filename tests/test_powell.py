@@ -8,6 +8,7 @@ from scipy.optimize import minimize
 from scipy.spatial.transform import Rotation
 
 from psdbake import powell
+from psdbake import tolerances as tol
 
 
 def _affine_problems(m: int, seed: int):
@@ -166,3 +167,17 @@ def test_singular_and_nonfinite_blocks_are_refused_not_raised():
         inv = powell.inverse3(jac)
     assert not np.isfinite(inv[:5]).all(axis=(1, 2)).any()
     np.testing.assert_array_equal(inv[-1], np.eye(3))
+
+
+def test_conditioned_inverses_are_well_conditioned_and_inverse3_at_once():
+    """One set of cofactors for both answers: the same mask and the same bits as the two calls,
+    on blocks spread over conditioning from a rotation to singular, with non-finite ones."""
+    rng = np.random.default_rng(7)
+    jac = rng.normal(size=(5000, 3, 3)) * np.logspace(0, -14, 5000)[:, None, None] ** rng.integers(0, 2, (5000, 1, 1))
+    jac[:50, 2] = jac[:50, 0]  # singular
+    jac[50:60, 1, 1] = np.nan
+    jac[60:70, 0, 0] = np.inf
+    ok, inv = powell.conditioned_inverses(jac, tol.JACOBIAN_RCOND)
+    np.testing.assert_array_equal(ok, powell.well_conditioned(jac, tol.JACOBIAN_RCOND))
+    assert 0 < ok.sum() < len(jac) and not ok[:70].any()
+    np.testing.assert_array_equal(inv, powell.inverse3(jac[ok]))

@@ -100,7 +100,7 @@ class NormalBlackBox:
         self._method = query.GetSkinningMethod()
         self._joints = Vt.Matrix3dArray([m.ExtractRotationMatrix().GetInverse().GetTranspose() for m in xforms])
         self._bind = query.GetGeomBindTransform(tc).ExtractRotationMatrix().GetInverse().GetTranspose()
-        count = len(scene.rest_points(mesh))
+        count = scene.point_count(mesh)
         influences = query.ComputeVaryingJointInfluences(count, tc)
         if influences is None:
             raise InputError(f"{where(scene.label, mesh)}: UsdSkel cannot compute joint influences at time {time:g}")
@@ -123,6 +123,6 @@ class NormalBlackBox:
 
     def normal_maps(self) -> NDArray[np.float64]:
         """Per-vertex maps M (n, 3, 3), posed ~ rest @ M, from four calls (``normal_maps_from_probes``)."""
-        n = len(self._scene.rest_points(self.mesh))
+        n = self._scene.point_count(self.mesh)
         probes = [self(np.tile(v, (n, 1))) for v in np.vstack([np.eye(3), np.ones(3)])]
         return normal_maps_from_probes(*probes)

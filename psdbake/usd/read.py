@@ -128,7 +128,7 @@ class Scene:
                     skeleton=skeleton,
                     skel_root=root,
                     joints=joints,
-                    point_count=self._point_count(path),
+                    point_count=self.point_count(path),
                 )
             )
         return out
@@ -207,7 +207,7 @@ class Scene:
             raise InputError(f"{where(self.label, mesh, 'points')}: rest points contain NaN or inf")
         return pts
 
-    def _point_count(self, mesh: str) -> int:
+    def point_count(self, mesh: str) -> int:
         """``len(self.rest_points(mesh))``, refusing the same points, without their float64
         copy: UsdGeom's float32 array read in place (25 ms of copying at 1M points, and a fit
         lists the skinned meshes several times). Anything unusual takes rest_points' path."""

@@ -143,7 +143,7 @@ def validate_skinning(scene: Scene, mesh: str) -> list[str]:
             f"{label}: jointWeights has elementSize {k_weights} ({interp[1]}) and jointIndices {k} ({interp[0]}): "
             "UsdSkel needs one weight per joint index, so it cannot skin these points"
         )
-    n = len(scene.rest_points(mesh))
+    n = scene.point_count(mesh)
     constant = ind_pv.GetInterpolation() == UsdGeom.Tokens.constant
     expected = k if constant else n * k
     if len(indices) != expected or len(weights) != len(indices):
