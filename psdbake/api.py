@@ -22,7 +22,7 @@ from collections.abc import Sequence
 from . import __version__, atomic
 from .deformers import deformer_files, load_deformers
 from .errors import InputError, PsdWarning, where
-from .evaluate import animation_weights, correctives_by_animation, posed_points
+from .evaluation import animation_weights, correctives_by_animation, posed_points
 from .frames import frames_of
 from .groups import correctives_layer, read_correctives, updated_layer
 from .results import FitResult, GltfResult, MirrorResult, PoseResult, Progress, SculptsResult, WeightsResult
@@ -368,8 +368,8 @@ def write_sculpts(result: SculptsResult, path: str) -> str:
 def mirror(asset: str, correctives: str, settings: MirrorSettings) -> MirrorResult:
     """The other side's correctives groups, made from CORRECTIVES's groups (``settings.group``,
     or every group whose drivers all have partners) by reflecting the rig's bind space
-    (``psdbake/mirror.py``); refuses a rig or mesh that is not mirror-symmetric."""
-    from .mirror import mirror_groups
+    (``psdbake/mirroring.py``); refuses a rig or mesh that is not mirror-symmetric."""
+    from .mirroring import mirror_groups
 
     started = _time.perf_counter()
     scene = open_asset(asset)

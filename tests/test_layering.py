@@ -147,3 +147,33 @@ def test_one_public_surface():
     eager = {alias.asname or alias.name for node in ast.walk(tree) if isinstance(node, ast.If) and _is_type_checking(node)
              for stmt in node.body if isinstance(stmt, ast.ImportFrom) for alias in stmt.names}
     assert eager == set(psdbake.__all__) - {"__version__"}
+
+
+def test_no_public_name_is_also_a_submodule():
+    """``psdbake.evaluate`` and ``psdbake.mirror`` once named both api functions and modules of
+    the package: importing the module (api does, on first use) rebinds the package attribute,
+    so ``psdbake.evaluate(...)`` after ``psdbake.fit(...)`` called a module. A public name must
+    never be a submodule's name."""
+    import psdbake
+
+    submodules = {name.split(".")[1] for name in MODULES if name.count(".") >= 1}
+    assert not submodules & set(psdbake.__all__)
+
+
+def test_the_public_functions_stay_functions_after_every_module_loads():
+    """In a fresh interpreter: every public name, read after the whole package is imported,
+    is what its defining module says (a function, not a module of the same name)."""
+    import subprocess
+    import sys
+
+    code = (
+        "import importlib, types, psdbake\n"
+        "first = {n: getattr(psdbake, n) for n in psdbake.__all__}\n"
+        f"for m in {sorted(MODULES)!r}:\n"
+        "    if 'blender' not in m and not m.endswith('__main__'): importlib.import_module(m)\n"
+        "after = {n: getattr(psdbake, n) for n in psdbake.__all__}\n"
+        "bad = [n for n in first if first[n] is not after[n] or isinstance(after[n], types.ModuleType)]\n"
+        "assert not bad, bad\n"
+    )
+    done = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr[-2000:]

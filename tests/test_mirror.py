@@ -1,4 +1,4 @@
-"""psdbake mirror (psdbake/mirror.py, posemirror.py, symmetry.py): one side's correctives
+"""psdbake mirror (psdbake/mirroring.py, posemirror.py, symmetry.py): one side's correctives
 groups made into the other side's.
 
 The ground truth is a symmetric humanoid: fixtures/humanoid.py's own generator, with its
@@ -180,7 +180,7 @@ def test_mirrored_blend_shapes_are_the_right_fit_normal_offsets_included(rig, tm
     """With authored vertex normals (so normalOffsets and 1-ring pointIndices): the mirrored group's
     correctives are the ones fitted on the right sculpts, vertex for vertex."""
     from psdbake.groups import read_correctives
-    from psdbake.mirror import column_shapes
+    from psdbake.mirroring import column_shapes
 
     rest = humanoid.rest_points()
     normals = np.zeros_like(rest)
