@@ -44,6 +44,7 @@ files). ``tests/test_fuzz.py`` runs a bounded number of each mode in ``make test
 from __future__ import annotations
 
 import argparse
+import atexit
 import hashlib
 import json
 import math
@@ -1239,6 +1240,11 @@ def main(argv: list[str] | None = None) -> None:
     if args.worker:
         _worker(modes[0], args.seed, args.folder, args.err)
         return
+    # every fuzzed crate file that passes the probe would leave a verdict in the user's cache:
+    # one cache folder of the run's own, inherited by the workers, removed at the end
+    cache = tempfile.mkdtemp(prefix="psdbake-fuzz-cache-")
+    os.environ["PSDBAKE_CACHE_DIR"] = cache
+    atexit.register(shutil.rmtree, cache, True)
     if args.keep and args.only is None:
         parser.error("--keep needs --only")
     # SIGTERM unwinds like Ctrl-C: workers stopped, case folders removed
