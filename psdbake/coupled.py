@@ -70,8 +70,17 @@ KRYLOV_MAX = 40
 STEP_CAP = 20.0
 #: Halvings of a Newton step that does not reduce the residual before giving up.
 BACKTRACKS = 4
-#: Black-box calls of one coupled example, all included.
+#: Black-box calls of one joint solve (counted from the example's first call for the solve
+#: from zero; from its own start for the restart from the per-vertex solution).
 MAX_EVALUATIONS = 160
+#: The joint solve from zero gets fewer: where it converges it takes 14-29 calls in all
+#: (unfolded bench and test examples, 1.3k to 100k points); where skinning folds the mesh it
+#: never converged within 160 (12 bench examples, elbow at 60-160 degrees, 13k and 100k), and
+#: the per-vertex solve and the restart from it run next. Measured with 64 against 160
+#: (benchmarks.coupled, 8 examples per rig): 16-20% fewer calls, the same vertices missed at
+#: 13k and fewer at 100k (631 against 675; there the solve from zero is kept for three folded
+#: examples, and its longer runs had not helped them).
+FROM_ZERO_EVALUATIONS = 64
 
 
 def probe_vertices(rest: Points, candidates: NDArray[np.int64], count: int = PROBE_VERTICES) -> NDArray[np.int64]:
@@ -133,7 +142,7 @@ def invert(blackbox: BlackBox, rest: Points, sculpt: Points, *, rtol: float = to
         if not (len(idx) and is_coupled(call, rest, base, probe_vertices(rest, idx), step)):
             return dataclasses.replace(first, evaluations=calls, seconds=time.perf_counter() - started)
     joint = invert_coupled(call, rest, sculpt, base, idx, diagonal, floor, rtol=rtol, calls=lambda: calls,
-                           started=started)
+                           started=started, max_evaluations=FROM_ZERO_EVALUATIONS)
     per_vertex = first if first.regime != COUPLING_SEEN else None
     if per_vertex is None and len(joint.missed):
         per_vertex = invert_example_with(blackbox, rest, sculpt, rtol=rtol)
