@@ -59,6 +59,11 @@ deformer_option = click.option(
          "package.module:factory or file.py:factory. This runs your code.",
 )
 
+frames_option = click.option(
+    "--frames", metavar="START:END",
+    help="Whole frames START..END (inclusive). Default: the animation's authored samples.",
+)
+
 
 _RBF_OPTIONS = [
     click.option("--driver", "drivers", multiple=True, metavar="JOINT",
@@ -276,8 +281,7 @@ def fit_cmd(asset, examples, output, drivers, kernel, sigma, degree, smoothing, 
 @click.argument("correctives", type=str)
 @click.option("--anim", required=True, type=str, help="ANIM layer to drive the correctives over.")
 @click.option("-o", "--output", required=True, type=str, help="WEIGHTS layer to write.")
-@click.option("--frames", metavar="START:END",
-              help="Whole frames START..END (inclusive). Default: the animation's authored samples.")
+@frames_option
 @click.option("--points-cache", type=str,
               help="Also write final posed points per frame (no UsdSkel needed).")
 @click.option("--chunk-size", type=int, default=None, metavar="N",
@@ -351,8 +355,7 @@ def mirror_cmd(asset, correctives, output, joint_rules, group, as_name, plane, q
 @click.argument("correctives", type=str)
 @click.option("--anim", required=True, type=str, help="ANIM layer: the shot to animate.")
 @click.option("-o", "--output", required=True, type=str, help="SHOT.glb to write (glTF 2.0 binary).")
-@click.option("--frames", metavar="START:END",
-              help="Whole frames START..END (inclusive). Default: the animation's authored samples.")
+@frames_option
 @_common
 def export_gltf_cmd(asset, correctives, anim, output, frames, quiet, verbose, as_json) -> None:
     """Write a skinned glTF 2.0 binary for game engines: meshes, skin, joint animation, the correctives
@@ -407,7 +410,7 @@ def _eval_chunked(ui: Ui, asset, correctives, anim, output, frames, points_cache
               help="Vertex for the correction-angle figure. Default: the most corrected one (and the one where "
                    "forward and inverse disagree most).")
 @click.option("--mesh", default=None, metavar="PATH", help="Only fit and report this mesh.")
-@click.option("--frames", metavar="START:END", help="Whole frames START..END (inclusive). Default: the animation's samples.")
+@frames_option
 @click.option("--views", metavar="F1,F2,...", help="Frames to draw the mesh at. Default: three chosen frames.")
 @rbf_options
 @deformer_option

@@ -46,7 +46,7 @@ from numpy.typing import NDArray
 from . import powell
 from . import tolerances as tol
 from .arrays import Points
-from .inverse import COUPLING_SEEN, BlackBox, InverseResult, invert_example_with, sculpted_vertices
+from .inverse import COUPLING_SEEN, BlackBox, Counted, InverseResult, invert_example_with, sculpted_vertices
 
 #: Vertices moved by the coupling probe (a farthest-point sample of the sculpted vertices).
 PROBE_VERTICES = 16
@@ -128,40 +128,34 @@ def invert(blackbox: BlackBox, rest: Points, sculpt: Points, *, rtol: float = to
     first = invert_example_with(blackbox, rest, sculpt, rtol=rtol, stop_if_coupled=True)
     if first.regime != COUPLING_SEEN and not len(first.missed):
         return first
-    calls = first.evaluations
-
-    def call(points: Points) -> Points:
-        nonlocal calls
-        calls += 1
-        return blackbox(points)
-
+    call = Counted(blackbox, first.evaluations)
     base = call(rest)
     diagonal, floor, idx = sculpted_vertices(rest, base, sculpt)
     if first.regime != COUPLING_SEEN:  # per-vertex ran to the end and missed: probe
         step = tol.JACOBIAN_STEP_RTOL * max(diagonal, floor)
         if not (len(idx) and is_coupled(call, rest, base, probe_vertices(rest, idx), step)):
-            return dataclasses.replace(first, evaluations=calls, seconds=time.perf_counter() - started)
-    joint = invert_coupled(call, rest, sculpt, base, idx, diagonal, floor, rtol=rtol, calls=lambda: calls,
-                           started=started, max_evaluations=FROM_ZERO_EVALUATIONS)
+            return dataclasses.replace(first, evaluations=call.calls, seconds=time.perf_counter() - started)
+    joint = invert_coupled(call, rest, sculpt, base, idx, diagonal, floor, rtol=rtol, started=started,
+                           max_evaluations=FROM_ZERO_EVALUATIONS)
     per_vertex = first if first.regime != COUPLING_SEEN else None
     if per_vertex is None and len(joint.missed):
         per_vertex = invert_example_with(blackbox, rest, sculpt, rtol=rtol)
-        calls += per_vertex.evaluations
+        call.calls += per_vertex.evaluations
     candidates = [joint]
     if per_vertex is not None and len(joint.missed):
         candidates.append(dataclasses.replace(per_vertex, regime="coupled chain, per-vertex kept"))
         if len(per_vertex.missed) and np.array_equal(per_vertex.indices, idx):
             # Newton from the per-vertex solution: where skinning folds the mesh the joint solve
             # from zero stalls, but from there it can finish (measured: 647 vertices -> 4)
-            warm = invert_coupled(call, rest, sculpt, base, idx, diagonal, floor, rtol=rtol, calls=lambda: calls,
-                                  started=started, max_evaluations=calls + MAX_EVALUATIONS, start=per_vertex.offsets)
+            warm = invert_coupled(call, rest, sculpt, base, idx, diagonal, floor, rtol=rtol, started=started,
+                                  max_evaluations=call.calls + MAX_EVALUATIONS, start=per_vertex.offsets)
             candidates.append(dataclasses.replace(warm, regime="coupled, from the per-vertex solution"))
     best = min(candidates, key=lambda c: (len(c.missed), c.max_residual))
-    return dataclasses.replace(best, evaluations=calls, seconds=time.perf_counter() - started)
+    return dataclasses.replace(best, evaluations=call.calls, seconds=time.perf_counter() - started)
 
 
 def invert_coupled(
-    call: BlackBox,
+    call: Counted,
     rest: Points,
     sculpt: Points,
     base: Points,
@@ -170,13 +164,12 @@ def invert_coupled(
     floor: float,
     *,
     rtol: float = tol.INVERSE_RTOL,
-    calls: Callable[[], int],
     started: float,
     max_evaluations: int = MAX_EVALUATIONS,
     start: Points | None = None,
 ) -> InverseResult:
     """Newton-Krylov on the sculpted vertices' offsets (module docstring). ``base`` is
-    ``call(rest)``; ``calls()`` counts every call made through ``call``."""
+    ``call(rest)``; ``call.calls`` counts the example's calls so far (the budget's measure)."""
     atol = max(rtol * diagonal, floor)
     target = sculpt[idx]
     k = len(idx)
@@ -208,14 +201,14 @@ def invert_coupled(
     norms = np.linalg.norm(r, axis=1)
     stalled = False
     h_move = JVP_STEP_RTOL * max(diagonal, floor)
-    while np.isfinite(norms).all() and norms.max() > atol and calls() < max_evaluations - 2:
+    while np.isfinite(norms).all() and norms.max() > atol and call.calls < max_evaluations - 2:
         at, out_at = offsets, out
 
         def jvp(z: Points, at: Points = at, out_at: Points = out_at) -> Points:
             h = h_move / max(float(np.sqrt(np.mean(np.einsum("ij,ij->i", z, z)))), 1e-300)
             return (evaluate(at + h * z) - out_at) / h
 
-        budget = min(KRYLOV_MAX, max_evaluations - 2 - calls())
+        budget = min(KRYLOV_MAX, max_evaluations - 2 - call.calls)
         target_lin = max(KRYLOV_TARGET * atol, FORCING * float(norms.max()))
         delta = _gmres(jvp, precondition, r, target_lin, budget)
         size = np.linalg.norm(r)
@@ -228,7 +221,7 @@ def invert_coupled(
             out_trial = evaluate(trial)
             r_trial = target - out_trial
             better = bool(np.all(np.isfinite(r_trial)) and np.linalg.norm(r_trial) < size)
-            if better or calls() >= max_evaluations - 1:
+            if better or call.calls >= max_evaluations - 1:
                 break
             delta = 0.5 * delta
         if not better:
@@ -241,7 +234,7 @@ def invert_coupled(
     status[norms <= atol] = powell.CONVERGED
     status[~np.isfinite(norms)] = powell.NONFINITE
     return InverseResult(
-        indices=idx, offsets=offsets, residual=norms, status=status, evaluations=calls(), diagonal=diagonal,
+        indices=idx, offsets=offsets, residual=norms, status=status, evaluations=call.calls, diagonal=diagonal,
         atol=atol, seconds=time.perf_counter() - started, regime="coupled",
     )
 

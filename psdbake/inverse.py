@@ -88,6 +88,17 @@ class InverseResult:
         return float(np.sqrt(np.mean(self.residual**2))) if len(self.residual) else 0.0
 
 
+class Counted:
+    """The black box, counting its calls (``InverseResult.evaluations``), from ``calls``."""
+
+    def __init__(self, blackbox: BlackBox, calls: int = 0) -> None:
+        self.blackbox, self.calls = blackbox, calls
+
+    def __call__(self, points: Points) -> Points:
+        self.calls += 1
+        return self.blackbox(points)
+
+
 def _jacobians(
     blackbox: BlackBox, rest: Points, idx: NDArray[np.int64], posed_rest: Points, step: float
 ) -> tuple[NDArray[np.float64], bool]:
@@ -171,12 +182,7 @@ def invert_example_with(
     started = time.perf_counter()
     rest = np.asarray(rest, dtype=np.float64)
     sculpt = np.asarray(sculpt, dtype=np.float64)
-    calls = 0
-
-    def call(points: Points) -> Points:
-        nonlocal calls
-        calls += 1
-        return blackbox(points)
+    call = Counted(blackbox)
 
     posed_rest = call(rest)
     diagonal, floor, idx = sculpted_vertices(rest, posed_rest, sculpt)
@@ -184,7 +190,7 @@ def invert_example_with(
     if len(idx) == 0:
         return InverseResult(
             indices=idx, offsets=np.zeros((0, 3)), residual=np.zeros(0), status=np.zeros(0, np.int8),
-            evaluations=calls, diagonal=diagonal, atol=atol, seconds=time.perf_counter() - started,
+            evaluations=call.calls, diagonal=diagonal, atol=atol, seconds=time.perf_counter() - started,
         )
     target = sculpt[idx]
     r0 = target - posed_rest[idx]
@@ -207,7 +213,7 @@ def invert_example_with(
             return InverseResult(
                 indices=idx, offsets=start, residual=np.where(np.isfinite(norms), norms, np.inf),
                 status=np.where(norms <= atol, powell.CONVERGED, powell.MAX_CYCLES).astype(np.int8),
-                evaluations=calls, diagonal=diagonal, atol=atol, seconds=time.perf_counter() - started,
+                evaluations=call.calls, diagonal=diagonal, atol=atol, seconds=time.perf_counter() - started,
                 regime=COUPLING_SEEN,
             )
     if quasi_newton:
@@ -226,7 +232,7 @@ def invert_example_with(
         offsets=result.x,
         residual=result.residual_norm,
         status=result.status,
-        evaluations=calls,
+        evaluations=call.calls,
         diagonal=diagonal,
         atol=atol,
         seconds=time.perf_counter() - started,

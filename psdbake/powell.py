@@ -191,18 +191,28 @@ def inverse3(m: NDArray[np.float64]) -> NDArray[np.float64]:
     on the blocks it is used for, those ``well_conditioned`` passes, is below eps / rcond (~2e-10
     at JACOBIAN_RCOND; tests/test_powell.py): far below the forward-difference Jacobian's own
     error. A singular block gives inf or NaN, not an error."""
-    c00, c01, c02, c10, c11, c12, c20, c21, c22, det = _cofactors(m)
-    adjugate = np.stack([c00, c10, c20, c01, c11, c21, c02, c12, c22], axis=1)  # the cofactors transposed
+    *cofactors, det = _cofactors(m)
+    return _adjugate_over(cofactors, det)
+
+
+def _adjugate_over(cofactors: list[NDArray[np.float64]], det: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The cofactors transposed (the adjugate), divided by det: (k, 3, 3) inverses."""
+    c00, c01, c02, c10, c11, c12, c20, c21, c22 = cofactors
+    adjugate = np.stack([c00, c10, c20, c01, c11, c21, c02, c12, c22], axis=1)
     with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
         return (adjugate / det[:, None]).reshape(-1, 3, 3)
 
 
-def well_conditioned(jac: NDArray[np.float64], rcond: float = QN_RCOND) -> NDArray[np.bool_]:
-    """Per problem: is the 3x3 model invertible? |det J| against |J|_F^3 (no SVD: it is zero
-    for a singular J and ~0.19 for a rotation)."""
+def _invertible(jac: NDArray[np.float64], det: NDArray[np.float64], rcond: float) -> NDArray[np.bool_]:
+    """|det J| against |J|_F^3 (no SVD: it is zero for a singular J and ~0.19 for a rotation)."""
     scale = np.einsum("kab,kab->k", jac, jac) ** 1.5
     with np.errstate(invalid="ignore", over="ignore"):
-        return np.isfinite(scale) & (np.abs(det3(jac)) > rcond * np.maximum(scale, 1e-300))
+        return np.isfinite(scale) & (np.abs(det) > rcond * np.maximum(scale, 1e-300))
+
+
+def well_conditioned(jac: NDArray[np.float64], rcond: float = QN_RCOND) -> NDArray[np.bool_]:
+    """Per problem: is the 3x3 model invertible? (``_invertible``)"""
+    return _invertible(jac, det3(jac), rcond)
 
 
 def conditioned_inverses(jac: NDArray[np.float64], rcond: float = QN_RCOND
@@ -210,12 +220,8 @@ def conditioned_inverses(jac: NDArray[np.float64], rcond: float = QN_RCOND
     """``well_conditioned(jac, rcond)`` and ``inverse3`` of the blocks that pass, from one set of
     cofactors (the same values as the two calls: every operation is per block)."""
     *cofactors, det = _cofactors(jac)
-    scale = np.einsum("kab,kab->k", jac, jac) ** 1.5
-    with np.errstate(invalid="ignore", over="ignore", divide="ignore"):
-        ok = np.isfinite(scale) & (np.abs(det) > rcond * np.maximum(scale, 1e-300))
-        c00, c01, c02, c10, c11, c12, c20, c21, c22 = (c[ok] for c in cofactors)
-        adjugate = np.stack([c00, c10, c20, c01, c11, c21, c02, c12, c22], axis=1)
-        return ok, (adjugate / det[ok][:, None]).reshape(-1, 3, 3)
+    ok = _invertible(jac, det, rcond)
+    return ok, _adjugate_over([c[ok] for c in cofactors], det[ok])
 
 
 def broyden_update(

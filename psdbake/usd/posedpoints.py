@@ -83,8 +83,7 @@ class RestPoints:
 
     def __init__(self, points: Points) -> None:
         self.float32 = np.ascontiguousarray(points, dtype=np.float32).reshape(-1, 3)
-        axes = (3, len(self.float32))
-        self._skel, self._local, self._term = np.empty(axes), np.empty(axes), np.empty(axes)
+        self._buffers = work_rows(len(self.float32))
 
     def vt(self) -> Vt.Vec3fArray:
         """A new VtArray of the rest points, for UsdSkel to deform in place."""
@@ -95,25 +94,7 @@ class RestPoints:
     def to_local(self, skinned: Vt.Vec3fArray, linear: NDArray[np.float64], translate: NDArray[np.float64]) -> Axes:
         """Skeleton space -> mesh local space (``to_local_rows``) into this mesh's work buffers:
         the result is overwritten at the next call."""
-        return RestPoints.to_local_rows(skinned, linear, translate, (self._skel, self._local, self._term))
-
-    @staticmethod
-    def to_local_rows(skinned: Vt.Vec3fArray, linear: NDArray[np.float64], translate: NDArray[np.float64],
-                      buffers: tuple[Axes, Axes, Axes] | None = None) -> Axes:
-        """Skeleton space -> mesh local space, p . linear + translate (row vectors), axis by axis:
-        local[k] = ((x linear[0, k] + y linear[1, k]) + z linear[2, k]) + translate[k] in float64,
-        the one formula of the black box (``SkinningBlackBox.skin``) and the points cache.
-        ``buffers`` (skel, local, term), each (3, n), are used as work space when given."""
-        view = np.asarray(skinned)
-        skel, local, term = buffers or (np.empty((3, len(view))), np.empty((3, len(view))), np.empty((3, len(view))))
-        np.copyto(skel, view.T)  # float32 -> float64, exact
-        np.multiply(linear[0][:, None], skel[0], out=local)
-        np.multiply(linear[1][:, None], skel[1], out=term)
-        local += term
-        np.multiply(linear[2][:, None], skel[2], out=term)
-        local += term
-        local += translate[:, None]
-        return local
+        return to_local_rows(skinned, linear, translate, self._buffers)
 
     @staticmethod
     def stored(skinned: Vt.Vec3fArray, local: Axes, lo: NDArray[np.float64], hi: NDArray[np.float64]) -> PosedPoints:
@@ -123,3 +104,29 @@ class RestPoints:
         for k in range(3):  # axis by axis: one long strided loop each, 3x faster than out.T[...] = local
             out[:, k] = local[k]
         return PosedPoints(skinned, _extent(lo, hi, local.T))
+
+
+Buffers = tuple[Axes, Axes, Axes]  # (skel, local, term), each (3, n): to_local_rows' work space
+
+
+def work_rows(n: int) -> Buffers:
+    """Work space of ``to_local_rows`` for n points, made once and reused: fresh (3, n)
+    buffers fault their pages in at every call (1 ms of 1.6 at 100k points)."""
+    return np.empty((3, n)), np.empty((3, n)), np.empty((3, n))
+
+
+def to_local_rows(skinned: Vt.Vec3fArray, linear: NDArray[np.float64], translate: NDArray[np.float64],
+                  buffers: Buffers) -> Axes:
+    """Skeleton space -> mesh local space, p . linear + translate (row vectors), axis by axis:
+    local[k] = ((x linear[0, k] + y linear[1, k]) + z linear[2, k]) + translate[k] in float64,
+    the one formula of the black box (``SkinningBlackBox.skin``) and the points cache. The
+    result is buffers' ``local``, overwritten at the next call with them."""
+    skel, local, term = buffers
+    np.copyto(skel, np.asarray(skinned).T)  # float32 -> float64, exact
+    np.multiply(linear[0][:, None], skel[0], out=local)
+    np.multiply(linear[1][:, None], skel[1], out=term)
+    local += term
+    np.multiply(linear[2][:, None], skel[2], out=term)
+    local += term
+    local += translate[:, None]
+    return local
