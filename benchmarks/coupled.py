@@ -6,7 +6,8 @@ the 13k and 100k bench rigs):
 * per-vertex: ``inverse.invert_example`` as is (Powell in lockstep, assumes no coupling);
 * one-shot: cvShapeInverter's linearisation, a 3x3 Jacobian per vertex from 3 calls moving
   every sculpted vertex together, D = J^-1 r, no iteration (its residual checked here);
-* coupled: ``coupled.invert`` (coupling probe, then Newton-Krylov).
+* coupled: ``coupled.invert`` (coupling probe, Newton-Krylov from zero, then from the smooth
+  start where that misses: ``psdbake.smoothbasis``).
 
 Every residual is measured here by running the full chain on rest + offsets. Usage:
 ``python -m benchmarks.coupled [--examples N] [--examples-100k N]``.
@@ -25,6 +26,8 @@ from numpy.typing import NDArray
 from psdbake import coupled
 from psdbake import tolerances as tol
 from psdbake.inverse import invert_example, sculpted_vertices
+from psdbake.smoothbasis import edge_adjacency
+from psdbake.usd.meshrest import rest_mesh
 
 from . import rigs
 
@@ -46,11 +49,16 @@ def one_shot(box: Callable[[NDArray[np.float64]], NDArray[np.float64]], rest: ND
     return idx, offsets, 4
 
 
-def measure(rig: rigs.Rig, times: list[float]) -> list[tuple[str, float, float, float, int, int]]:
+METHODS = ("per-vertex", "one-shot", "coupled")
+
+
+def measure(rig: rigs.Rig, times: list[float], methods: tuple[str, ...] = METHODS
+            ) -> list[tuple[str, float, float, float, int, int]]:
     """Per method: (method, calls/example, s/example, max residual / diagonal, missed, sculpted)."""
     scene = rig.scene()
+    adjacency = edge_adjacency(rest_mesh(scene.stage, rigs.MESH)[1])
     rows = []
-    for method in ("per-vertex", "one-shot", "coupled"):
+    for method in methods:
         calls = seconds = worst = 0.0
         missed = sculpted = 0
         for t in times:
@@ -60,7 +68,8 @@ def measure(rig: rigs.Rig, times: list[float]) -> list[tuple[str, float, float, 
             if method == "one-shot":
                 idx, offsets, n = one_shot(box, rig.rest, sculpt)
             else:
-                res = (invert_example if method == "per-vertex" else coupled.invert)(box, rig.rest, sculpt)
+                res = (invert_example(box, rig.rest, sculpt) if method == "per-vertex" else
+                       coupled.invert(box, rig.rest, sculpt, neighbours=lambda: adjacency))
                 idx, offsets, n = res.indices, res.offsets, res.evaluations
             seconds += time.perf_counter() - started
             calls += n
@@ -82,7 +91,11 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--examples", type=int, default=8, help="examples on the 13k rig (of 8)")
     parser.add_argument("--examples-100k", type=int, default=3, help="examples on the 100k rig (of 8)")
+    parser.add_argument("--methods", default=",".join(METHODS), help="comma-separated, of: " + ", ".join(METHODS))
     args = parser.parse_args()
+    methods = tuple(m for m in args.methods.split(",") if m)
+    if not set(methods) <= set(METHODS):
+        parser.error(f"--methods: unknown {sorted(set(methods) - set(METHODS))}")
     print(f"# {VARIANT}: per-vertex vs one-shot vs coupled inverse (residuals by running the chain)")
     print(f"{'rig':<20} {'examples':>8} {'method':<11} {'calls/ex':>9} {'s/ex':>8} {'max res/diag':>13} "
           f"{'missed / sculpted':>18}")
@@ -93,7 +106,7 @@ def main() -> None:
                 continue
             rig = rigs.build(folder, VARIANT, size, poses, poses_layer)
             times = rig.times[:count]
-            for method, calls, seconds, worst, missed, sculpted in measure(rig, times):
+            for method, calls, seconds, worst, missed, sculpted in measure(rig, times, methods):
                 print(f"{rig.name:<20} {len(times):>8} {method:<11} {calls:>9.1f} {seconds:>8.2f} {worst:>13.2e} "
                       f"{f'{missed} / {sculpted}':>18}", flush=True)
 

@@ -20,11 +20,22 @@ Coupled chains (regime "coupled") are solved jointly, **matrix-free Newton-Krylo
   the row sums of the Jacobian, which for a smoothing deformer is the skinning's own block);
 * Newton step: GMRES (right-preconditioned, Arnoldi with modified Gram-Schmidt) on
   ``J delta = r``, each Jacobian-vector product one black-box call (forward difference, the
-  largest vertex move ``JVP_STEP_RTOL`` of the diagonal); it stops as soon as the linear
-  model predicts every vertex within a fraction of the tolerance;
+  largest vertex move a tenth of the largest residual, within ``JVP_MIN_STEP_RTOL`` and
+  ``JVP_STEP_RTOL`` of the diagonal); it stops as soon as the linear model predicts every
+  vertex within a fraction of the tolerance;
 * then one call at ``rest + D`` checks the true residual; Newton repeats from there until
   every sculpted vertex is within tolerance, the call budget is spent or a step fails to
   improve (a step that does not is halved, up to ``BACKTRACKS`` times).
+
+Where skinning folds the mesh, this from zero stalls: the chain's Jacobian has half its
+singular values below 1e-3 of the largest (smoothing nearly annihilates high-frequency
+offsets), and Newton follows large high-frequency offsets into a spurious minimum. The sculpt
+is reachable all the same (the bench's ground-truth offset gives residuals 30x below the
+tolerance). So a second start (``smooth_start``): Gauss-Newton restricted to the region's
+smoothest fields (``psdbake.smoothbasis``, from the mesh's edges), which lands next to the
+smooth solution, and Newton-Krylov finishes from there (regime "coupled, from the smooth
+start"). On the bench's folded elbows (60-160 degrees, 13k and 100k points) every sculpted
+vertex then reaches the tolerance.
 
 Powell's per-vertex line searches are not used here: they assume a vertex's residual depends
 on its own offset only, which is exactly what a coupling deformer breaks.
@@ -41,22 +52,30 @@ import time
 from collections.abc import Callable
 
 import numpy as np
+import scipy.sparse as sp
 from numpy.typing import NDArray
 
 from . import powell
 from . import tolerances as tol
 from .arrays import Points
 from .inverse import COUPLING_SEEN, BlackBox, Counted, InverseResult, invert_example_with, sculpted_vertices
+from .smoothbasis import smooth_basis
 
 #: Vertices moved by the coupling probe (a farthest-point sample of the sculpted vertices).
 PROBE_VERTICES = 16
 #: An unprobed vertex whose output moves by more than this fraction of the probed vertices'
 #: largest response means coupling. Per-vertex chains move it by exactly 0.
 COUPLING_RTOL = 1e-6
-#: Forward-difference step of a Jacobian-vector product: the largest vertex move, as a
-#: fraction of the diagonal. Small enough that Delta Mush's frame rotation stays linear,
-#: large enough that UsdSkel's float32 rounding (~1e-7 relative) stays under 1e-3 of it.
+#: Forward-difference step of a Jacobian-vector product: the largest vertex move is
+#: ``JVP_RESIDUAL_STEP`` times the largest residual, clipped to [JVP_MIN_STEP_RTOL,
+#: JVP_STEP_RTOL] of the diagonal. Where skinning folds the mesh Delta Mush is non-linear at
+#: the scale of the correction still to make, and a secant much longer than it misleads the
+#: model (13k bench, 3 folded examples: a fixed 1e-4 left 277 vertices missed, a fixed 1e-5 5,
+#: a tenth of the residual 0). The floor keeps UsdSkel's float32 rounding (~1e-7 relative,
+#: smoothed by the chain) well under the difference.
 JVP_STEP_RTOL = 1e-4
+JVP_RESIDUAL_STEP = 0.1
+JVP_MIN_STEP_RTOL = 1e-6
 #: GMRES stops when the linear model predicts every vertex within this fraction of atol.
 KRYLOV_TARGET = 0.25
 #: Inexact Newton: a step's GMRES stops once the model predicts the largest vertex residual
@@ -70,17 +89,24 @@ KRYLOV_MAX = 40
 STEP_CAP = 20.0
 #: Halvings of a Newton step that does not reduce the residual before giving up.
 BACKTRACKS = 4
-#: Black-box calls of one joint solve (counted from the example's first call for the solve
-#: from zero; from its own start for the restart from the per-vertex solution).
+#: Black-box calls of one joint solve from a start (the smooth start, or the per-vertex
+#: solution), counted from that start.
 MAX_EVALUATIONS = 160
-#: The joint solve from zero gets fewer: where it converges it takes 14-29 calls in all
-#: (unfolded bench and test examples, 1.3k to 100k points); where skinning folds the mesh it
-#: never converged within 160 (12 bench examples, elbow at 60-160 degrees, 13k and 100k), and
-#: the per-vertex solve and the restart from it run next. Measured with 64 against 160
-#: (benchmarks.coupled, 8 examples per rig): 16-20% fewer calls, the same vertices missed at
-#: 13k and fewer at 100k (631 against 675; there the solve from zero is kept for three folded
-#: examples, and its longer runs had not helped them).
+#: The joint solve from zero gets fewer, counted from the example's first call: where it
+#: converges it takes 14-29 calls in all (unfolded bench and test examples, 1.3k to 100k
+#: points); where skinning folds the mesh it never converged within 160 (12 bench examples,
+#: elbow at 60-160 degrees, 13k and 100k), and the smooth start runs next.
 FROM_ZERO_EVALUATIONS = 64
+#: Smooth fields in ``smooth_start``'s span (3 calls each, one per axis). On the 13k bench's
+#: six folded examples 32 left 18 vertices above the tolerance (245.8 calls per example),
+#: 64 none, at ~317 calls per example (benchmarks.coupled).
+SMOOTH_FIELDS = 64
+#: Gauss-Newton steps in that span (the first on the measured Jacobian, then Broyden's, 1 call
+#: each): on the 13k bench's folded elbows the second step still helps, the fourth no longer.
+SMOOTH_STEPS = 4
+#: Singular values of the span's Jacobian below this fraction of the largest are dropped
+#: (truncated least squares: the steps stay smooth and the noise of the measured columns out).
+SMOOTH_RCOND = 1e-3
 
 
 def probe_vertices(rest: Points, candidates: NDArray[np.int64], count: int = PROBE_VERTICES) -> NDArray[np.int64]:
@@ -110,18 +136,21 @@ def is_coupled(call: BlackBox, rest: Points, base: Points, probed: NDArray[np.in
     return bool(others > COUPLING_RTOL * max(own, step)) or not np.isfinite(others)
 
 
-def invert(blackbox: BlackBox, rest: Points, sculpt: Points, *, rtol: float = tol.INVERSE_RTOL) -> InverseResult:
+def invert(blackbox: BlackBox, rest: Points, sculpt: Points, *, rtol: float = tol.INVERSE_RTOL,
+           neighbours: Callable[[], sp.csr_matrix | None] | None = None) -> InverseResult:
     """Solve the example per vertex, or jointly when the chain couples vertices, keeping the
     better solution (``InverseResult.regime`` says which ran and which was kept).
 
     The per-vertex solver's 3 Jacobian calls move only sculpted vertices, so they show for
     free whether any other vertex's output moved: skinning (5 calls) and per-vertex deformers
     pay nothing to find out. When they show coupling and the linearised start misses, the
-    joint Newton-Krylov solve takes over; should it leave more vertices above the tolerance
-    (a chain that jumps, as Delta Mush where skinning folds the mesh), the full per-vertex
-    solve runs too and the better is kept: fewer vertices missing the tolerance, then the
-    smaller worst residual, both measured by running the chain. A chain that couples only
-    vertices with no unsculpted neighbour is probed (2 calls) once the per-vertex solve misses."""
+    joint Newton-Krylov solve takes over from zero. Where it leaves vertices above the
+    tolerance (skinning folds the mesh), Gauss-Newton in the span of the region's smoothest
+    fields (``smooth_start``; ``neighbours()`` gives the mesh's edge adjacency) and Newton-Krylov
+    from there finish. Without edges the per-vertex solve and a restart from it stand in. The
+    kept result has the fewest vertices above the tolerance, then the smallest worst residual,
+    both measured by running the chain. A chain that couples only vertices with no unsculpted
+    neighbour is probed (2 calls) once the per-vertex solve misses."""
     started = time.perf_counter()
     rest = np.asarray(rest, dtype=np.float64)
     sculpt = np.asarray(sculpt, dtype=np.float64)
@@ -137,21 +166,86 @@ def invert(blackbox: BlackBox, rest: Points, sculpt: Points, *, rtol: float = to
             return dataclasses.replace(first, evaluations=call.calls, seconds=time.perf_counter() - started)
     joint = invert_coupled(call, rest, sculpt, base, idx, diagonal, floor, rtol=rtol, started=started,
                            max_evaluations=FROM_ZERO_EVALUATIONS)
-    per_vertex = first if first.regime != COUPLING_SEEN else None
-    if per_vertex is None and len(joint.missed):
-        per_vertex = invert_example_with(blackbox, rest, sculpt, rtol=rtol)
-        call.calls += per_vertex.evaluations
     candidates = [joint]
-    if per_vertex is not None and len(joint.missed):
-        candidates.append(dataclasses.replace(per_vertex, regime="coupled chain, per-vertex kept"))
-        if len(per_vertex.missed) and np.array_equal(per_vertex.indices, idx):
-            # Newton from the per-vertex solution: where skinning folds the mesh the joint solve
-            # from zero stalls, but from there it can finish (measured: 647 vertices -> 4)
-            warm = invert_coupled(call, rest, sculpt, base, idx, diagonal, floor, rtol=rtol, started=started,
-                                  max_evaluations=call.calls + MAX_EVALUATIONS, start=per_vertex.offsets)
-            candidates.append(dataclasses.replace(warm, regime="coupled, from the per-vertex solution"))
+    if len(joint.missed):
+        adjacency = neighbours() if neighbours is not None else None
+        basis = smooth_basis(adjacency, idx, SMOOTH_FIELDS) if adjacency is not None else None
+        if basis is not None:
+            start = smooth_start(call, rest, sculpt, base, idx, diagonal, floor, basis)
+            finished = invert_coupled(call, rest, sculpt, base, idx, diagonal, floor, rtol=rtol, started=started,
+                                      max_evaluations=call.calls + MAX_EVALUATIONS, start=start)
+            candidates.append(dataclasses.replace(finished, regime="coupled, from the smooth start"))
+        else:
+            candidates.extend(_from_per_vertex(call, blackbox, rest, sculpt, base, idx, diagonal, floor, first,
+                                               rtol=rtol, started=started))
     best = min(candidates, key=lambda c: (len(c.missed), c.max_residual))
     return dataclasses.replace(best, evaluations=call.calls, seconds=time.perf_counter() - started)
+
+
+def _from_per_vertex(call: Counted, blackbox: BlackBox, rest: Points, sculpt: Points, base: Points,
+                     idx: NDArray[np.int64], diagonal: float, floor: float, first: InverseResult, *,
+                     rtol: float, started: float) -> list[InverseResult]:
+    """Without mesh edges: the full per-vertex solve, and Newton-Krylov restarted from it."""
+    per_vertex = first
+    if first.regime == COUPLING_SEEN:
+        per_vertex = invert_example_with(blackbox, rest, sculpt, rtol=rtol)
+        call.calls += per_vertex.evaluations
+    found = [dataclasses.replace(per_vertex, regime="coupled chain, per-vertex kept")]
+    if len(per_vertex.missed) and np.array_equal(per_vertex.indices, idx):
+        warm = invert_coupled(call, rest, sculpt, base, idx, diagonal, floor, rtol=rtol, started=started,
+                              max_evaluations=call.calls + MAX_EVALUATIONS, start=per_vertex.offsets)
+        found.append(dataclasses.replace(warm, regime="coupled, from the per-vertex solution"))
+    return found
+
+
+def smooth_start(call: Counted, rest: Points, sculpt: Points, base: Points, idx: NDArray[np.int64],
+                 diagonal: float, floor: float, basis: NDArray[np.float64]) -> Points:
+    """Offsets (len(idx), 3) from Gauss-Newton restricted to smooth fields: ``basis`` (k, b)
+    per axis, so 3b calls measure the chain's Jacobian on that span (forward differences, the
+    largest vertex move ``JACOBIAN_STEP_RTOL`` of the diagonal), the step is its truncated
+    least-squares solve (singular values below ``SMOOTH_RCOND`` of the largest dropped), and
+    ``SMOOTH_STEPS - 1`` more steps refresh that Jacobian by Broyden updates, 1 call each.
+    A step is kept only if it lowers the residual (``smoothbasis`` says why this helps)."""
+    k, b = basis.shape
+    target = sculpt[idx]
+    out = base[idx]
+    step = tol.JACOBIAN_STEP_RTOL * max(diagonal, floor)
+    cols = np.empty((3 * b, 3 * k))  # the span's Jacobian, stored by column (one row each)
+    for c in range(b):
+        h = step / max(float(np.abs(basis[:, c]).max()), 1e-300)
+        for axis in range(3):
+            moved = rest.copy()
+            moved[idx, axis] += h * basis[:, c]
+            cols[3 * c + axis] = ((call(moved)[idx] - out) / h).ravel()
+    offsets = np.zeros((k, 3))
+    r = target - out
+    # Truncated least squares through the span's Gram matrix (3b x 3b): the same solution as
+    # an SVD of the (3k, 3b) Jacobian, which at 100k points took 1.2 s a step
+    gram = cols @ cols.T
+    for _ in range(SMOOTH_STEPS):
+        values, vectors = np.linalg.eigh(gram)
+        keep = values > SMOOTH_RCOND**2 * values[-1] if values[-1] > 0 else np.zeros(len(values), dtype=bool)
+        if not keep.any():
+            break
+        y = vectors[:, keep] @ ((vectors[:, keep].T @ (cols @ r.ravel())) / values[keep])
+        trial = offsets + basis @ y.reshape(b, 3)
+        moved = rest.copy()
+        moved[idx] += trial
+        out_trial = call(moved)[idx]
+        if not np.all(np.isfinite(out_trial)):
+            break
+        # Broyden's update J += u y^T / (y.y), column by column (no (3k, 3b) temporary), and
+        # the Gram matrix's with it
+        u = (out_trial - out).ravel() - y @ cols
+        yy = float(y @ y)
+        ju = cols @ u
+        for j in range(len(y)):
+            cols[j] += (y[j] / yy) * u
+        gram += (np.outer(ju, y) + np.outer(y, ju)) / yy + np.outer(y, y) * (float(u @ u) / yy**2)
+        r_trial = target - out_trial
+        if np.linalg.norm(r_trial) < np.linalg.norm(r):
+            offsets, out, r = trial, out_trial, r_trial
+    return offsets
 
 
 def invert_coupled(
@@ -200,11 +294,14 @@ def invert_coupled(
     r = target - out
     norms = np.linalg.norm(r, axis=1)
     stalled = False
-    h_move = JVP_STEP_RTOL * max(diagonal, floor)
+    scale = max(diagonal, floor)
     while np.isfinite(norms).all() and norms.max() > atol and call.calls < max_evaluations - 2:
         at, out_at = offsets, out
+        # the secant shrinks with the residual: where skinning folds the mesh the chain is
+        # strongly non-linear, and a step far larger than the correction misleads the model
+        h_move = min(JVP_STEP_RTOL * scale, max(JVP_RESIDUAL_STEP * float(norms.max()), JVP_MIN_STEP_RTOL * scale))
 
-        def jvp(z: Points, at: Points = at, out_at: Points = out_at) -> Points:
+        def jvp(z: Points, at: Points = at, out_at: Points = out_at, h_move: float = h_move) -> Points:
             h = h_move / max(float(np.sqrt(np.mean(np.einsum("ij,ij->i", z, z)))), 1e-300)
             return (evaluate(at + h * z) - out_at) / h
 

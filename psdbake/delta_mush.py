@@ -38,26 +38,10 @@ from numpy.typing import NDArray
 from .arrays import Points
 from .deformers import DeformerFactory, PointFn
 from .normals import Topology, vertex_normals
+from .smoothbasis import edge_adjacency
 
 DEFAULT_ITERATIONS = 10
 DEFAULT_STEP = 0.5
-
-
-def edge_adjacency(topology: Topology) -> sp.csr_matrix:
-    """Symmetric 0/1 adjacency (n, n) of the polygons' edges (consecutive corners)."""
-    counts, corners = topology.face_vertex_counts, topology.face_vertex_indices
-    starts = np.cumsum(counts) - counts
-    position = np.arange(corners.size) - np.repeat(starts, counts)
-    following = np.where(position + 1 < np.repeat(counts, counts), np.arange(corners.size) + 1,
-                         np.repeat(starts, counts))
-    a, b = corners, corners[following]
-    n = topology.point_count
-    adj = sp.coo_matrix((np.ones(2 * a.size), (np.concatenate([a, b]), np.concatenate([b, a]))), shape=(n, n)).tocsr()
-    adj.setdiag(0)
-    adj.eliminate_zeros()
-    adj.data[:] = 1.0
-    adj.sort_indices()
-    return adj
 
 
 class DeltaMush:

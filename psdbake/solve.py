@@ -17,6 +17,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
+import scipy.sparse as sp
 from numpy.typing import NDArray
 
 from . import coupled
@@ -25,6 +26,7 @@ from .errors import InputError, where
 from .inverse import InverseResult, SculptOutOfRangeError
 from .normals import CorrectiveNormals, PosedNormals, corrective_normals
 from .results import Progress
+from .smoothbasis import edge_adjacency
 from .usd.blackbox import SkinningBlackBox
 from .usd.compose import open_layer
 from .usd.normalbox import MeshShading, NormalBlackBox, read_mesh_shading
@@ -67,11 +69,20 @@ def cached_shading(asset: str, mesh: str) -> MeshShading:
     return shading if shading.normals is not None else dataclasses.replace(shading, topology=None)
 
 
+@functools.lru_cache(maxsize=8)
+def cached_adjacency(asset: str, mesh: str) -> sp.csr_matrix | None:
+    """The mesh's edge adjacency for the coupled inverse's smooth start, read only when a
+    coupled example needs it, once per fit; None for a prim with no faces to read."""
+    topology = read_mesh_shading(cached_scene((asset,)).prim(mesh), asset).topology
+    return edge_adjacency(topology) if topology is not None else None
+
+
 def clear_caches() -> None:
     """Forget the stages and meshes read for a fit (they die with it)."""
     cached_scene.cache_clear()
     cached_rest.cache_clear()
     cached_shading.cache_clear()
+    cached_adjacency.cache_clear()
 
 
 def _invert(task: InverseTask) -> tuple[InverseResult, CorrectiveNormals | None]:
@@ -82,7 +93,8 @@ def _invert(task: InverseTask) -> tuple[InverseResult, CorrectiveNormals | None]
     box = SkinningBlackBox(scene, task.mesh, task.time, load_deformers(task.deformers))
     try:
         # probes the chain: per-vertex (Powell in lockstep) or coupled (Newton-Krylov), see InverseResult.regime
-        inverse = coupled.invert(box, rest, sculpt, rtol=task.rtol)
+        inverse = coupled.invert(box, rest, sculpt, rtol=task.rtol,
+                                 neighbours=functools.partial(cached_adjacency, task.asset, task.mesh))
     except SculptOutOfRangeError as exc:
         raise InputError(f"{where(task.source, task.mesh, 'points')}: example at time {task.time:g}: {exc}") from None
     return inverse, _normal_offsets(task, scene, box, rest, sculpt, inverse)

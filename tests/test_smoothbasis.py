@@ -1,0 +1,72 @@
+"""The smooth fields the coupled inverse starts from (``psdbake.smoothbasis``): the low end of a
+sculpted region's graph-Laplacian spectrum, from the mesh's edges only."""
+
+from __future__ import annotations
+
+import sys
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+from conftest import ROOT
+
+from psdbake import smoothbasis
+from psdbake.normals import Topology
+from psdbake.smoothbasis import edge_adjacency, smooth_basis
+
+sys.path.insert(0, ROOT)
+from benchmarks import rigs
+
+
+def _tube_adjacency(rings: int, segments: int) -> sp.csr_matrix:
+    counts, indices = rigs.generate.tube_faces(rings, segments)
+    return edge_adjacency(Topology(np.array(counts), np.array(indices), rings * segments))
+
+
+def _dense_spectrum(adjacency: sp.csr_matrix, region: np.ndarray) -> np.ndarray:
+    inner = adjacency[region][:, region].toarray()
+    return np.linalg.eigvalsh(np.diag(inner.sum(axis=1)) - inner)
+
+
+def test_edge_adjacency_of_a_quad_tube():
+    adj = _tube_adjacency(5, 8)
+    assert (adj != adj.T).nnz == 0 and adj.diagonal().sum() == 0
+    degree = np.asarray(adj.sum(axis=1)).ravel()
+    # a ring of 8 around the tube: 2 ring neighbours, plus 1 along the tube at the ends, 2 inside
+    assert degree[:8].tolist() == [3] * 8 and degree[8:16].tolist() == [4] * 8
+
+
+@pytest.mark.parametrize("rings", [20, 70])  # 320 vertices: dense path; 1,120: ARPACK's
+def test_the_basis_is_the_regions_smoothest_orthonormal_fields(rings):
+    adj = _tube_adjacency(rings, 16)
+    region = np.arange(16 * 2, 16 * (rings - 2))  # a band, free at its two borders
+    assert (len(region) > smoothbasis.DENSE_BELOW) == (rings == 70)
+    basis = smooth_basis(adj, region, 24)
+    assert basis is not None and basis.shape == (len(region), 24)
+    np.testing.assert_allclose(basis.T @ basis, np.eye(24), atol=1e-10)
+    inner = adj[region][:, region]
+    laplacian = sp.diags(np.asarray(inner.sum(axis=1)).ravel()) - inner
+    rayleigh = np.einsum("ij,ij->j", basis, laplacian @ basis)
+    # the Rayleigh quotients are the 24 lowest eigenvalues, in order (the span is the smoothest)
+    np.testing.assert_allclose(rayleigh, _dense_spectrum(adj, region)[:24], atol=1e-9)
+    # the first field is constant on a connected region (eigenvalue 0)
+    np.testing.assert_allclose(np.abs(basis[:, 0]), 1 / np.sqrt(len(region)), rtol=1e-8)
+
+
+def test_the_basis_is_deterministic():
+    adj = _tube_adjacency(70, 16)
+    region = np.arange(40, 1000)
+    first, second = smooth_basis(adj, region, 32), smooth_basis(adj, region, 32)
+    assert first is not None and second is not None and first.tobytes() == second.tobytes()
+
+
+def test_a_region_without_edges_has_no_basis():
+    adj = _tube_adjacency(10, 8)
+    assert smooth_basis(adj, np.array([0, 2, 4, 6]), 8) is None  # every other vertex of one ring
+    assert smooth_basis(adj, np.array([5]), 8) is None
+
+
+def test_a_small_region_gets_at_most_one_field_fewer_than_its_vertices():
+    adj = _tube_adjacency(10, 8)
+    basis = smooth_basis(adj, np.arange(8), 64)
+    assert basis is not None and basis.shape == (8, 7)
