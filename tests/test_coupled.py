@@ -15,6 +15,7 @@ from psdbake import tolerances as tol
 from psdbake.delta_mush import DeltaMush, make
 from psdbake.inverse import invert_example, sculpted_vertices
 from psdbake.normals import Topology
+from psdbake.smoothbasis import edge_adjacency
 
 sys.path.insert(0, ROOT)
 from benchmarks import rigs
@@ -224,3 +225,21 @@ def test_without_mesh_edges_the_per_vertex_solution_stands_in(tmp_path):
     assert res.regime in ("coupled", "coupled chain, per-vertex kept", "coupled, from the per-vertex solution")
     assert len(res.missed) == len(res.indices) > 0
     assert res.evaluations <= coupled.FROM_ZERO_EVALUATIONS + per_vertex.evaluations + coupled.MAX_EVALUATIONS + 1
+
+
+def test_a_coupled_chain_that_returns_nan_ends_without_a_crash():
+    """A coupling chain that gives non-finite points for any moved input (a broken deformer):
+    every stage, the smooth start included, stops on it and the vertices say why."""
+    rest, topology = _tube()
+    mush = DeltaMush(rest, topology, iterations=3)
+    target = mush(rest)
+    target[100:140] += 0.01  # a sculpt on a few rings
+
+    def broken(points: np.ndarray) -> np.ndarray:
+        out = mush(points)
+        return out if np.array_equal(points, rest) else np.full_like(out, np.nan)
+
+    adjacency = edge_adjacency(topology)
+    res = coupled.invert(broken, rest, target, neighbours=lambda: adjacency)
+    assert len(res.indices) and len(res.missed) == len(res.indices)
+    assert set(res.missed_statuses) <= {"nonfinite", "stalled", "max_cycles"}
