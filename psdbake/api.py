@@ -81,7 +81,7 @@ def fit(
     """
     from .correctives import fit_regions, plan_mesh, plan_systems
     from .examples import gather_examples
-    from .solve import clear_caches, solve_all
+    from .solve import clear_caches, share_scene, solve_all
 
     started = _time.perf_counter()
     if not example_files:
@@ -94,6 +94,7 @@ def fit(
     skipped: list[str] = []
     layout: list[str] = []  # why a mesh's correctives are one global group, when they are
     try:
+        share_scene(asset_scene)  # the solves' rest points and shading come from this stage, not a second one
         per_mesh, tasks = gather_examples(asset, asset_scene, infos, meshes, example_files, settings)  # checked
         plans, systems = {}, {}
         for info in [i for i in infos if i.path in per_mesh]:
@@ -183,7 +184,7 @@ def evaluate(
     """RBF weights of every corrective at every frame of ANIM."""
     started = _time.perf_counter()
     open_asset(asset)
-    scene = Scene([anim, correctives, asset], label=correctives)
+    scene = Scene([anim, correctives, asset], label=correctives, shape_values=False)  # weights read no offsets
     scene.require_skinned()
     require_psd_prims_skinned(scene, correctives, asset)
     per_anim = correctives_by_animation(scene, Scene([anim, asset], label=anim), correctives, anim)

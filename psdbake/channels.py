@@ -155,7 +155,9 @@ def channel_weights(data: DriverData, b: NDArray[np.float64]) -> NDArray[np.floa
     v1-v3) writes b itself."""
     if not len(data.channels):
         return b
-    return np.maximum(b[:, data.channel_columns] / data.channel_scales, 0.0)
+    w = b[:, data.channel_columns]  # a new array: divided and clamped in place (the same operations)
+    w /= data.channel_scales
+    return np.maximum(w, 0.0, out=w)
 
 
 def column_weights(data: DriverData, w: NDArray[np.float64]) -> NDArray[np.float64]:

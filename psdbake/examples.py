@@ -18,7 +18,7 @@ from . import posespace
 from .errors import FitError, InputError, where
 from .results import Example
 from .settings import FitSettings
-from .solve import InverseTask, cached_scene
+from .solve import InverseTask, cached_rest, cached_scene
 from .usd.compose import open_layer
 from .usd.read import Scene, SkinnedMesh, stray_point_prims
 from .usd.validate import check_examples_binding, require_finite_time_samples, validate_animation
@@ -47,7 +47,7 @@ def gather_examples(
     for info in infos:
         if info.path not in meshes or not found[info.path]:
             continue
-        rest = asset_scene.rest_points(info.path)
+        rest = cached_rest(asset, info.path)  # read once: the solves take the same array
         bind_local = asset_scene.bind_local_transforms(info.path)
         for scene, source, t, sculpt in found[info.path]:
             if (id(scene), info.path) not in checked:

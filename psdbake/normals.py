@@ -25,7 +25,8 @@ Pure numpy, float64, vectorised over the mesh.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+import functools
+from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -46,6 +47,19 @@ RING_ANGLE_ATOL = 1e-6
 NORMAL_MAP_RCOND = 1e-6
 
 
+def check_faces(counts: NDArray[np.integer], indices: NDArray[np.integer], point_count: int) -> None:
+    """Refuse faces a polygon mesh cannot have (ValueError): fewer than 3 corners, counts that
+    do not add up to the indices, an index outside the points. Any integer arrays: 1-D views of
+    USD's own int32 ones give the same answers as int64 copies (sums are taken in int64)."""
+    if counts.size and counts.min() < 3:
+        raise ValueError(f"faceVertexCounts: a face has {int(counts.min())} vertices (at least 3 needed)")
+    total = int(counts.sum(dtype=np.int64))
+    if total != indices.size:
+        raise ValueError(f"faceVertexCounts sum to {total}, faceVertexIndices has {indices.size} entries")
+    if indices.size and (indices.min() < 0 or indices.max() >= point_count):
+        raise ValueError(f"faceVertexIndices: an index is out of range for {point_count} points")
+
+
 @dataclass(frozen=True)
 class Topology:
     """A polygon mesh's connectivity, as UsdGeomMesh stores it."""
@@ -54,22 +68,21 @@ class Topology:
     face_vertex_indices: NDArray[np.int64]
     point_count: int
     left_handed: bool = False  # UsdGeomMesh ``orientation = "leftHanded"``
-    # Derived once: fan triangles, the face of each triangle and of each face-vertex.
-    _triangles: NDArray[np.int64] = field(init=False, repr=False, compare=False)
-    _triangle_face: NDArray[np.int64] = field(init=False, repr=False, compare=False)
-    _corner_face: NDArray[np.int64] = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
+        """Checks the faces (and stores int64 copies); what is derived from them (fan
+        triangles, each triangle's and each corner's face) is made on first use: a fit reads
+        every mesh's faces to check them, and only meshes with authored normals use the rest."""
         counts = np.asarray(self.face_vertex_counts, dtype=np.int64).reshape(-1)
         indices = np.asarray(self.face_vertex_indices, dtype=np.int64).reshape(-1)
-        if counts.size and counts.min() < 3:
-            raise ValueError(f"faceVertexCounts: a face has {int(counts.min())} vertices (at least 3 needed)")
-        if int(counts.sum()) != indices.size:
-            raise ValueError(f"faceVertexCounts sum to {int(counts.sum())}, faceVertexIndices has {indices.size} entries")
-        if indices.size and (indices.min() < 0 or indices.max() >= self.point_count):
-            raise ValueError(f"faceVertexIndices: an index is out of range for {self.point_count} points")
+        check_faces(counts, indices, self.point_count)
         object.__setattr__(self, "face_vertex_counts", counts)
         object.__setattr__(self, "face_vertex_indices", indices)
+
+    @functools.cached_property
+    def _fan(self) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+        """(fan triangles (t, 3), the face of each triangle)."""
+        counts, indices = self.face_vertex_counts, self.face_vertex_indices
         starts = np.cumsum(counts) - counts
         # Fan triangulation: a face with k vertices v0..v(k-1) gives (v0, vj, vj+1), j = 1..k-2.
         fan = counts - 2
@@ -77,9 +90,17 @@ class Topology:
         first = starts[tri_face]
         j = np.arange(tri_face.size) - (np.cumsum(fan) - fan)[tri_face] + 1
         tris = np.stack([indices[first], indices[first + j], indices[first + j + 1]], axis=1)
-        object.__setattr__(self, "_triangles", tris.reshape(-1, 3))
-        object.__setattr__(self, "_triangle_face", tri_face)
-        object.__setattr__(self, "_corner_face", np.repeat(np.arange(counts.size), counts))
+        return tris.reshape(-1, 3), tri_face
+
+    @property
+    def _triangle_face(self) -> NDArray[np.int64]:
+        """The face of each fan triangle (t,)."""
+        return self._fan[1]
+
+    @functools.cached_property
+    def _corner_face(self) -> NDArray[np.int64]:
+        """The face of each face-vertex (corner), (len(face_vertex_indices),)."""
+        return np.repeat(np.arange(self.face_vertex_counts.size), self.face_vertex_counts)
 
     @property
     def face_count(self) -> int:
@@ -88,7 +109,7 @@ class Topology:
     @property
     def triangles(self) -> NDArray[np.int64]:
         """Fan triangles (t, 3) of every face, in face order."""
-        return self._triangles
+        return self._fan[0]
 
     def ring(self, vertices: ArrayLike) -> NDArray[np.int64]:
         """Sorted vertices sharing a face with any of ``vertices`` (those included): exactly

@@ -53,6 +53,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from . import tolerances as tol
+from .arrays import row_norms
 
 Offsets = NDArray[np.float64]  # (m, 3)
 Residuals = NDArray[np.float64]  # (m, 3)
@@ -88,7 +89,7 @@ class PowellResult:
 
     @property
     def residual_norm(self) -> NDArray[np.float64]:
-        return np.linalg.norm(self.residual, axis=1)
+        return row_norms(self.residual)  # np.linalg.norm(residual, axis=1), bit for bit
 
 
 def _objective(r: Residuals) -> NDArray[np.float64]:
@@ -200,7 +201,8 @@ def _adjugate_over(cofactors: list[NDArray[np.float64]], det: NDArray[np.float64
     c00, c01, c02, c10, c11, c12, c20, c21, c22 = cofactors
     adjugate = np.stack([c00, c10, c20, c01, c11, c21, c02, c12, c22], axis=1)
     with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
-        return (adjugate / det[:, None]).reshape(-1, 3, 3)
+        adjugate /= det[:, None]  # in place: the stack is this function's own
+    return adjugate.reshape(-1, 3, 3)
 
 
 def _invertible(jac: NDArray[np.float64], det: NDArray[np.float64], rcond: float) -> NDArray[np.bool_]:
@@ -221,6 +223,8 @@ def conditioned_inverses(jac: NDArray[np.float64], rcond: float = QN_RCOND
     cofactors (the same values as the two calls: every operation is per block)."""
     *cofactors, det = _cofactors(jac)
     ok = _invertible(jac, det, rcond)
+    if ok.all():  # the usual case: no masked copies of the cofactors
+        return ok, _adjugate_over(cofactors, det)
     return ok, _adjugate_over([c[ok] for c in cofactors], det[ok])
 
 
@@ -325,7 +329,6 @@ def minimize_lockstep(
     x0 = np.asarray(x0, dtype=np.float64)
     m = len(x0)
     state = _Lockstep(residual, x0, r0)
-    direc = np.tile(np.eye(3), (m, 1, 1)) if directions is None else np.array(directions, dtype=np.float64)
     atol_v = np.broadcast_to(np.asarray(atol, dtype=np.float64), (m,))
     floor = np.full(m, float(min_step))
     status = np.full(m, RUNNING, dtype=np.int8)
@@ -335,6 +338,10 @@ def minimize_lockstep(
         status[done] = CONVERGED
 
     settle()
+    if not (status == RUNNING).any():  # done at x0 (a linearised start that hit): no direction set to copy
+        model = np.array(jacobian, dtype=np.float64) if quasi_newton and jacobian is not None else None
+        return _finished(state, status, cycles=0, qn_steps=0, jacobian=model)
+    direc = np.tile(np.eye(3), (m, 1, 1)) if directions is None else np.array(directions, dtype=np.float64)
     qn_steps = 0
     if quasi_newton and jacobian is not None:
         jacobian = np.array(jacobian, dtype=np.float64)  # a copy: updated in place
@@ -392,10 +399,17 @@ def minimize_lockstep(
             direc[rows, 2] = displacement[rows]
             settle()
 
+    return _finished(state, status, cycles=cycles, qn_steps=qn_steps, jacobian=jacobian if quasi_newton else None)
+
+
+def _finished(state: _Lockstep, status: NDArray[np.int8], *, cycles: int, qn_steps: int,
+              jacobian: NDArray[np.float64] | None) -> PowellResult:
+    """The result once the lockstep stops: problems still running ran out of cycles, and a
+    never-finite residual says so whatever else happened."""
     status[status == RUNNING] = MAX_CYCLES
     nonfinite = ~np.isfinite(state.f)
     status[nonfinite] = NONFINITE
     return PowellResult(
         x=state.x, residual=state.r, status=status, nfev=state.nfev, cycles=cycles, qn_steps=qn_steps,
-        jacobian=jacobian if quasi_newton else None,
+        jacobian=jacobian,
     )

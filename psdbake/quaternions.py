@@ -93,23 +93,36 @@ class Rotations:
         """(n, 3) rotation vectors (axis times angle in radians, angle in [0, pi])."""
         q = _canonical(self._quat)
         x, y, z, w = q.T
-        angle = 2 * _libm(math.atan2, np.sqrt(x * x + y * y + z * z), w)
+        angle = 2 * _atan2(np.sqrt(x * x + y * y + z * z), w)
         small = angle <= 1e-3  # Taylor series of angle / sin(angle / 2) there
         a2 = angle * angle
         series = 2 + a2 / 12 + 7 * a2 * a2 / 2880
-        scale = np.where(small, series, angle / np.where(small, 1.0, _libm(math.sin, angle / 2)))
+        sine = np.ones_like(angle)  # sin(angle / 2) only where it is used
+        big = ~small
+        sine[big] = _libm(math.sin, angle[big] / 2)
+        scale = np.where(small, series, angle / sine)
         return scale[:, None] * q[:, :3]
 
     def magnitude(self) -> NDArray[np.float64]:
         """(n,) rotation angles in radians, in [0, pi]."""
         x, y, z, w = self._quat.T
-        return 2 * _libm(math.atan2, np.sqrt(x * x + y * y + z * z), np.abs(w))
+        return 2 * _atan2(np.sqrt(x * x + y * y + z * z), np.abs(w))
 
 
 def _libm(fn: Callable[..., float], *args: NDArray[np.float64]) -> NDArray[np.float64]:
     """fn (a ``math`` function, i.e. the C library's) elementwise over equal-shaped arrays."""
-    return np.array(list(map(fn, *(np.asarray(a, dtype=np.float64).ravel().tolist() for a in args))),
-                    dtype=np.float64).reshape(np.shape(args[0]))
+    values = map(fn, *(np.asarray(a, dtype=np.float64).ravel().tolist() for a in args))
+    return np.fromiter(values, dtype=np.float64, count=np.size(args[0])).reshape(np.shape(args[0]))
+
+
+def _atan2(s: NDArray[np.float64], w: NDArray[np.float64]) -> NDArray[np.float64]:
+    """``atan2(s, w)`` of the C library for sin-half-angles s >= +0: 0 without a call where the
+    rotation is the identity (s == +0, w > 0: exactly +0 by C99 Annex F, which glibc and the
+    other C libraries follow), as a good share of sampled poses are (a joint at bind)."""
+    out = np.zeros_like(s)
+    turned = ~((s == 0) & ~np.signbit(s) & (w > 0))
+    out[turned] = _libm(math.atan2, s[turned], w[turned])
+    return out
 
 
 def _normalized(q: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -134,7 +147,9 @@ def _canonical(q: NDArray[np.float64]) -> NDArray[np.float64]:
     """q or -q, whichever has w > 0 (ties broken by x, then y, then z): angles in [0, pi]."""
     x, y, z, w = q.T
     flip = (w < 0) | ((w == 0) & ((x < 0) | ((x == 0) & ((y < 0) | ((y == 0) & (z < 0))))))
-    return np.where(flip[:, None], q * -1.0, q)
+    out = q.copy()  # np.where(flip[:, None], q * -1.0, q), without where's (n, 1)-broadcast loops (4x slower)
+    out[flip] = q[flip] * -1.0
+    return out
 
 
 def _from_matrix(matrix: NDArray[np.float64]) -> NDArray[np.float64]:

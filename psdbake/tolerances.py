@@ -174,7 +174,8 @@ def float32_floor(points: np.ndarray) -> float:
     """Smallest residual the float32 black box can resolve for these points."""
     import numpy as np
 
-    scale = float(np.max(np.abs(points))) if points.size else 0.0
+    # max |p| as max(max p, -min p): the same number (NaN too) without an |p| copy of the points
+    scale = max(float(np.max(points)), -float(np.min(points))) if points.size else 0.0
     return FLOAT32_FLOOR_ULPS * EPS32 * max(scale, 1e-30)
 
 

@@ -209,6 +209,40 @@ def test_a_file_replaced_while_probed_is_not_vouched_for(probes, monkeypatch, tm
     assert len(_entries(tmp_path / "cache")) == 1
 
 
+@pytest.mark.parametrize("change", [None, "replaced", "rewritten in place, same size and mtime"])
+def test_a_settled_file_is_hashed_once_unless_it_changed_while_probed(change, probes, monkeypatch, tmp_path):
+    """A file last changed SETTLED_SECONDS ago and found with the same device, inode, size,
+    mtime and ctime after the probe holds the bytes hashed before it: stored without a second
+    hash. Replaced, or rewritten in place with its size and mtime put back (the ctime moves),
+    it is hashed again, and not vouched for."""
+    runs, hashed = probes
+    monkeypatch.setattr(integrity, "SETTLED_SECONDS", 0.0)  # every file counts as settled
+    crate = _crate(tmp_path / "a.usdc")
+    other = _crate(tmp_path / "other.usdc", 0.3)
+    run = subprocess.run
+
+    def changed_during(argv, *args, **kwargs):
+        done = run(argv, *args, **kwargs)
+        if change == "replaced":
+            os.replace(other, crate)
+        elif change:
+            stat = os.stat(crate)
+            pathlib.Path(crate).write_bytes(pathlib.Path(other).read_bytes())
+            os.utime(crate, ns=(stat.st_atime_ns, stat.st_mtime_ns))
+            assert os.stat(crate).st_size == stat.st_size
+        return done
+
+    monkeypatch.setattr(subprocess, "run", changed_during)
+    integrity.require_readable_crates([crate])
+    assert len(runs) == 1
+    if change is None:
+        assert len(hashed) == 1
+        assert len(_entries(tmp_path / "cache")) == 1
+    else:
+        assert len(hashed) == 2
+        assert _entries(tmp_path / "cache") == []
+
+
 def test_an_empty_cache_dir_turns_the_cache_off(probes, monkeypatch, tmp_path):
     runs, hashed = probes
     monkeypatch.setenv(integrity.CACHE_ENV, "")

@@ -14,6 +14,7 @@ from pxr import Sdf, Vt
 
 from psdbake import api
 from psdbake.deformers import load_deformers
+from psdbake.errors import InputError
 from psdbake.usd.blackbox import SkinningBlackBox
 from psdbake.usd.posedpoints import PosedPoints, RestPoints
 from psdbake.usd.read import Scene
@@ -136,6 +137,33 @@ def test_weights_only_eval_needs_no_offsets(shot, tmp_path):
     for ours, theirs in zip(again.animations, shot["weights"].animations, strict=True):
         assert ours.channels == theirs.channels
         assert np.array_equal(ours.weights, theirs.weights)
+
+
+@pytest.mark.parametrize("name", ["offsets", "pointIndices"])
+def test_eval_checks_the_types_of_what_it_reads(name, shot, tmp_path):
+    """A shape attribute authored with another value type: the weights never read offsets, so
+    eval writes them as before and the points cache (UsdSkel applies the offsets) refuses
+    them; pointIndices, which eval reads, are refused by eval, naming the attribute."""
+    layer = Sdf.Layer.CreateAnonymous(".usda")
+    layer.TransferContent(Sdf.Layer.FindOrOpen(shot["corr"]))
+    shape = next(p for p in layer.GetPrimAtPath(MESH).nameChildren if p.typeName == "BlendShape")
+    old = shape.attributes[name]
+    value = {"offsets": Vt.Vec3dArray(len(old.default)), "pointIndices": Vt.FloatArray(len(old.default))}[name]
+    shape.RemoveProperty(old)
+    Sdf.AttributeSpec(shape, name, Sdf.ValueTypeNames.Double3Array if name == "offsets" else Sdf.ValueTypeNames.FloatArray,
+                      Sdf.VariabilityUniform).default = value
+    path = str(tmp_path / "corr_retyped.usda")
+    layer.Export(path)
+    says = f"<{shape.path}.{name}>: authored as"
+    if name == "pointIndices":
+        with pytest.raises(InputError, match=says):
+            api.evaluate(ASSET, path, shot["anim"])
+        return
+    again = api.evaluate(ASSET, path, shot["anim"])
+    for ours, theirs in zip(again.animations, shot["weights"].animations, strict=True):
+        assert np.array_equal(ours.weights, theirs.weights)
+    with pytest.raises(InputError, match=says):
+        api.points_cache_layer(again)
 
 
 def test_rest_points_made_once_are_rounded_as_usdskel_takes_them():

@@ -23,9 +23,9 @@ def test_rest_points_and_shading_are_read_once_per_fit(monkeypatch):
     reads = []
     real = solve.read_mesh_shading
 
-    def counted(prim, label=""):
+    def counted(prim, label="", **options):
         reads.append(str(prim.GetPath()))
-        return real(prim, label)
+        return real(prim, label, **options)
 
     monkeypatch.setattr(solve, "read_mesh_shading", counted)
     result = api.fit(ASSET, [EXAMPLES])

@@ -42,6 +42,10 @@ def read_every_value(identifier: str) -> None:
     layer.Traverse(Sdf.Path.absoluteRootPath, paths.append)
     for path in paths:
         str(path)  # names must be text
+        # a relationship target or connection: Python finds no spec there (None), after ~35 us a
+        # lookup, and a CORRECTIVES holds one per corrective; its path is read above, its fields are the property's
+        if path.IsTargetPath():
+            continue
         spec = layer.GetObjectAtPath(path)
         if spec is None:
             continue

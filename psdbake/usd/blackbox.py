@@ -18,6 +18,7 @@ is the only one that knows what the function does.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import NoReturn
 
 import numpy as np
 from numpy.typing import NDArray
@@ -26,7 +27,7 @@ from pxr import Usd, UsdGeom, UsdSkel, Vt
 from ..arrays import Points
 from ..deformers import DeformerFactory, PointFn
 from ..errors import DeformerError, InputError, where
-from .posedpoints import Buffers, PosedPoints, RestPoints, to_local_rows, work_rows, writable
+from .posedpoints import PosedPoints, RestPoints, writable
 from .read import Scene
 
 FLOAT32_MAX = float(np.finfo(np.float32).max)
@@ -124,7 +125,10 @@ class SkinningBlackBox:
             (spec, _instantiate(spec, factory, scene, mesh, self.time)) for spec, factory in deformers
         ]
         self.evaluations = 0
-        self._rows: Buffers | None = None  # skin's work space
+        # skin's work space, kept for the box's next calls: the points UsdSkel deforms (a VtArray
+        # shared with nobody), their float64 rows x, y, z (3, n) and two (n,) rows to sum in
+        self._vt: Vt.Vec3fArray | None = None
+        self._work: tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]] | None = None
 
     def _skin_vt(self, vt: Vt.Vec3fArray) -> None:
         """Blend shapes + UsdSkel skinning of vt, in place (skeleton space)."""
@@ -137,27 +141,45 @@ class SkinningBlackBox:
         comparisons), inf and float32 overflow."""
         lo, hi = rows.min(axis=1, initial=np.inf), rows.max(axis=1, initial=-np.inf)
         if not (np.all(hi <= FLOAT32_MAX) and np.all(lo >= -FLOAT32_MAX)):
-            raise InputError(f"{where(self.label, self.mesh)}: posed points at time {self.time:g} are NaN, "
-                             "infinite or overflow float32 (extreme transforms or points)")
+            self._refuse_range()
         return lo, hi
+
+    def _refuse_range(self) -> NoReturn:
+        raise InputError(f"{where(self.label, self.mesh)}: posed points at time {self.time:g} are NaN, "
+                         "infinite or overflow float32 (extreme transforms or points)")
 
     def skin(self, points: Points) -> Points:
         """Blend shapes + UsdSkel skinning + skel->local, without the user deformers."""
-        vt = Vt.Vec3fArray(len(points))
+        n = len(points)
+        # One VtArray and one work space for every call, written over: new ones fault their pages
+        # in afresh at every call (1.2 MB and 4 MB at 100k points, ~1.5 us a page). No view of the
+        # VtArray outlives a call, so UsdSkel deforms it in place.
+        if self._vt is None or self._work is None or len(self._vt) != n:
+            self._vt, self._work = Vt.Vec3fArray(n), (np.empty((3, n)), np.empty(n), np.empty(n))
+        vt = self._vt
         writable(vt)[...] = points  # rounded to float32 as astype rounds, in one pass (no FromNumpy copy)
         self._skin_vt(vt)
-        # Element-wise rather than posed @ linear: a small (n,3)x(3,3) product goes to
-        # multithreaded BLAS, which fights UsdSkel's worker threads (measured 15x slower). Axis
-        # by axis over contiguous rows x, y, z (RestPoints.to_local's formula): an (n, 1) x (3,)
-        # broadcast runs 3-element inner loops (4.4 ms against 0.45 at 100k points); the same
-        # products and sums in the same order, ((x l0k + y l1k) + z l2k) + t_k, so the same bits.
-        if self._rows is None or self._rows[0].shape[1] != len(points):
-            self._rows = work_rows(len(points))  # kept for the box's next calls
-        rows = to_local_rows(vt, self._linear, self._translate, self._rows)
-        self._bounds(rows)
-        local = np.empty((rows.shape[1], 3))
-        for k in range(3):  # one long strided loop per axis
-            local[:, k] = rows[k]
+        # to_local_rows' formula, ((x l0k + y l1k) + z l2k) + t_k in float64, the same products and
+        # sums in the same order, so the same bits; element-wise rather than posed @ linear: a small
+        # (n,3)x(3,3) product goes to multithreaded BLAS, which fights UsdSkel's worker threads
+        # (measured 15x slower). Over contiguous rows x, y, z (an (n, 1) x (3,) broadcast runs
+        # 3-element inner loops), one output axis at a time, each summed in one row and added to
+        # t_k straight into the (n, 3) result (no (3, n) copy of it to transpose).
+        skel, total, term = self._work
+        np.copyto(skel, np.asarray(vt).T)  # float32 -> float64, exact
+        local = np.empty((n, 3))
+        lin = self._linear
+        for k in range(3):
+            np.multiply(skel[0], lin[0, k], out=total)
+            np.multiply(skel[1], lin[1, k], out=term)
+            total += term
+            np.multiply(skel[2], lin[2, k], out=term)
+            total += term
+            np.add(total, self._translate[k], out=local[:, k])
+        # NaN fails both comparisons; inf and float32 overflow fail one (over the whole array at
+        # once: the same verdict as _bounds' per-axis one)
+        if not (local.max(initial=-np.inf) <= FLOAT32_MAX and local.min(initial=np.inf) >= -FLOAT32_MAX):
+            self._refuse_range()
         return local
 
     def __call__(self, points: Points) -> Points:

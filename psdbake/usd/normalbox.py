@@ -27,7 +27,7 @@ from numpy.typing import NDArray
 from pxr import Gf, Usd, UsdGeom, UsdSkel, Vt
 
 from ..errors import InputError, where
-from ..normals import PER_POINT_INTERPOLATIONS, Topology, normal_maps_from_probes
+from ..normals import PER_POINT_INTERPOLATIONS, Topology, check_faces, normal_maps_from_probes
 from .read import Scene
 
 
@@ -35,14 +35,17 @@ from .read import Scene
 class MeshShading:
     """What a corrective needs to carry normal offsets for one mesh."""
 
-    topology: Topology | None  # None: not a polygon mesh
+    topology: Topology | None  # None: not a polygon mesh, or not asked for (read_mesh_shading's normals_only)
     normals: NDArray[np.float64] | None  # authored rest ``normals`` UsdSkel offsets and skins, else None
     interpolation: str | None
     why_not: str  # "" when normals is set, else why no normalOffsets should be written
 
 
-def read_mesh_shading(prim: Usd.Prim, label: str = "") -> MeshShading:
-    """Topology and authored rest normals of a mesh (default time), read-only."""
+def read_mesh_shading(prim: Usd.Prim, label: str = "", *, normals_only: bool = False) -> MeshShading:
+    """Topology and authored rest normals of a mesh (default time), read-only, the faces checked.
+    normals_only: the topology only for a mesh with normals to offset (None for the others, whose
+    faces are checked in place: fit reads every mesh's, and the int64 copies of a 100k-point
+    mesh's faces cost more than the check)."""
     path = str(prim.GetPath())
     if not prim.IsA(UsdGeom.Mesh):
         return MeshShading(None, None, None, "not a Mesh: no faces to compute normals from")
@@ -50,15 +53,25 @@ def read_mesh_shading(prim: Usd.Prim, label: str = "") -> MeshShading:
     counts = mesh.GetFaceVertexCountsAttr().Get(Usd.TimeCode.Default())
     indices = mesh.GetFaceVertexIndicesAttr().Get(Usd.TimeCode.Default())
     points = mesh.GetPointsAttr().Get(Usd.TimeCode.Default())
-    try:
-        topology = Topology(
-            np.array(counts if counts is not None else [], dtype=np.int64),
-            np.array(indices if indices is not None else [], dtype=np.int64),
-            len(points) if points is not None else 0,
-            left_handed=mesh.GetOrientationAttr().Get() == UsdGeom.Tokens.leftHanded,
-        )
-    except ValueError as exc:
-        raise InputError(f"{where(label, path)}: {exc}") from None
+    point_count = len(points) if points is not None else 0
+
+    def read_topology() -> Topology:
+        try:
+            return Topology(
+                np.array(counts if counts is not None else [], dtype=np.int64),
+                np.array(indices if indices is not None else [], dtype=np.int64),
+                point_count,
+                left_handed=mesh.GetOrientationAttr().Get() == UsdGeom.Tokens.leftHanded,
+            )
+        except ValueError as exc:
+            raise InputError(f"{where(label, path)}: {exc}") from None
+
+    if normals_only:
+        try:
+            check_faces(_integers(counts), _integers(indices), point_count)
+        except ValueError as exc:
+            raise InputError(f"{where(label, path)}: {exc}") from None
+    topology = None if normals_only else read_topology()
     if UsdGeom.PrimvarsAPI(prim).GetPrimvar("normals").HasAuthoredValue():
         return MeshShading(topology, None, None, "primvars:normals is authored: UsdSkel skins only the normals attribute, "
                            "and primvars:normals overrides it for renderers")
@@ -72,12 +85,24 @@ def read_mesh_shading(prim: Usd.Prim, label: str = "") -> MeshShading:
         return MeshShading(topology, None, interpolation, f"{interpolation} normals: normalOffsets are indexed by point "
                            "and UsdSkel does not apply them")
     normals = np.array(value, dtype=np.float64).reshape(-1, 3)
-    if normals.shape[0] != topology.point_count:
+    if normals.shape[0] != point_count:
         raise InputError(f"{where(label, path, 'normals')}: {normals.shape[0]} {interpolation} normals for "
-                         f"{topology.point_count} points")
+                         f"{point_count} points")
     if not np.all(np.isfinite(normals)):
         raise InputError(f"{where(label, path, 'normals')}: contains NaN or inf")
-    return MeshShading(topology, normals, interpolation, "")
+    return MeshShading(topology or read_topology(), normals, interpolation, "")
+
+
+def _integers(value) -> NDArray[np.integer]:
+    """A USD int array as a 1-D array: USD's own, read in place, when it is one, else an int64 copy."""
+    if value:
+        try:
+            view = np.asarray(value)
+        except (TypeError, ValueError):
+            view = None
+        if view is not None and view.ndim == 1 and view.dtype.kind in "iu":
+            return view
+    return np.array(value if value is not None else [], dtype=np.int64)
 
 
 class NormalBlackBox:

@@ -119,7 +119,8 @@ def to_local_rows(skinned: Vt.Vec3fArray, linear: NDArray[np.float64], translate
                   buffers: Buffers) -> Axes:
     """Skeleton space -> mesh local space, p . linear + translate (row vectors), axis by axis:
     local[k] = ((x linear[0, k] + y linear[1, k]) + z linear[2, k]) + translate[k] in float64,
-    the one formula of the black box (``SkinningBlackBox.skin``) and the points cache. The
+    the one formula of the black box (``SkinningBlackBox.skin`` computes it straight into its
+    (n, 3) result; tests/test_exact_kernels.py holds the two equal) and the points cache. The
     result is buffers' ``local``, overwritten at the next call with them."""
     skel, local, term = buffers
     np.copyto(skel, np.asarray(skinned).T)  # float32 -> float64, exact

@@ -54,11 +54,14 @@ def matrices(values) -> NDArray[np.float64]:
 class Scene:
     """A composed stage with its UsdSkel cache: the skinned meshes and their skeletons."""
 
-    def __init__(self, files: Sequence[str | Sdf.Layer], label: str | None = None) -> None:
+    def __init__(self, files: Sequence[str | Sdf.Layer], label: str | None = None, *, shape_values: bool = True
+                 ) -> None:
+        """shape_values=False: a stage that never reads its BlendShapes' offsets (eval's
+        weights) leaves their types unchecked (``valuetypes.check_value_types``)."""
         self.files = list(files)
         self.label = label or str(self.files[0])
         self.stage = compose(self.files)
-        check_value_types(self.stage, self.label)
+        check_value_types(self.stage, self.label, shape_values=shape_values)
         self.cache = UsdSkel.Cache()
         # mesh -> (skinning query, skeleton query, owning SkelRoot, bound Skeleton's path)
         self._targets: dict[str, tuple[UsdSkel.SkinningQuery, UsdSkel.SkeletonQuery, str, str]] = {}

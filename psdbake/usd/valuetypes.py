@@ -33,16 +33,34 @@ _SCHEMA_TYPES = {
 }
 
 
-def check_value_types(stage: Usd.Stage, label: str) -> None:
-    """Refuse an attribute psdbake reads that is authored with the wrong value type."""
+#: A BlendShape's attributes that only UsdSkel reads (applying the shape): ``eval``'s weights
+#: never do, so its stage leaves them unchecked (``shape_values=False``); the points cache's
+#: own stage, where UsdSkel applies them, checks them.
+SHAPE_VALUES = frozenset({"offsets", "normalOffsets"})
+
+
+def check_value_types(stage: Usd.Stage, label: str, *, shape_values: bool = True) -> None:
+    """Refuse an attribute psdbake reads that is authored with the wrong value type.
+
+    shape_values=False: skip the BlendShapes' ``SHAPE_VALUES``, for a stage that reads only
+    their pointIndices (eval: 2 of 3 checks per shape, and a CORRECTIVES holds one shape per
+    channel). Each type's expected attributes are worked out once per type name, not per prim."""
     schemas = [(UsdGeom.PointBased, _SCHEMA_TYPES["PointBased"]), (UsdSkel.Skeleton, _SCHEMA_TYPES["Skeleton"]),
                (UsdSkel.Animation, _SCHEMA_TYPES["SkelAnimation"]), (UsdSkel.BlendShape, _SCHEMA_TYPES["BlendShape"])]
+    if not shape_values:
+        schemas[-1] = (UsdSkel.BlendShape, {k: v for k, v in _SCHEMA_TYPES["BlendShape"].items() if k not in SHAPE_VALUES})
+    by_type: dict[str, tuple[dict[str, Sdf.ValueTypeName], bool]] = {}  # type name -> (schema types, point-based)
     for prim in stage.Traverse(Usd.TraverseInstanceProxies()):
-        expected: dict[str, Sdf.ValueTypeName] = {}
-        for schema, types in schemas:
-            if prim.IsA(schema):
-                expected.update(types)
-        if prim.IsA(UsdGeom.PointBased):
+        type_name = prim.GetTypeName()
+        if type_name not in by_type:  # IsA follows the type name alone (within one stage)
+            found: dict[str, Sdf.ValueTypeName] = {}
+            for schema, types in schemas:
+                if prim.IsA(schema):
+                    found.update(types)
+            by_type[type_name] = found, prim.IsA(UsdGeom.PointBased)
+        schema_types, point_based = by_type[type_name]
+        expected = dict(schema_types)
+        if point_based:
             for name in prim.GetPropertyNames():
                 if name.startswith("psd:"):
                     leaf = name.rsplit(":", 1)[-1]
