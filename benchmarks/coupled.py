@@ -90,7 +90,7 @@ def measure(rig: rigs.Rig, times: list[float], methods: tuple[str, ...] = METHOD
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--examples", type=int, default=8, help="examples on the 13k rig (of 8)")
-    parser.add_argument("--examples-100k", type=int, default=3, help="examples on the 100k rig (of 8)")
+    parser.add_argument("--examples-100k", type=int, default=8, help="examples on the 100k rig (of 8)")
     parser.add_argument("--methods", default=",".join(METHODS), help="comma-separated, of: " + ", ".join(METHODS))
     args = parser.parse_args()
     methods = tuple(m for m in args.methods.split(",") if m)
