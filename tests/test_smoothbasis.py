@@ -70,3 +70,16 @@ def test_a_small_region_gets_at_most_one_field_fewer_than_its_vertices():
     adj = _tube_adjacency(10, 8)
     basis = smooth_basis(adj, np.arange(8), 64)
     assert basis is not None and basis.shape == (8, 7)
+
+
+def test_when_arpack_fails_there_is_no_basis(monkeypatch):
+    """ARPACK may not converge on some region: no smooth start then (the coupled inverse falls
+    back as for a mesh without edges), not a failed fit."""
+    from scipy.sparse.linalg import ArpackNoConvergence
+
+    def fails(*args, **kwargs):
+        raise ArpackNoConvergence("no convergence", np.zeros(0), np.zeros((0, 0)))
+
+    monkeypatch.setattr(smoothbasis, "eigsh", fails)
+    adj = _tube_adjacency(70, 16)
+    assert smooth_basis(adj, np.arange(16 * 2, 16 * 68), 24) is None
