@@ -54,6 +54,7 @@ from collections.abc import Callable
 import numpy as np
 import scipy.sparse as sp
 from numpy.typing import NDArray
+from threadpoolctl import threadpool_limits
 
 from . import powell
 from . import tolerances as tol
@@ -164,20 +165,24 @@ def invert(blackbox: BlackBox, rest: Points, sculpt: Points, *, rtol: float = to
         step = tol.JACOBIAN_STEP_RTOL * max(diagonal, floor)
         if not (len(idx) and is_coupled(call, rest, base, probe_vertices(rest, idx), step)):
             return dataclasses.replace(first, evaluations=call.calls, seconds=time.perf_counter() - started)
-    joint = invert_coupled(call, rest, sculpt, base, idx, diagonal, floor, rtol=rtol, started=started,
-                           max_evaluations=FROM_ZERO_EVALUATIONS)
-    candidates = [joint]
-    if len(joint.missed):
-        adjacency = neighbours() if neighbours is not None else None
-        basis = smooth_basis(adjacency, idx, SMOOTH_FIELDS) if adjacency is not None else None
-        if basis is not None:
-            start = smooth_start(call, rest, sculpt, base, idx, diagonal, floor, basis)
-            finished = invert_coupled(call, rest, sculpt, base, idx, diagonal, floor, rtol=rtol, started=started,
-                                      max_evaluations=call.calls + MAX_EVALUATIONS, start=start)
-            candidates.append(dataclasses.replace(finished, regime="coupled, from the smooth start"))
-        else:
-            candidates.extend(_from_per_vertex(call, blackbox, rest, sculpt, base, idx, diagonal, floor, first,
-                                               rtol=rtol, started=started))
+    # The joint stages' sums run on BLAS (GMRES, ARPACK, the Gram matrix), whose results depend
+    # on its thread count: one thread, so a fit gives the same bytes on every machine (the 100k
+    # bench: 8.76 s an example against 8.54 with two threads; the black box dominates)
+    with threadpool_limits(limits=1, user_api="blas"):
+        joint = invert_coupled(call, rest, sculpt, base, idx, diagonal, floor, rtol=rtol, started=started,
+                               max_evaluations=FROM_ZERO_EVALUATIONS)
+        candidates = [joint]
+        if len(joint.missed):
+            adjacency = neighbours() if neighbours is not None else None
+            basis = smooth_basis(adjacency, idx, SMOOTH_FIELDS) if adjacency is not None else None
+            if basis is not None:
+                start = smooth_start(call, rest, sculpt, base, idx, diagonal, floor, basis)
+                finished = invert_coupled(call, rest, sculpt, base, idx, diagonal, floor, rtol=rtol,
+                                          started=started, max_evaluations=call.calls + MAX_EVALUATIONS, start=start)
+                candidates.append(dataclasses.replace(finished, regime="coupled, from the smooth start"))
+            else:
+                candidates.extend(_from_per_vertex(call, blackbox, rest, sculpt, base, idx, diagonal, floor, first,
+                                                   rtol=rtol, started=started))
     best = min(candidates, key=lambda c: (len(c.missed), c.max_residual))
     return dataclasses.replace(best, evaluations=call.calls, seconds=time.perf_counter() - started)
 
