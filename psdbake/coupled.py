@@ -205,6 +205,13 @@ def _from_per_vertex(call: Counted, blackbox: BlackBox, rest: Points, sculpt: Po
     return found
 
 
+def _outputs(call: Counted, rest: Points, idx: NDArray[np.int64], offsets: Points) -> Points:
+    """The chain's outputs at the sculpted vertices for rest + offsets there: one call."""
+    moved = rest.copy()
+    moved[idx] += offsets
+    return call(moved)[idx]
+
+
 def smooth_start(call: Counted, rest: Points, sculpt: Points, base: Points, idx: NDArray[np.int64],
                  diagonal: float, floor: float, basis: NDArray[np.float64]) -> Points:
     """Offsets (len(idx), 3) from Gauss-Newton restricted to smooth fields: ``basis`` (k, b)
@@ -238,9 +245,7 @@ def smooth_start(call: Counted, rest: Points, sculpt: Points, base: Points, idx:
             break
         y = vectors[:, keep] @ ((vectors[:, keep].T @ (cols @ r.ravel())) / values[keep])
         trial = offsets + basis @ y.reshape(b, 3)
-        moved = rest.copy()
-        moved[idx] += trial
-        out_trial = call(moved)[idx]
+        out_trial = _outputs(call, rest, idx, trial)
         if not np.all(np.isfinite(out_trial)):
             break
         # Broyden's update J += u y^T / (y.y), column by column (no (3k, 3b) temporary), and
@@ -280,9 +285,7 @@ def invert_coupled(
     k = len(idx)
 
     def evaluate(offsets: Points) -> Points:
-        moved = rest.copy()
-        moved[idx] += offsets
-        return call(moved)[idx]
+        return _outputs(call, rest, idx, offsets)
 
     # Per-vertex 3x3 blocks (row sums in the coupled case): the preconditioner.
     jstep = tol.JACOBIAN_STEP_RTOL * max(diagonal, floor)

@@ -20,10 +20,11 @@ from psdbake.errors import InputError
 from psdbake.inverse import _conjugate_start
 from psdbake.quaternions import Rotations, _atan2, _canonical
 from psdbake.usd.blackbox import SkinningBlackBox
+from psdbake.usd.inplace import numbers as _numbers
 from psdbake.usd.normalbox import read_mesh_shading
 from psdbake.usd.posedpoints import to_local_rows, work_rows, writable
 from psdbake.usd.read import Scene
-from psdbake.usd.validate import _numbers, _row_sums
+from psdbake.usd.validate import _row_sums
 
 ASSET, ANIM = fixture("arm_lbs.usda"), fixture("arm_anim.usda")
 

@@ -28,6 +28,7 @@ from pxr import Gf, Usd, UsdGeom, UsdSkel, Vt
 
 from ..errors import InputError, where
 from ..normals import PER_POINT_INTERPOLATIONS, Topology, check_faces, normal_maps_from_probes
+from .inplace import numbers
 from .read import Scene
 
 
@@ -68,7 +69,7 @@ def read_mesh_shading(prim: Usd.Prim, label: str = "", *, normals_only: bool = F
 
     if normals_only:
         try:
-            check_faces(_integers(counts), _integers(indices), point_count)
+            check_faces(numbers(counts, np.int64), numbers(indices, np.int64), point_count)
         except ValueError as exc:
             raise InputError(f"{where(label, path)}: {exc}") from None
     topology = None if normals_only else read_topology()
@@ -91,18 +92,6 @@ def read_mesh_shading(prim: Usd.Prim, label: str = "", *, normals_only: bool = F
     if not np.all(np.isfinite(normals)):
         raise InputError(f"{where(label, path, 'normals')}: contains NaN or inf")
     return MeshShading(topology or read_topology(), normals, interpolation, "")
-
-
-def _integers(value) -> NDArray[np.integer]:
-    """A USD int array as a 1-D array: USD's own, read in place, when it is one, else an int64 copy."""
-    if value:
-        try:
-            view = np.asarray(value)
-        except (TypeError, ValueError):
-            view = None
-        if view is not None and view.ndim == 1 and view.dtype.kind in "iu":
-            return view
-    return np.array(value if value is not None else [], dtype=np.int64)
 
 
 class NormalBlackBox:

@@ -380,13 +380,6 @@ def read_point_indices(prim: Usd.Prim) -> NDArray[np.int64]:
     return np.array(UsdSkel.BlendShape(prim).GetPointIndicesAttr().Get() or [], dtype=np.int64)
 
 
-def point_indices_view(prim: Usd.Prim) -> NDArray[np.integer]:
-    """A BlendShape prim's pointIndices as USD holds them (int32, no copy): what eval checks,
-    without copying them or reading the offsets. Its stage has checked their value type."""
-    value = prim.GetAttribute("pointIndices").Get()
-    return np.asarray(value) if value is not None else np.zeros(0, dtype=np.int32)
-
-
 def read_blend_shape(prim: Usd.Prim, channel: str) -> BlendShapeData:
     """A BlendShape prim's data (to carry groups a fit does not touch into an updated layer)."""
     shape = UsdSkel.BlendShape(prim)

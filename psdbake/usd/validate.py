@@ -16,8 +16,9 @@ from pxr import Usd, UsdGeom, UsdSkel
 
 from ..errors import InputError, where
 from .compose import open_layer
+from .inplace import numbers
 from .read import Scene, corrective_targets, matrices
-from .schema import point_indices_view, psd_prims
+from .schema import psd_prims
 
 #: What decides how UsdSkel skins a mesh: the binding (UsdSkelBindingAPI, inherited down
 #: namespace), and on Skeleton and BlendShape prims their joints, bind pose and offsets.
@@ -92,7 +93,7 @@ def check_corrective_indices(scene: Scene, mesh: str, channels: Sequence[str], p
     shapes hold a million indices), and never its offsets."""
     shapes = {str(prim.GetPath()): prim for prim in corrective_targets(scene, mesh, channels)}
     for prim in shapes.values():
-        indices = point_indices_view(prim)
+        indices = numbers(prim.GetAttribute("pointIndices").Get(), np.int64)  # int32 in place
         if len(indices) and (indices.min() < 0 or indices.max() >= point_count):
             raise InputError(f"{where(scene.label, mesh + '/' + prim.GetName(), 'pointIndices')}: indices outside the "
                              f"{point_count} points of the asset's mesh")
@@ -121,20 +122,6 @@ def _same_value(a, b) -> bool:
         return False
 
 
-def _numbers(value, dtype: type) -> np.ndarray:
-    """A USD array as numbers of dtype's kind: USD's own array, read in place, when it already
-    is one (int32 indices, float32 weights), else converted to dtype. The checks below give the
-    same answers either way, without the 64-bit copies (6 MB of fresh pages at 100k points)."""
-    if value:
-        try:
-            view = np.asarray(value)
-        except (TypeError, ValueError):
-            view = None
-        if view is not None and view.ndim == 1 and view.dtype.kind == np.dtype(dtype).kind:
-            return view
-    return np.array(value or [], dtype=dtype)
-
-
 def _row_sums(w: np.ndarray) -> np.ndarray:
     """``w.sum(axis=1)`` in float64, bit for bit: numpy adds fewer than 8 columns in order,
     which column by column does 8x faster than its k-element inner loops (tests/test_exact_kernels.py
@@ -158,8 +145,8 @@ def validate_skinning(scene: Scene, mesh: str) -> list[str]:
     ind_pv, w_pv = binding.GetJointIndicesPrimvar(), binding.GetJointWeightsPrimvar()
     if not ind_pv or not ind_pv.HasAuthoredValue() or not w_pv or not w_pv.HasAuthoredValue():
         raise InputError(f"{label}: no primvars:skel:jointIndices/jointWeights: the mesh has no skin influences")
-    indices = _numbers(ind_pv.Get(), np.int64)
-    weights = _numbers(w_pv.Get(), np.float64)
+    indices = numbers(ind_pv.Get(), np.int64)
+    weights = numbers(w_pv.Get(), np.float64)
     k = max(1, int(ind_pv.GetElementSize()))
     k_weights, interp = max(1, int(w_pv.GetElementSize())), (ind_pv.GetInterpolation(), w_pv.GetInterpolation())
     if k_weights != k or interp[0] != interp[1]:
