@@ -35,6 +35,7 @@ from .usd.describe import describe as describe_file
 from .usd.gltf_source import read_gltf_source
 from .usd.read import Scene, animation_components, open_layers
 from .usd.validate import require_finite_time_samples, require_psd_prims_skinned, validate_animation, validate_skinning
+from .usd.valuetypes import Checked
 
 __all__ = [  # noqa: RUF022 - in pipeline order; the public surface is psdbake/__init__.py
     "fit", "write_correctives", "evaluate", "weights_layer", "write_weights", "points_cache_layer",
@@ -184,7 +185,7 @@ def evaluate(
     """RBF weights of every corrective at every frame of ANIM."""
     started = _time.perf_counter()
     open_asset(asset)
-    scene = Scene([anim, correctives, asset], label=correctives, shape_values=False)  # weights read no offsets
+    scene = Scene([anim, correctives, asset], label=correctives, checked=Checked.NO_SHAPE_VALUES)  # weights read no offsets
     scene.require_skinned()
     require_psd_prims_skinned(scene, correctives, asset)
     per_anim = correctives_by_animation(scene, Scene([anim, asset], label=anim), correctives, anim)
@@ -238,7 +239,9 @@ def points_cache_layer(result: WeightsResult, deformers: Sequence[str] = (), *, 
     # asset once more before the stage does (a second parse of a large .usda)
     drive = usdwrite.weights_layer("psdbake eval: weights driving the points cache",
                                    [(a.animation, a.channels, a.times, a.weights) for a in result.animations], result.fps)
-    scene = Scene([drive, result.anim, result.correctives, result.asset], label=result.correctives)
+    # evaluate checked these files' value types but the offsets, which UsdSkel applies here
+    scene = Scene([drive, result.anim, result.correctives, result.asset], label=result.correctives,
+                  checked=Checked.SHAPE_VALUES)
     times = sorted({float(t) for a in result.animations for t in a.times})
     meshes = scene.skinned_meshes()
     return usdwrite.points_layer(

@@ -10,7 +10,7 @@ import os
 import numpy as np
 import pytest
 from conftest import ROOT, bake, fixture, generate, points
-from pxr import Sdf, Vt
+from pxr import Gf, Sdf, Usd, UsdGeom, Vt
 
 from psdbake import api
 from psdbake.deformers import load_deformers
@@ -171,3 +171,30 @@ def test_rest_points_made_once_are_rounded_as_usdskel_takes_them():
     made = RestPoints(rest)
     assert np.array_equal(np.asarray(made.vt()), rest.astype(np.float32))
     assert isinstance(made.vt(), Vt.Vec3fArray)
+
+
+
+@pytest.mark.parametrize("moving", ["/Arm/Geo", "/Arm/Skel"])
+def test_points_cache_follows_time_varying_transforms(moving, shot, tmp_path):
+    """A static skel -> mesh transform is worked out once per mesh (the points cache's speed);
+    an animated one, on the mesh's parent or on the skeleton, at every frame: the cache is
+    still BakeSkinning of the stack frame by frame."""
+    anim = tmp_path / "moving.usda"
+    layer = Sdf.Layer.CreateNew(str(anim))
+    layer.subLayerPaths.append(shot["anim"])
+    stage = Usd.Stage.Open(layer)
+    op = UsdGeom.Xformable(stage.OverridePrim(moving)).AddTranslateOp(opSuffix="moving")
+    for t in range(1, 49):
+        op.Set(Gf.Vec3d(0.05 * t, -0.02 * t, 0.001 * t * t), Usd.TimeCode(t))
+    layer.Save()
+    weights = api.evaluate(ASSET, shot["corr"], str(anim))
+    cache = api.points_cache_layer(weights)
+    baked = bake([api.write_weights(weights, str(tmp_path / "weights.usda")), str(anim), shot["corr"], ASSET], 1.0, 48.0)
+    path = Sdf.Path(MESH).AppendProperty("points")
+    still = np.array(shot["cache"].QueryTimeSample(path, 48.0), dtype=np.float32)
+    for t in range(1, 49):
+        cached = np.array(cache.QueryTimeSample(path, float(t)), dtype=np.float32)
+        pixar = points(baked, MESH, float(t), np.float32)
+        assert np.abs(cached.astype(np.float64) - pixar).max() <= 2 * np.spacing(np.abs(pixar).max()), t
+    # either moves the points in the mesh's space (the last frame against the still shot's)
+    assert np.abs(cached.astype(np.float64) - still).max() > 1.0

@@ -22,7 +22,7 @@ from ..errors import InputError, where
 from ..posespace import undefined_rotations
 from .compose import compose
 from .schema import BlendShapeData, DriverData, read_blend_shape, read_groups
-from .valuetypes import check_value_types
+from .valuetypes import Checked, check_value_types
 
 
 @dataclass(frozen=True)
@@ -54,14 +54,14 @@ def matrices(values) -> NDArray[np.float64]:
 class Scene:
     """A composed stage with its UsdSkel cache: the skinned meshes and their skeletons."""
 
-    def __init__(self, files: Sequence[str | Sdf.Layer], label: str | None = None, *, shape_values: bool = True
+    def __init__(self, files: Sequence[str | Sdf.Layer], label: str | None = None, *, checked: Checked = Checked.ALL
                  ) -> None:
-        """shape_values=False: a stage that never reads its BlendShapes' offsets (eval's
-        weights) leaves their types unchecked (``valuetypes.check_value_types``)."""
+        """checked: which attributes' value types to check (``valuetypes.Checked``): a stage
+        that never reads its BlendShapes' offsets (eval's weights) leaves them unchecked."""
         self.files = list(files)
         self.label = label or str(self.files[0])
         self.stage = compose(self.files)
-        check_value_types(self.stage, self.label, shape_values=shape_values)
+        check_value_types(self.stage, self.label, checked)
         self.cache = UsdSkel.Cache()
         # mesh -> (skinning query, skeleton query, owning SkelRoot, bound Skeleton's path)
         self._targets: dict[str, tuple[UsdSkel.SkinningQuery, UsdSkel.SkeletonQuery, str, str]] = {}
@@ -138,7 +138,14 @@ class Scene:
 
     def instance_of(self, path: str) -> tuple[str, str] | None:
         """(instance root, '@asset@</prim>' it instances) when path is inside an instance,
-        else None: where psdbake's output for path would have to go instead."""
+        else None: where psdbake's output for path would have to go instead. Remembered per
+        path: every black box asks (once per frame of a points cache)."""
+        known = self.__dict__.setdefault("_instances", {})
+        if path not in known:
+            known[path] = self._instance_of(path)
+        return known[path]
+
+    def _instance_of(self, path: str) -> tuple[str, str] | None:
         prim = self.stage.GetPrimAtPath(path)
         if not prim or not prim.IsInstanceProxy():
             return None
