@@ -65,7 +65,7 @@ def check_value_types(stage: Usd.Stage, label: str, checked: Checked = Checked.A
                    (UsdSkel.Animation, _SCHEMA_TYPES["SkelAnimation"]), (UsdSkel.BlendShape, shape_types)]
     if checked is Checked.NO_SHAPE_VALUES:
         schemas[-1] = (UsdSkel.BlendShape, {k: v for k, v in shape_types.items() if k not in SHAPE_VALUES})
-    psd = checked is not Checked.SHAPE_VALUES
+    psd_attributes = checked is not Checked.SHAPE_VALUES  # psd: driver data on point-based prims
     by_type: dict[str, tuple[dict[str, Sdf.ValueTypeName], bool]] = {}  # type name -> (schema types, point-based)
     for prim in stage.Traverse(Usd.TraverseInstanceProxies()):
         type_name = prim.GetTypeName()
@@ -74,7 +74,7 @@ def check_value_types(stage: Usd.Stage, label: str, checked: Checked = Checked.A
             for schema, types in schemas:
                 if prim.IsA(schema):
                     found.update(types)
-            by_type[type_name] = found, psd and prim.IsA(UsdGeom.PointBased)
+            by_type[type_name] = found, psd_attributes and prim.IsA(UsdGeom.PointBased)
         schema_types, point_based = by_type[type_name]
         expected = dict(schema_types)
         if point_based:
