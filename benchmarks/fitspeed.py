@@ -21,8 +21,10 @@ two states a binary input can be in, side by side:
 
 - **first read**: the probe's verdict cache (``PSDBAKE_CACHE_DIR``) empty, so the inputs are
   hashed, probed, hashed again and their verdicts stored (the first fit of a new asset);
-- **verified**: the same cache folder again, so the inputs are hashed and found (what every
-  farm chunk and batch job after the first sees). The cache look-up (the hashing) is shown.
+- **verified**: the same cache folder again, so the inputs are found (what every farm chunk
+  and batch job after the first sees): by their settled identity without hashing, or hashed
+  and found by content when they changed less than ``integrity.SETTLED_SECONDS`` before. The
+  cache look-ups that hash are timed and shown.
 
 Every fit runs in a fresh process (so no layer or in-process probe result is reused), after a
 warm-up fit of the small arm fixture in the same format (process start-up: imports, USD's

@@ -314,3 +314,73 @@ def test_the_session_never_caches_in_the_home():
     """conftest points every test and every psdbake they start at a temporary folder."""
     folder = os.environ[integrity.CACHE_ENV]
     assert os.path.isabs(folder) and os.path.basename(folder).startswith("psdbake-test-cache-")
+
+
+def _shortcuts(folder) -> list[str]:
+    found = os.path.join(str(folder), integrity._BY_IDENTITY)
+    return sorted(os.listdir(found)) if os.path.isdir(found) else []
+
+
+def test_a_settled_unchanged_file_is_found_without_hashing(probes, monkeypatch, tmp_path):
+    """Every process after the first finds a settled, unchanged file by its identity: neither
+    probed nor hashed (a farm chunk reading a large CORRECTIVES pays nothing per file)."""
+    runs, hashed = probes
+    monkeypatch.setattr(integrity, "SETTLED_SECONDS", 0.0)
+    crate = _crate(tmp_path / "a.usdc")
+    integrity.require_readable_crates([crate])
+    assert (len(runs), len(hashed)) == (1, 1)
+    assert len(_entries(tmp_path / "cache")) == 1 and len(_shortcuts(tmp_path / "cache")) == 1
+    for _ in range(3):
+        _new_process(monkeypatch)
+        integrity.require_readable_crates([crate])
+    assert (len(runs), len(hashed)) == (1, 1)
+
+
+def test_a_file_not_settled_gets_no_shortcut(probes, monkeypatch, tmp_path):
+    """Changed less than SETTLED_SECONDS ago, a file may change again within the same
+    timestamp tick: it is looked up by its bytes every time."""
+    runs, hashed = probes
+    crate = _crate(tmp_path / "a.usdc")
+    for _ in range(2):
+        _new_process(monkeypatch)
+        integrity.require_readable_crates([crate])
+    assert _shortcuts(tmp_path / "cache") == []
+    assert (len(runs), len(hashed)) == (1, 3)  # the first process hashes twice (around the probe)
+
+
+@pytest.mark.parametrize("change", ["rewritten in place, same size and mtime", "copied over", "renamed over"])
+def test_a_changed_file_misses_its_shortcut(change, probes, monkeypatch, tmp_path):
+    """Rewritten in place with its size and mtime put back, or replaced: another identity
+    (the ctime or the inode moved), so the bytes are hashed and, being other bytes, probed."""
+    runs, hashed = probes
+    monkeypatch.setattr(integrity, "SETTLED_SECONDS", 0.0)
+    crate = _crate(tmp_path / "a.usdc")
+    other = _crate(tmp_path / "other.usdc", 0.3)
+    integrity.require_readable_crates([crate])
+    stat = os.stat(crate)
+    if change == "renamed over":
+        os.replace(other, crate)
+    else:
+        pathlib.Path(crate).write_bytes(pathlib.Path(other).read_bytes())
+        if change.startswith("rewritten"):
+            os.utime(crate, ns=(stat.st_atime_ns, stat.st_mtime_ns))
+            assert (os.stat(crate).st_size, os.stat(crate).st_mtime_ns) == (stat.st_size, stat.st_mtime_ns)
+    _new_process(monkeypatch)
+    integrity.require_readable_crates([crate])
+    assert runs == [[crate], [crate]]
+    assert len(hashed) == 2
+
+
+def test_a_settled_copy_is_found_by_its_bytes_then_by_its_identity(probes, monkeypatch, tmp_path):
+    """A copy (another inode) is hashed once, found by content (no probe), and from then on by
+    its own identity."""
+    runs, hashed = probes
+    monkeypatch.setattr(integrity, "SETTLED_SECONDS", 0.0)
+    crate = _crate(tmp_path / "a.usdc")
+    integrity.require_readable_crates([crate])
+    copy = shutil.copy(crate, tmp_path / "b.usdc")
+    for _ in range(3):
+        _new_process(monkeypatch)
+        integrity.require_readable_crates([copy])
+    assert (len(runs), len(hashed)) == (1, 2)
+    assert len(_shortcuts(tmp_path / "cache")) == 2
