@@ -27,15 +27,20 @@ Coupled chains (regime "coupled") are solved jointly, **matrix-free Newton-Krylo
   every sculpted vertex is within tolerance, the call budget is spent or a step fails to
   improve (a step that does not is halved, up to ``BACKTRACKS`` times).
 
-Where skinning folds the mesh, this from zero stalls: the chain's Jacobian has half its
+Where skinning folds the mesh, Newton from zero stalls: the chain's Jacobian has half its
 singular values below 1e-3 of the largest (smoothing nearly annihilates high-frequency
 offsets), and Newton follows large high-frequency offsets into a spurious minimum. The sculpt
 is reachable all the same (the bench's ground-truth offsets give residuals 28-47x below the
-tolerance at 13k). So a second start (``smooth_start``): Gauss-Newton restricted to the region's
-smoothest fields (``psdbake.smoothbasis``, from the mesh's edges), which lands next to the
-smooth solution, and Newton-Krylov finishes from there (regime "coupled, from the smooth
-start"). On the bench's folded elbows (60-160 degrees, 13k and 100k points) every sculpted
-vertex then reaches the tolerance.
+tolerance at 13k). So where the mesh has edges Newton-Krylov starts from the **smooth start**
+(``smooth_start``): Gauss-Newton restricted to the region's smoothest fields
+(``psdbake.smoothbasis``), with the per-vertex blocks as the span's Jacobian (a smooth field
+moves each vertex as its neighbours, so a smoothing chain maps it much as skinning alone does)
+and Broyden's updates of it from each step's call, which lands next to the smooth solution
+(regime "coupled, from the smooth start"). On the bench's eight examples (elbow 20-160
+degrees, 13k and 100k points) every sculpted vertex then reaches the tolerance in 52 and 19
+calls per example. Where it misses, Newton-Krylov from zero (regime "coupled") and the smooth
+start with the span's Jacobian measured, 3 calls a field (regime "coupled, from the measured
+smooth start"), follow, and the best of them is kept.
 
 Powell's per-vertex line searches are not used here: they assume a vertex's residual depends
 on its own offset only, which is exactly what a coupling deformer breaks.
@@ -94,18 +99,20 @@ BACKTRACKS = 4
 #: Black-box calls of one joint solve from a start (the smooth start, or the per-vertex
 #: solution), counted from that start.
 MAX_EVALUATIONS = 160
-#: The joint solve from zero gets fewer, counted from the example's first call: where it
-#: converges it takes 14-29 calls in all (unfolded bench and test examples, 1.3k to 100k
-#: points); where skinning folds the mesh it never converged within 160 (12 bench examples,
-#: elbow at 60-160 degrees, 13k and 100k), and the smooth start runs next.
+#: The joint solve from zero, where the smooth start missed (or there is none), counted from
+#: its start: where it converges it takes 14-29 calls in all (unfolded bench and test
+#: examples, 1.3k to 100k points); where skinning folds the mesh it never converged within 160
+#: (12 bench examples, elbow at 60-160 degrees, 13k and 100k).
 FROM_ZERO_EVALUATIONS = 64
-#: Smooth fields in ``smooth_start``'s span (3 calls each, one per axis). On the 13k bench's
-#: six folded examples 32 left 18 vertices above the tolerance (245.8 calls per example),
-#: 64 none, at ~317 calls per example (benchmarks.coupled).
+#: Smooth fields in ``smooth_start``'s span (3 calls each, one per axis, when its Jacobian is
+#: measured). With the measured Jacobian, on the 13k bench's six folded examples 32 left 18
+#: vertices above the tolerance, 64 none.
 SMOOTH_FIELDS = 64
-#: Gauss-Newton steps in that span: the first on the measured Jacobian, then Broyden's updates of
-#: it, 1 call each (in an experiment on the 13k rig's 60-degree elbow the residual went 2.0e-3,
-#: 5.0e-4, 4.7e-4, 4.1e-4 of the diagonal over four steps: the second still helps).
+#: Gauss-Newton steps in that span: the first on the blocks' (or the measured) Jacobian, then
+#: Broyden's updates of it, 1 call each. From the blocks, on the 13k bench's six folded
+#: examples (Newton-Krylov from zero first): 1 step left 4,284 vertices above the tolerance, 2
+#: left 115, 3 to 20 none (measured Jacobian: the residual went 2.0e-3, 5.0e-4, 4.7e-4, 4.1e-4
+#: of the diagonal over four steps on the 60-degree elbow).
 SMOOTH_STEPS = 4
 #: Singular values of the span's Jacobian below this fraction of the largest are dropped
 #: (truncated least squares: the steps stay smooth and the noise of the measured columns out).
@@ -147,12 +154,13 @@ def invert(blackbox: BlackBox, rest: Points, sculpt: Points, *, rtol: float = to
     The per-vertex solver's 3 Jacobian calls move only sculpted vertices, so they show for
     free whether any other vertex's output moved: skinning (5 calls) and per-vertex deformers
     pay nothing to find out. When they show coupling and the linearised start misses, the
-    joint Newton-Krylov solve takes over from zero. Where it leaves vertices above the
-    tolerance (skinning folds the mesh), Gauss-Newton in the span of the region's smoothest
-    fields (``smooth_start``; ``neighbours()`` gives the mesh's edge adjacency) and Newton-Krylov
-    from there finish. Without edges the per-vertex solve and a restart from it stand in. The
-    kept result has the fewest vertices above the tolerance, then the smallest worst residual,
-    both measured by running the chain. A chain that couples only vertices with no unsculpted
+    joint solve takes over: Gauss-Newton in the span of the region's smoothest fields on the
+    per-vertex blocks' model (``smooth_start``; ``neighbours()`` gives the mesh's edge
+    adjacency), then Newton-Krylov. Where that leaves vertices above the tolerance, Newton-Krylov
+    from zero, then the smooth start with the span's Jacobian measured and Newton-Krylov; without
+    edges, Newton-Krylov from zero, then the per-vertex solve and a restart from it. The kept
+    result has the fewest vertices above the tolerance, then the smallest worst residual, both
+    measured by running the chain. A chain that couples only vertices with no unsculpted
     neighbour is probed (2 calls) once the per-vertex solve misses."""
     started = time.perf_counter()
     rest = np.asarray(rest, dtype=np.float64)
@@ -171,27 +179,34 @@ def invert(blackbox: BlackBox, rest: Points, sculpt: Points, *, rtol: float = to
     # on its thread count: one thread, so a fit gives the same bytes on every machine (the 100k
     # bench: 8.76 s an example against 8.54 with two threads; the black box dominates)
     with threadpool_limits(limits=1, user_api="blas"):
-        joint = invert_coupled(call, rest, sculpt, base, idx, diagonal, floor, rtol=rtol, started=started,
-                               max_evaluations=FROM_ZERO_EVALUATIONS)
-        candidates = [joint]
-        if len(joint.missed):
-            adjacency = neighbours() if neighbours is not None else None
-            basis = smooth_basis(adjacency, idx, SMOOTH_FIELDS) if adjacency is not None else None
-            if basis is not None:
+        adjacency = neighbours() if neighbours is not None else None
+        basis = smooth_basis(adjacency, idx, SMOOTH_FIELDS) if adjacency is not None else None
+        blocks = chain_blocks(call, rest, base, idx, diagonal, floor)  # 3 calls, shared by every stage
+        candidates: list[InverseResult] = []
+        if basis is not None:  # 1. the model's smooth start, then Newton-Krylov
+            start = smooth_start(call, rest, sculpt, base, idx, diagonal, floor, basis, model=blocks)
+            smooth = invert_coupled(call, rest, sculpt, base, idx, diagonal, floor, rtol=rtol, started=started,
+                                    max_evaluations=call.calls + MAX_EVALUATIONS, start=start, blocks=blocks)
+            candidates.append(dataclasses.replace(smooth, regime="coupled, from the smooth start"))
+        if not candidates or len(candidates[0].missed):  # 2. Newton-Krylov from zero
+            joint = invert_coupled(call, rest, sculpt, base, idx, diagonal, floor, rtol=rtol, started=started,
+                                   max_evaluations=call.calls + FROM_ZERO_EVALUATIONS, blocks=blocks)
+            candidates.append(joint)
+            if len(joint.missed) and basis is not None:  # 3. the span's Jacobian measured, then Newton-Krylov
                 start = smooth_start(call, rest, sculpt, base, idx, diagonal, floor, basis)
-                finished = invert_coupled(call, rest, sculpt, base, idx, diagonal, floor, rtol=rtol,
-                                          started=started, max_evaluations=call.calls + MAX_EVALUATIONS, start=start)
-                candidates.append(dataclasses.replace(finished, regime="coupled, from the smooth start"))
-            else:
+                finished = invert_coupled(call, rest, sculpt, base, idx, diagonal, floor, rtol=rtol, started=started,
+                                          max_evaluations=call.calls + MAX_EVALUATIONS, start=start, blocks=blocks)
+                candidates.append(dataclasses.replace(finished, regime="coupled, from the measured smooth start"))
+            elif len(joint.missed):
                 candidates.extend(_from_per_vertex(call, blackbox, rest, sculpt, base, idx, diagonal, floor, first,
-                                                   rtol=rtol, started=started))
+                                                   blocks, rtol=rtol, started=started))
     best = min(candidates, key=lambda c: (len(c.missed), c.max_residual))
     return dataclasses.replace(best, evaluations=call.calls, seconds=time.perf_counter() - started)
 
 
 def _from_per_vertex(call: Counted, blackbox: BlackBox, rest: Points, sculpt: Points, base: Points,
-                     idx: NDArray[np.int64], diagonal: float, floor: float, first: InverseResult, *,
-                     rtol: float, started: float) -> list[InverseResult]:
+                     idx: NDArray[np.int64], diagonal: float, floor: float, first: InverseResult,
+                     blocks: NDArray[np.float64], *, rtol: float, started: float) -> list[InverseResult]:
     """Without mesh edges: the full per-vertex solve, and Newton-Krylov restarted from it."""
     per_vertex = first
     if first.regime == COUPLING_SEEN:
@@ -200,7 +215,7 @@ def _from_per_vertex(call: Counted, blackbox: BlackBox, rest: Points, sculpt: Po
     found = [dataclasses.replace(per_vertex, regime="coupled chain, per-vertex kept")]
     if len(per_vertex.missed) and np.array_equal(per_vertex.indices, idx):
         warm = invert_coupled(call, rest, sculpt, base, idx, diagonal, floor, rtol=rtol, started=started,
-                              max_evaluations=call.calls + MAX_EVALUATIONS, start=per_vertex.offsets)
+                              max_evaluations=call.calls + MAX_EVALUATIONS, start=per_vertex.offsets, blocks=blocks)
         found.append(dataclasses.replace(warm, regime="coupled, from the per-vertex solution"))
     return found
 
@@ -212,25 +227,49 @@ def _outputs(call: Counted, rest: Points, idx: NDArray[np.int64], offsets: Point
     return call(moved)[idx]
 
 
+def chain_blocks(call: Counted, rest: Points, base: Points, idx: NDArray[np.int64], diagonal: float,
+                 floor: float) -> NDArray[np.float64]:
+    """Per-vertex 3x3 blocks (len(idx), 3, 3) from 3 calls moving every sculpted vertex along
+    x, then y, then z (forward differences, ``JACOBIAN_STEP_RTOL`` of the diagonal): the
+    per-vertex solver's Jacobian; for a coupled chain the row sums of its Jacobian, which for a
+    smoothing deformer (weights summing to 1) are the skinning's own blocks."""
+    jstep = tol.JACOBIAN_STEP_RTOL * max(diagonal, floor)
+    blocks = np.empty((len(idx), 3, 3))
+    for axis in range(3):
+        moved = rest.copy()
+        moved[idx, axis] += jstep
+        blocks[:, :, axis] = (call(moved)[idx] - base[idx]) / jstep
+    return blocks
+
+
 def smooth_start(call: Counted, rest: Points, sculpt: Points, base: Points, idx: NDArray[np.int64],
-                 diagonal: float, floor: float, basis: NDArray[np.float64]) -> Points:
+                 diagonal: float, floor: float, basis: NDArray[np.float64],
+                 model: NDArray[np.float64] | None = None) -> Points:
     """Offsets (len(idx), 3) from Gauss-Newton restricted to smooth fields: ``basis`` (k, b)
-    per axis, so 3b calls measure the chain's Jacobian on that span (forward differences, the
-    largest vertex move ``JACOBIAN_STEP_RTOL`` of the diagonal), the step is its truncated
-    least-squares solve (singular values below ``SMOOTH_RCOND`` of the largest dropped), and
-    ``SMOOTH_STEPS - 1`` more steps refresh that Jacobian by Broyden updates, 1 call each.
-    A step is kept only if it lowers the residual (``smoothbasis`` says why this helps)."""
+    per axis. The span's Jacobian is the per-vertex blocks' (``model``, from ``chain_blocks``:
+    no call; a smooth field moves each vertex as its neighbours, so a smoothing chain maps it
+    as skinning alone does, and the steps' Broyden updates learn the rest) or, without a
+    model, measured: 3b calls (forward differences, the largest vertex move
+    ``JACOBIAN_STEP_RTOL`` of the diagonal). The step is the truncated least-squares solve
+    (singular values below ``SMOOTH_RCOND`` of the largest dropped), and ``SMOOTH_STEPS - 1``
+    more steps refresh that Jacobian by Broyden updates, 1 call each. A step is kept only if
+    it lowers the residual (``smoothbasis`` says why this helps)."""
     k, b = basis.shape
     target = sculpt[idx]
     out = base[idx]
-    step = tol.JACOBIAN_STEP_RTOL * max(diagonal, floor)
     cols = np.empty((3 * b, 3 * k))  # the span's Jacobian, stored by column (one row each)
-    for c in range(b):
-        h = step / max(float(np.abs(basis[:, c]).max()), 1e-300)
-        for axis in range(3):
-            moved = rest.copy()
-            moved[idx, axis] += h * basis[:, c]
-            cols[3 * c + axis] = ((call(moved)[idx] - out) / h).ravel()
+    if model is not None:
+        for c in range(b):
+            for axis in range(3):
+                cols[3 * c + axis] = (model[:, :, axis] * basis[:, c, None]).ravel()
+    else:
+        step = tol.JACOBIAN_STEP_RTOL * max(diagonal, floor)
+        for c in range(b):
+            h = step / max(float(np.abs(basis[:, c]).max()), 1e-300)
+            for axis in range(3):
+                moved = rest.copy()
+                moved[idx, axis] += h * basis[:, c]
+                cols[3 * c + axis] = ((call(moved)[idx] - out) / h).ravel()
     offsets = np.zeros((k, 3))
     if not np.all(np.isfinite(cols)):  # the chain gave non-finite values: no smooth start
         return offsets
@@ -277,9 +316,11 @@ def invert_coupled(
     started: float,
     max_evaluations: int = MAX_EVALUATIONS,
     start: Points | None = None,
+    blocks: NDArray[np.float64] | None = None,
 ) -> InverseResult:
     """Newton-Krylov on the sculpted vertices' offsets (module docstring). ``base`` is
-    ``call(rest)``; ``call.calls`` counts the example's calls so far (the budget's measure)."""
+    ``call(rest)``; ``call.calls`` counts the example's calls so far (the budget's measure);
+    ``blocks`` are ``chain_blocks`` (measured here when not given)."""
     atol = max(rtol * diagonal, floor)
     target = sculpt[idx]
     k = len(idx)
@@ -288,12 +329,8 @@ def invert_coupled(
         return _outputs(call, rest, idx, offsets)
 
     # Per-vertex 3x3 blocks (row sums in the coupled case): the preconditioner.
-    jstep = tol.JACOBIAN_STEP_RTOL * max(diagonal, floor)
-    blocks = np.empty((k, 3, 3))
-    for axis in range(3):
-        moved = rest.copy()
-        moved[idx, axis] += jstep
-        blocks[:, :, axis] = (call(moved)[idx] - base[idx]) / jstep
+    if blocks is None:
+        blocks = chain_blocks(call, rest, base, idx, diagonal, floor)
     scale = np.einsum("kab,kab->k", blocks, blocks) ** 1.5
     ok = np.isfinite(scale)  # a chain that gives non-finite points there: no block to invert
     ok[ok] = np.abs(np.linalg.det(blocks[ok])) > tol.JACOBIAN_RCOND * np.maximum(scale[ok], 1e-300)

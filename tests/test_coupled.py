@@ -29,6 +29,12 @@ POSES = {1.0: {"Elbow": ((0, 0, 1), 20.0), "Wrist": ((1, 0, 0), 25.0)},
 #: Black-box calls one coupled example may take here (measured: 20 and 29: the per-vertex
 #: linearised start, 5 calls, in which the coupling shows, then Newton-Krylov).
 CALL_BUDGET = 32
+#: The same with the mesh's edges, from the smooth start (measured: 24 and 32), pinned at the
+#: issue's goal for the 100k bench rig.
+SMOOTH_CALL_BUDGET = 40
+#: Calls before the joint stages: the per-vertex linearised start (5, in which the coupling
+#: shows), the chain at rest (1) and the per-vertex blocks every joint stage shares (3).
+BEFORE_JOINT = 5 + 1 + 3
 
 
 @pytest.fixture(scope="module")
@@ -119,7 +125,8 @@ def test_fit_and_points_cache_with_delta_mush_end_to_end(run, rig_folder, tmp_pa
     code, _, err = run("fit", rig.asset, rig.examples, "-o", corr, "--deformer", spec, "--report", report, "-q")
     assert code == 0, err
     examples = json.loads(report.read_text())["meshes"][0]["examples"]
-    assert [ex["regime"] for ex in examples] == ["coupled"] * 2 and all(ex["missed"] == 0 for ex in examples)
+    assert [ex["regime"] for ex in examples] == ["coupled, from the smooth start"] * 2
+    assert all(ex["missed"] == 0 and ex["evaluations"] <= SMOOTH_CALL_BUDGET for ex in examples)
     code, _, err = run("eval", rig.asset, corr, "--anim", rig.poses_layer, "-o", weights, "--points-cache", cache,
                        "--deformer", spec, "-q")
     assert code == 0, err
@@ -134,8 +141,8 @@ def test_a_folded_elbow_reaches_the_tolerance_from_the_smooth_start(run, tmp_pat
     mesh collapses there. The chain's Jacobian is so ill-conditioned that Newton-Krylov from
     zero stalls, and the per-vertex solver leaves over 500 of the 4,604 sculpted vertices above
     the tolerance. fit's Gauss-Newton on the region's smoothest fields, then Newton-Krylov,
-    brings every one within it (measured: 0 missed in 300 calls), and the points cache of the
-    written stack reproduces the sculpt."""
+    brings every one within it (measured: 0 missed in 51 calls, 300 when the span's Jacobian
+    was measured), and the points cache of the written stack reproduces the sculpt."""
     poses_layer, poses = rigs.write_poses(str(tmp_path), 8)
     rig = rigs.build(str(tmp_path), "lbs+deltamush", "13k", {4.0: poses[4.0]}, poses_layer)
     assert len(invert_example(rig.blackbox(rig.scene(), 4.0), rig.rest, rig.sculpts[4.0]).missed) > 500
@@ -145,7 +152,7 @@ def test_a_folded_elbow_reaches_the_tolerance_from_the_smooth_start(run, tmp_pat
     assert code == 0, err
     (ex,) = json.loads(report.read_text())["meshes"][0]["examples"]
     assert ex["regime"] == "coupled, from the smooth start" and ex["missed"] == 0
-    assert ex["evaluations"] <= SMOOTH_PATH_BOUND
+    assert ex["evaluations"] <= BEFORE_JOINT + coupled.SMOOTH_STEPS + coupled.MAX_EVALUATIONS
     # the same bytes from a process whose BLAS has one thread (a farm machine with one core):
     # the joint stages' sums do not depend on the machine
     single = tmp_path / "single" / "c.usda"
@@ -165,11 +172,13 @@ def test_a_folded_elbow_reaches_the_tolerance_from_the_smooth_start(run, tmp_pat
     assert residual.max() <= ex["tolerance"] + np.sqrt(3) * half_ulp
 
 
-#: Calls one example may take on the smooth path: the joint solve from zero (its budget counts
-#: the calls before it), the smooth span's Jacobian (3 calls a field) and its steps, the
-#: Newton-Krylov finish, 1 more.
-SMOOTH_PATH_BOUND = (coupled.FROM_ZERO_EVALUATIONS + 3 * coupled.SMOOTH_FIELDS + coupled.SMOOTH_STEPS
-                     + coupled.MAX_EVALUATIONS + 1)
+#: Calls the joint stages of one example may take when every one runs: the per-vertex blocks,
+#: the smooth start's steps and its Newton-Krylov finish, the joint solve from zero, the smooth
+#: span's Jacobian measured (3 calls a field) and its steps, that finish (each stage's budget
+#: counted from its start). Before them: the per-vertex solver's calls, the chain at rest, and
+#: the probe when the per-vertex solver's own calls did not show the coupling.
+JOINT_STAGES_BOUND = (3 + coupled.SMOOTH_STEPS + coupled.MAX_EVALUATIONS + coupled.FROM_ZERO_EVALUATIONS
+                      + 3 * coupled.SMOOTH_FIELDS + coupled.SMOOTH_STEPS + coupled.MAX_EVALUATIONS)
 
 
 SNAPPING_DEFORMER = '''
@@ -199,14 +208,17 @@ def test_a_coupled_chain_that_snaps_to_a_grid_stalls_cleanly(run, rig_folder, tm
                             "--report", report)
     assert code == 0, err
     examples = json.loads(report.read_text())["meshes"][0]["examples"]
+    scene = rig.scene()
     why: dict[str, int] = {}
-    for ex in examples:
+    for t, ex in zip(rig.times, examples, strict=True):
+        box = rig.blackbox(scene, t)
+        per_vertex = invert_example(lambda p, box=box: np.round(box(p) / 1e-3) * 1e-3, rig.rest, rig.sculpts[t])
         # every vertex misses (the grid is 50x the tolerance) and says why: the solver stalled,
         # or spent its calls on steps the grid rounds away
         assert ex["missed"] == ex["vertices_solved"] > 0
         assert set(ex["missed_statuses"]) <= {"stalled", "max_cycles"}
         assert sum(ex["missed_statuses"].values()) == ex["missed"]
-        assert ex["evaluations"] <= SMOOTH_PATH_BOUND and ex["regime"].startswith("coupled")
+        assert ex["evaluations"] <= per_vertex.evaluations + 2 + JOINT_STAGES_BOUND and ex["regime"].startswith("coupled")
         for name, count in ex["missed_statuses"].items():
             why[name] = why.get(name, 0) + count
     total = sum(ex["missed"] for ex in examples)
@@ -235,7 +247,7 @@ def test_without_mesh_edges_the_per_vertex_solution_stands_in(tmp_path):
     per_vertex = invert_example(snapped, rig.rest, rig.sculpts[t])
     assert res.regime in ("coupled", "coupled chain, per-vertex kept", "coupled, from the per-vertex solution")
     assert len(res.missed) == len(res.indices) > 0
-    assert res.evaluations <= coupled.FROM_ZERO_EVALUATIONS + per_vertex.evaluations + coupled.MAX_EVALUATIONS + 1
+    assert res.evaluations <= BEFORE_JOINT + coupled.FROM_ZERO_EVALUATIONS + per_vertex.evaluations + coupled.MAX_EVALUATIONS
 
 
 def test_a_coupled_chain_that_returns_nan_ends_without_a_crash():
