@@ -9,7 +9,7 @@ sculpted vertex's output moved. Skinning and per-vertex deformers leave every ot
 bit-identical; a coupling deformer moves the neighbours. Per-vertex chains keep
 ``inverse.invert_example``'s result (Powell in lockstep, regime "per-vertex").
 
-Coupled chains (regime "coupled") are solved jointly, **matrix-free Newton-Krylov**::
+Coupled chains are solved jointly (the regimes named below), **matrix-free Newton-Krylov**::
 
     minimise || sculpt[S] - F(rest + D)[S] ||^2     D: offsets on the sculpted vertices S
 
@@ -100,9 +100,10 @@ BACKTRACKS = 4
 #: solution), counted from that start.
 MAX_EVALUATIONS = 160
 #: The joint solve from zero, where the smooth start missed (or there is none), counted from
-#: its start: where it converges it takes 14-29 calls in all (unfolded bench and test
-#: examples, 1.3k to 100k points); where skinning folds the mesh it never converged within 160
-#: (12 bench examples, elbow at 60-160 degrees, 13k and 100k).
+#: its start. Run first, as it was before the smooth start came first, it converged in 14-29
+#: calls per example in all (unfolded bench and test examples, 1.3k to 100k points); where
+#: skinning folds the mesh, never within 160 (12 bench examples, elbow at 60-160 degrees, 13k
+#: and 100k).
 FROM_ZERO_EVALUATIONS = 64
 #: Smooth fields in ``smooth_start``'s span (3 calls each, one per axis, when its Jacobian is
 #: measured). With the measured Jacobian, on the 13k bench's six folded examples 32 left 18
@@ -110,9 +111,10 @@ FROM_ZERO_EVALUATIONS = 64
 SMOOTH_FIELDS = 64
 #: Gauss-Newton steps in that span: the first on the blocks' (or the measured) Jacobian, then
 #: Broyden's updates of it, 1 call each. From the blocks, on the 13k bench's six folded
-#: examples (Newton-Krylov from zero first): 1 step left 4,284 vertices above the tolerance, 2
-#: left 115, 3 to 20 none (measured Jacobian: the residual went 2.0e-3, 5.0e-4, 4.7e-4, 4.1e-4
-#: of the diagonal over four steps on the 60-degree elbow).
+#: examples with Newton-Krylov from zero run first: 1 step left 4,284 vertices above the
+#: tolerance, 2 left 115, 4, 8, 12 or 20 none; run first, as now, 3, 4, 6 and 8 none (measured
+#: Jacobian: the residual went 2.0e-3, 5.0e-4, 4.7e-4, 4.1e-4 of the diagonal over four steps
+#: on the 60-degree elbow).
 SMOOTH_STEPS = 4
 #: Singular values of the span's Jacobian below this fraction of the largest are dropped
 #: (truncated least squares: the steps stay smooth and the noise of the measured columns out).
