@@ -39,12 +39,7 @@ def one_shot(box: Callable[[NDArray[np.float64]], NDArray[np.float64]], rest: ND
     """cvShapeInverter's method: (sculpted indices, offsets, calls)."""
     base = box(rest)
     diagonal, floor, idx = sculpted_vertices(rest, base, sculpt)
-    step = tol.JACOBIAN_STEP_RTOL * max(diagonal, floor)
-    jac = np.empty((len(idx), 3, 3))
-    for axis in range(3):
-        moved = rest.copy()
-        moved[idx, axis] += step
-        jac[:, :, axis] = (box(moved)[idx] - base[idx]) / step
+    jac = coupled.chain_blocks(box, rest, base, idx, diagonal, floor)  # the same 3 calls psdbake makes
     offsets = np.linalg.solve(jac, (sculpt[idx] - base[idx])[:, :, None])[:, :, 0]
     return idx, offsets, 4
 

@@ -199,7 +199,7 @@ def invert(blackbox: BlackBox, rest: Points, sculpt: Points, *, rtol: float = to
                 finished = invert_coupled(call, rest, sculpt, base, idx, diagonal, floor, rtol=rtol, started=started,
                                           max_evaluations=call.calls + MAX_EVALUATIONS, start=start, blocks=blocks)
                 candidates.append(dataclasses.replace(finished, regime="coupled, from the measured smooth start"))
-            elif len(joint.missed):
+            elif len(joint.missed):  # no edges: the per-vertex solution and a restart from it
                 candidates.extend(_from_per_vertex(call, blackbox, rest, sculpt, base, idx, diagonal, floor, first,
                                                    blocks, rtol=rtol, started=started))
     best = min(candidates, key=lambda c: (len(c.missed), c.max_residual))
@@ -229,7 +229,7 @@ def _outputs(call: Counted, rest: Points, idx: NDArray[np.int64], offsets: Point
     return call(moved)[idx]
 
 
-def chain_blocks(call: Counted, rest: Points, base: Points, idx: NDArray[np.int64], diagonal: float,
+def chain_blocks(call: BlackBox, rest: Points, base: Points, idx: NDArray[np.int64], diagonal: float,
                  floor: float) -> NDArray[np.float64]:
     """Per-vertex 3x3 blocks (len(idx), 3, 3) from 3 calls moving every sculpted vertex along
     x, then y, then z (forward differences, ``JACOBIAN_STEP_RTOL`` of the diagonal): the

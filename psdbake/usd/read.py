@@ -63,6 +63,7 @@ class Scene:
         self.stage = compose(self.files)
         check_value_types(self.stage, self.label, checked)
         self.cache = UsdSkel.Cache()
+        self._instances: dict[str, tuple[str, str] | None] = {}  # instance_of, per path
         # mesh -> (skinning query, skeleton query, owning SkelRoot, bound Skeleton's path)
         self._targets: dict[str, tuple[UsdSkel.SkinningQuery, UsdSkel.SkeletonQuery, str, str]] = {}
         predicate = Usd.TraverseInstanceProxies()
@@ -140,10 +141,9 @@ class Scene:
         """(instance root, '@asset@</prim>' it instances) when path is inside an instance,
         else None: where psdbake's output for path would have to go instead. Remembered per
         path: every black box asks (once per frame of a points cache)."""
-        known = self.__dict__.setdefault("_instances", {})
-        if path not in known:
-            known[path] = self._instance_of(path)
-        return known[path]
+        if path not in self._instances:
+            self._instances[path] = self._instance_of(path)
+        return self._instances[path]
 
     def _instance_of(self, path: str) -> tuple[str, str] | None:
         prim = self.stage.GetPrimAtPath(path)
