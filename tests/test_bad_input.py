@@ -427,8 +427,9 @@ def test_failed_fit_keeps_old_output(failure, cli, tmp_path):
 
 # --- the catalogue itself ----------------------------------------------------------------
 
-#: Derived from psdbake's own fit: floating-point details may differ across machines.
-FIT_DERIVED = ("good_correctives.usda", "psd_", "crate_")
+#: Derived from psdbake's own fit: the RBF solve's last bits depend on the CPU's BLAS kernel
+#: (measured: OpenBLAS's SkylakeX and Haswell kernels differ in the 16th digit of two coefficients).
+FIT_DERIVED = ("good_correctives.usda", "correctives_", "psd_", "crate_")
 
 
 def _tree(folder: str) -> set[str]:
