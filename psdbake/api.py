@@ -26,7 +26,7 @@ from . import __version__, atomic, outputs
 from .deformers import deformer_files, load_deformers
 from .errors import InputError, OutputError, PsdWarning, where
 from .evaluation import animation_weights, correctives_by_animation, posed_points
-from .frames import frames_of
+from .frames import check_authored, frames_of
 from .groups import (
     GroupChanges,
     Groups,
@@ -309,9 +309,14 @@ def evaluate(
     frames: tuple[float, float] | None = None,
     progress: Progress | None = None,
     strict: bool = False,
+    hold: bool = False,
+    shot: tuple[float, float] | None = None,
 ) -> WeightsResult:
     """RBF weights of every corrective at every frame of ANIM. Warns when ASSET's rig is not
-    the one CORRECTIVES were fitted on (strict: refuses, exit 3)."""
+    the one CORRECTIVES were fitted on (strict: refuses, exit 3).
+
+    frames: whole frames A..B, within ANIM's authored samples unless ``hold``; ``shot``: the
+    range to check instead (a farm chunk checks the whole shot's, so every chunk agrees)."""
     started = _time.perf_counter()
     asset_scene = open_asset(asset)
     check_fitted_on(asset, asset_scene, correctives, strict=strict)
@@ -321,7 +326,11 @@ def evaluate(
     per_anim = correctives_by_animation(scene, Scene([anim, asset], label=anim), correctives, anim)
     if not per_anim:
         raise InputError(f"{correctives}: no psd: driver data on any skinned mesh of {asset}")
-    planned = {a: frames_of(scene, per_anim[a][0][0].path, frames, label=anim) for a in sorted(per_anim)}
+    if frames is not None and shot is not None:
+        for a in sorted(per_anim):
+            check_authored(scene, per_anim[a][0][0].path, shot, anim, hold=hold)
+        hold = True  # checked on the shot's range: a chunk's own frames lie inside it
+    planned = {a: frames_of(scene, per_anim[a][0][0].path, frames, label=anim, hold=hold) for a in sorted(per_anim)}
     total, done = sum(len(planned[a]) * len(per_anim[a]) for a in planned), 0
 
     def tick(mesh: str) -> None:
@@ -407,7 +416,8 @@ def write_points_cache(result: WeightsResult, path: str, deformers: Sequence[str
 # --- export-gltf: ASSET + CORRECTIVES + ANIM + eval's weights -> one .glb for game engines ---
 
 def export_gltf(asset: str, correctives: str, anim: str, output: str, *, frames: tuple[float, float] | None = None,
-                progress: Progress | None = None, strict: bool = False, force: bool = False) -> GltfResult:
+                progress: Progress | None = None, strict: bool = False, force: bool = False, hold: bool = False
+                ) -> GltfResult:
     """Write the shot as a skinned glTF 2.0 binary: meshes, skins, joint animation (one
     key per time code), every BlendShape channel of the composed stack as a morph target
     and eval's weights animating them. Skinned in glTF (linear blend), it gives
@@ -418,7 +428,7 @@ def export_gltf(asset: str, correctives: str, anim: str, output: str, *, frames:
     inputs = files_read([asset, correctives, anim])
     with _forced(force):
         atomic.check_output(output, inputs, kind=outputs.GLTF)  # before the work, so a bad output fails at once
-    weights = evaluate(asset, correctives, anim, frames=frames, progress=progress, strict=strict)
+    weights = evaluate(asset, correctives, anim, frames=frames, progress=progress, strict=strict, hold=hold)
     scene = Scene([anim, correctives, asset], label=correctives)
     source = read_gltf_source(scene, asset, {a.animation: (a.channels, a.times, a.weights) for a in weights.animations})
     for msg in gltf.differences(source, asset):
