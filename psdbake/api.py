@@ -41,6 +41,8 @@ from .groups import (
     names_of,
     origin_text,
     read_correctives,
+    renamed_group,
+    without_groups,
 )
 from .results import FitResult, GltfResult, MirrorResult, PoseResult, Progress, SculptsResult, WeightsResult
 from .settings import FitSettings, MirrorSettings, SettingError
@@ -597,6 +599,68 @@ def write_mirror(result: MirrorResult, path: str, *, force: bool = False, replac
                     groups={**{g: r for g, r in records.items() if g in names_of(groups)}, **entries})
             usdwrite.export_all([(path, layer)], inputs)
     return dataclasses.replace(changes_between(before, groups, written, records), protected=tuple(protected))
+
+
+# --- groups: list, remove, rename the groups of a CORRECTIVES layer -------------------------------
+
+def recorded_asset(correctives: str) -> str | None:
+    """The asset a CORRECTIVES layer records it was fitted on (its provenance), as a path from
+    here, or None."""
+    rel = provenance.plain(provenance.read_stamp(correctives).get("inputs", {})).get("asset", {}).get("path")
+    return os.path.normpath(os.path.join(os.path.dirname(correctives), rel)) if rel else None
+
+
+def list_groups(correctives: str) -> list[dict[str, Any]]:
+    """Every group of a CORRECTIVES layer, per mesh (``psdbake groups``): drivers, RBF settings,
+    channels, examples, gates, and where it came from (its provenance record)."""
+    from .usd.describe import describe as describe_file
+
+    open_layer(correctives)
+    if provenance.existing_kind(correctives) != "correctives" and not describe_file(correctives)["correctives"]:
+        raise InputError(f"{correctives}: not a CORRECTIVES layer (it holds no psd: correctives groups)")
+    records = provenance.plain(provenance.read_stamp(correctives).get("groups", {}))
+    out = []
+    for c in describe_file(correctives)["correctives"]:
+        record = records.get(c["group"]) if isinstance(records, dict) else None
+        out.append({**c, "origin": origin_text(record), "record": record or {}})
+    return sorted(out, key=lambda c: (c["group"], c["mesh"]))
+
+
+def edit_groups(correctives: str, *, remove: Sequence[str] = (), rename: Mapping[str, str] | None = None,
+                output: str | None = None, asset: str | None = None, force: bool = False) -> GroupChanges:
+    """CORRECTIVES without the groups in ``remove`` and with those in ``rename`` (old -> new)
+    renamed, written to output (default: in place, re-read and replaced under the update lock).
+    ASSET defaults to the one the layer records it was fitted on. Renaming changes the groups'
+    channel names, so WEIGHTS evaluated before must be evaluated again."""
+    if asset is None:
+        asset = recorded_asset(correctives)
+        if asset is None:
+            raise InputError(f"{correctives}: records no asset it was fitted on (older psdbake): give --asset")
+        if not os.path.isfile(asset):
+            raise InputError(f"{correctives}: records it was fitted on {asset}, which is not there (the layer was moved "
+                             "without it?): give --asset")
+    output = output or correctives
+    in_place = os.path.realpath(output) == os.path.realpath(correctives)
+    inputs = [f for f in files_read([asset, correctives]) if not in_place or os.path.realpath(f) != os.path.realpath(correctives)]
+    with _forced(force):
+        atomic.check_output(output, inputs, kind=outputs.CORRECTIVES)
+        with atomic.updating(output) if in_place else contextlib.nullcontext():
+            before = read_correctives(asset, correctives)
+            records = provenance.plain(provenance.read_stamp(correctives).get("groups", {}))
+            groups = without_groups(before, list(remove), correctives)
+            for old, new in (rename or {}).items():
+                groups = renamed_group(groups, old, new, correctives)
+                if old in records:
+                    records[new] = {**records.pop(old), "renamed_from": old}
+            layer = groups_layer(asset, groups, f"psdbake {__version__} groups: rest-space correctives (inverse PSD)")
+            stamped(layer, "correctives", output, {"asset": asset}, rig=provenance.plain(
+                provenance.read_stamp(correctives).get("rig", {})), command=False,
+                groups={g: r for g, r in records.items() if g in names_of(groups)})
+            usdwrite.export_all([(output, layer)], inputs)
+    rename = dict(rename or {})
+    return GroupChanges(removed=tuple(sorted(remove)), renamed=tuple(f"{a} -> {b}" for a, b in sorted(rename.items())),
+                        kept=tuple(sorted(names_of(groups) - set(rename.values()))),
+                        origins={g: origin_text(r) for g, r in records.items()})
 
 
 # --- views and descriptions --------------------------------------------------------------

@@ -536,6 +536,44 @@ def stack_cmd(layers, output, strict, force, quiet, verbose, as_json) -> None:
     ui.say(f"wrote {output}")
 
 
+@cli.command("groups")
+@click.argument("file", type=str)
+@click.option("--remove", multiple=True, metavar="NAME", help="Remove this group from every mesh (repeatable).")
+@click.option("--rename", multiple=True, metavar="OLD=NEW",
+              help="Rename a group, its BlendShapes and channels (repeatable): evaluate WEIGHTS again afterwards.")
+@click.option("--asset", default=None, metavar="ASSET",
+              help="The asset FILE's correctives belong to. Default: the one FILE records it was fitted on.")
+@click.option("-o", "--output", default=None, type=str,
+              help="Write the edited CORRECTIVES here. Default: FILE itself, updated in place.")
+@force_option
+@_common
+def groups_cmd(file, remove, rename, asset, output, force, quiet, verbose, as_json) -> None:
+    """List the correctives groups of FILE (a CORRECTIVES layer), or remove or rename some."""
+    from . import api
+
+    ui = Ui(quiet, verbose, as_json)
+    if not remove and not rename:
+        if output:
+            raise click.UsageError("-o needs --remove or --rename (listing writes nothing)")
+        groups = api.list_groups(file)
+        ui.payload({"file": file, "groups": groups})
+        console.say_groups(ui, file, groups)
+        return
+    pairs = {}
+    for rule in rename:
+        old, eq, new = rule.partition("=")
+        if not eq or not old or not new:
+            raise click.BadParameter(f"{rule!r}: expected OLD=NEW", param_hint="'--rename'")
+        pairs[old] = new
+    with ui.warnings():
+        changes = api.edit_groups(file, remove=remove, rename=pairs, output=output, asset=asset, force=force)
+    ui.payload({"file": file, "output": output or file, "changes": console.changes_payload(changes)})
+    console.say_changes(ui, changes, output or file)
+    if changes.renamed:
+        ui.warn(f"{output or file}: renamed groups have new channel names: evaluate WEIGHTS again (psdbake eval)")
+    ui.say(f"wrote {output or file}")
+
+
 @cli.command("batch")
 @click.argument("jobs_file", metavar="JOBS.toml", type=str)
 @click.option("--workers", "-w", type=click.IntRange(min=1), default=None,
