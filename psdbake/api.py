@@ -22,9 +22,11 @@ import warnings
 from collections.abc import Iterator, Mapping, Sequence
 from typing import Any
 
+import numpy as np
+
 from . import __version__, atomic, outputs
 from .deformers import deformer_files, load_deformers
-from .errors import InputError, OutputError, PsdWarning, where
+from .errors import FitError, InputError, OutputError, PsdWarning, where
 from .evaluation import animation_weights, correctives_by_animation, posed_points
 from .frames import check_authored, frames_of
 from .groups import (
@@ -44,6 +46,8 @@ from .groups import (
     renamed_group,
     without_groups,
 )
+from .lookup import did_you_mean, matches
+from .regions import active_joints
 from .results import FitResult, GltfResult, MirrorResult, PoseResult, Progress, SculptsResult, WeightsResult
 from .settings import FitSettings, MirrorSettings, SettingError
 from .usd import provenance
@@ -158,14 +162,21 @@ def fit(
     load_deformers(settings.deformers)  # fail fast on a bad spec; each solve loads its own chain
     asset_scene = open_asset(asset, notes)
     infos = asset_scene.skinned_meshes()
-    meshes = _meshes_to_fit(asset, [m.path for m in infos], settings.meshes)
+    meshes = _meshes_to_fit(asset, infos, settings, notes)
     skipped: list[str] = []
     layout: list[str] = []  # why a mesh's correctives are one global group, when they are
+    left_out: list[str] = []  # groups with no edited example
     try:
         share_scene(asset_scene)  # the solves' rest points and shading come from this stage, not a second one
         per_mesh, tasks = gather_examples(asset, asset_scene, infos, meshes, example_files, settings)  # checked
         plans, systems = {}, {}
         for info in [i for i in infos if i.path in per_mesh]:
+            if not settings.drivers and not any(active_joints(np.array([e.pose for e in per_mesh[info.path]]))):
+                left_out.append(f"<{info.path}>: its skeleton <{info.skeleton}> never leaves its bind pose")
+                _skip(notes, f"{where(asset, info.path)}: every example is at the bind pose of its skeleton "
+                             f"<{info.skeleton}>, so no joint can drive a corrective for it: skipped (an edit at the bind "
+                             "pose belongs in the asset itself)")
+                continue
             regions, unused, why = plan_mesh(asset, info, per_mesh[info.path], settings)  # who drives what
             plans[info.path] = regions
             systems[info.path] = plan_systems(asset, info, per_mesh[info.path], regions, settings, notes)
@@ -183,8 +194,10 @@ def fit(
             mine = {i: solved[(info.path, e.source, e.time)] for i, e in enumerate(examples)
                     if (info.path, e.source, e.time) in solved}
             fits += fit_regions(asset, asset_scene, info, examples, mine, plans[info.path], settings, notes,
-                                systems[info.path])
+                                systems[info.path], left_out)
             _note_normals(asset, info.path, notes)
+        if not fits:
+            raise FitError(f"{', '.join(example_files)}: nothing to correct: {'; '.join(left_out)}")
         # for write_correctives: the asset's layers and the EXAMPLES files still open, so no input is parsed twice
         held = {layer.identifier: layer for layer in [*asset_scene.file_layers(), *open_layers(example_files)]}
     finally:
@@ -199,11 +212,48 @@ def fit(
     return dataclasses.replace(result, checks=checks, warnings=tuple(notes), seconds=_time.perf_counter() - started)
 
 
-def _meshes_to_fit(asset: str, skinned: list[str], wanted: Sequence[str]) -> list[str]:
+def _skip(notes: list[str], msg: str) -> None:
+    notes.append(msg)
+    warnings.warn(msg, PsdWarning, stacklevel=3)
+
+
+def resolve_meshes(asset: str, skinned: Sequence[str], wanted: Sequence[str]) -> list[str]:
+    """The skinned meshes ``--mesh`` names (full paths or unambiguous leaf names), in the asset's order."""
+    chosen = set()
     for mesh in wanted:
-        if mesh not in skinned:
-            raise SettingError("meshes", mesh, "is not a skinned mesh of the asset", location=asset)
-    return [m for m in skinned if not wanted or m in wanted]
+        hits = matches(mesh, skinned)
+        if len(hits) != 1:
+            problem = (f"is not a skinned mesh of the asset (skinned: {', '.join(skinned)}){did_you_mean(mesh, skinned)}"
+                       if not hits else f"is ambiguous ({', '.join(hits)}): give its full path")
+            raise SettingError("meshes", mesh, problem, location=asset)
+        chosen.add(hits[0])
+    return [m for m in skinned if not wanted or m in chosen]
+
+
+def _meshes_to_fit(asset: str, infos: Sequence[Any], settings: FitSettings, notes: list[str]) -> list[str]:
+    """The meshes to fit: ``--mesh`` (resolved), and with ``--driver`` only those whose skeleton
+    has the drivers: a file with several skeletons (a head's, each hand's) skins each mesh by one,
+    and a driver of one cannot drive another's meshes. A driver no skeleton has, or one the
+    chosen meshes' skeletons lack, is refused naming the skeletons that have it (--mesh)."""
+    meshes = resolve_meshes(asset, [m.path for m in infos], settings.meshes)
+    if not settings.drivers:
+        return meshes
+    by_path = {m.path: m for m in infos}
+    lacking = {m: [d for d in settings.drivers if not matches(d, by_path[m].joints)] for m in meshes}
+    usable = [m for m in meshes if not lacking[m]]
+    if usable and not settings.meshes:
+        for m in sorted(set(meshes) - set(usable)):
+            _skip(notes, f"{where(asset, m)}: skipped: its skeleton <{by_path[m].skeleton}> has no joint "
+                         f"{lacking[m][0]!r} (--driver)")
+        return usable
+    bad = next(m for m in meshes if lacking[m])
+    name = lacking[bad][0]
+    owners = sorted({i.skeleton for i in infos if matches(name, i.joints)})
+    hint = (f"; it is a joint of <{owners[0]}>, which skins "
+            f"{', '.join(i.path.rsplit('/', 1)[-1] for i in infos if i.skeleton == owners[0])}: choose those with --mesh"
+            if owners else did_you_mean(name, [j for i in infos for j in i.joints]))
+    raise SettingError("drivers", name, f"is not a joint of skeleton <{by_path[bad].skeleton}>, which skins "
+                       f"<{bad}>{hint}", location=asset)
 
 
 def _note_normals(asset: str, mesh: str, notes: list[str]) -> None:
@@ -740,6 +790,16 @@ def write_stack(path: str, layers: Sequence[str], *, strict: bool = False, force
     return plan
 
 
-def describe(path: str) -> dict:
-    """What a USD file holds (``psdbake inspect``): JSON-ready, sorted."""
-    return describe_file(path)
+def describe(path: str, asset: str | None = None) -> dict:
+    """What a USD file holds (``psdbake inspect``): JSON-ready, sorted. With the asset (given, or
+    the one the file records it was made from), the example poses are spelled out: per time code,
+    the joints turned from bind and by how many degrees."""
+    from .usd.describe import spelled_poses
+
+    info = describe_file(path)
+    asset = asset or recorded_asset(path)
+    times = sorted({t for e in info["examples"] for t in e["time_codes"]})
+    if asset and os.path.isfile(asset) and times and os.path.realpath(asset) != os.path.realpath(path):
+        info["asset"] = asset
+        info["poses"] = spelled_poses(Scene([path, asset], label=path), times)
+    return info

@@ -497,16 +497,23 @@ def compare_cmd(asset, examples, anim, report_dir, vertex, mesh, frames, hold, v
 
 @cli.command("inspect")
 @click.argument("file", type=str)
-@click.option("--json", "as_json", is_flag=True, help="Print the summary as JSON.")
-def inspect_cmd(file, as_json) -> None:
-    """What FILE holds: skeletons, skinned meshes, animations, examples and psd: correctives."""
+@click.option("--asset", default=None, metavar="ASSET",
+              help="The asset FILE is layered over (EXAMPLES, POSES): spell out each example's pose, the joints turned "
+                   "from bind and by how much. Default: the asset FILE records, if any.")
+@_common
+def inspect_cmd(file, asset, quiet, verbose, as_json) -> None:
+    """What FILE holds: skeletons (joint hierarchy), skinned meshes, animations, example poses and psd:
+    correctives."""
     from . import api
 
-    info = api.describe(file)
+    info = api.describe(file, asset=asset)
     if as_json:
         click.echo(json.dumps(info, indent=2, sort_keys=True))
+    elif not quiet:
+        console.say_inspect(file, info, verbose)
     else:
-        console.say_inspect(file, info)
+        for warning in info.get("warnings", []):
+            click.echo(f"psdbake: warning: {warning}", err=True)
 
 
 @cli.command("stack")

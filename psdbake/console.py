@@ -305,7 +305,12 @@ def say_groups(ui: Ui, file: str, groups: list[dict]) -> None:
 
 # --- inspect and batch -----------------------------------------------------------------------
 
-def say_inspect(file: str, info: dict) -> None:
+def _joint_tree(paths: list[str]) -> list[str]:
+    """Joint paths as an indented tree of leaf names, in the skeleton's order."""
+    return [f"{'  ' * p.count('/')}{p.split('/')[-1]}" for p in paths]
+
+
+def say_inspect(file: str, info: dict, verbose: int = 0) -> None:
     for warning in info.get("warnings", []):
         click.echo(f"psdbake: warning: {warning}", err=True)
     click.echo(f"{file}")
@@ -313,21 +318,32 @@ def say_inspect(file: str, info: dict) -> None:
         click.echo(f"  SkelRoot <{root}>")
     for skel in info["skeletons"]:
         click.echo(f"  Skeleton <{skel['path']}>: {skel['joints']} joints, animation {skel['animation'] or '-'}")
+        for line in _joint_tree(skel.get("joint_paths", [])):
+            click.echo(f"      {line}")
     for m in info["meshes"]:
         shapes = f", blend shapes: {', '.join(m['blend_shapes'])}" if m["blend_shapes"] else ""
         click.echo(f"  skinned <{m['path']}>: {m['points']} points, {m['influences']} influences, "
                    f"{m['skinning_method'] or 'classicLinear'}{shapes}")
     for a in info["animations"]:
         span = f"{a['first']:g}..{a['last']:g}" if a["samples"] else "static"
-        click.echo(f"  SkelAnimation <{a['path']}>: {a['joints']} joints, {a['samples']} samples ({span})")
+        parts = [f"{a['joints']} joints ({a.get('joint_samples', a['samples'])} samples)"]
+        if a["blend_shapes"]:
+            parts.append(f"{len(a['blend_shapes'])} blend shapes ({a.get('blend_shape_samples', 0)} weight samples)")
+        click.echo(f"  SkelAnimation <{a['path']}>: {', '.join(parts)}, {span}")
     for e in info["examples"]:
         click.echo(f"  examples of <{e['mesh']}> at time codes {', '.join(f'{t:g}' for t in e['time_codes'])}")
+    for pose in info.get("poses", []):
+        turned = ", ".join(f"{j['joint'].split('/')[-1]} {j['degrees']:g}°" for j in pose["joints"]) or "bind pose"
+        click.echo(f"    t={pose['time']:g}: {turned}")
+    if info["examples"] and "poses" not in info:
+        click.echo("    (give --asset ASSET to spell out each example's pose)")
     for c in info["correctives"]:
         click.echo(f"  correctives on <{c['mesh']}> group {c['group']} (psd: v{c['version']}): {len(c['shapes'])} shapes from "
                    f"{c['examples']} examples; drivers {', '.join(d.split('/')[-1] for d in c['drivers'])}; "
                    f"{c['pose_space']}, {c['kernel']}, sigma {c['sigma']:.4g}, degree {c['degree']}")
-        for name, count in sorted(c["offsets"].items()):
-            click.echo(f"    BlendShape {name}: {count} points")
+        if verbose:
+            for name, count in sorted(c["offsets"].items()):
+                click.echo(f"    BlendShape {name}: {count} points")
 
 
 def batch_lines(jobs_file: str, quiet: bool, verbose: int) -> Callable[[JobResult, int, int], None]:
