@@ -26,6 +26,10 @@ if TYPE_CHECKING:  # the results are only read here: importing them would load n
     from .results import FitResult, MirrorResult, Progress, SculptsResult, WeightsResult
 
 
+#: eval -v counts a channel as on in a frame above this weight (a display threshold, not a tolerance).
+_SHOWN_ON = 1e-3
+
+
 class Ui:
     """Where the CLI talks: summaries to stdout, progress and warnings to stderr."""
 
@@ -267,6 +271,13 @@ def say_eval(ui: Ui, result: WeightsResult, output: str, points_cache: str | Non
     ui.say(f"psdbake eval: {frames_n} frame(s) on {len(result.animations)} animation(s) in {result.seconds:.2f} s")
     for a in result.animations:
         ui.say(f"  <{a.animation}>  {a.psd_channels} corrective channel(s), frames {a.times[0]:g}..{a.times[-1]:g}")
+        if ui.verbose:  # which correctives fire, how strongly and where
+            first = len(a.channels) - a.psd_channels
+            for c in range(first, len(a.channels)):
+                peak = int(a.weights[:, c].argmax())
+                active = int((a.weights[:, c] > _SHOWN_ON).sum())
+                ui.say(f"    {a.channels[c]:<48} max {a.weights[peak, c]:.3f} at frame {a.times[peak]:g}, "
+                       f"on in {active} of {len(a.times)} frame(s)")
     ui.say(f"wrote {output}" + (f" and {points_cache}" if points_cache else ""))
 
 
