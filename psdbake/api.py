@@ -332,7 +332,7 @@ def write_correctives(result: FitResult, path: str, *, update: bool = False,
             stamped(layer, "correctives", path, {"asset": result.asset}, rig=result.rig, command=False,
                     groups={**kept, **{g: entry for g in names_of(written)}})
             usdwrite.export_all([(path, layer), *side_files], inputs)
-    return changes_between(before, groups, written, records)
+    return changes_between(before, groups, written, records, routine="fit --group of" if update else "fit of")
 
 
 def write_fit_report(result: FitResult, path: str, text: str, *, force: bool = False) -> str:
@@ -677,7 +677,8 @@ def write_mirror(result: MirrorResult, path: str, *, force: bool = False, replac
             stamped(layer, "correctives", path, {"asset": result.asset}, rig=result.rig, command=False,
                     groups={**{g: r for g, r in records.items() if g in names_of(groups)}, **entries})
             usdwrite.export_all([(path, layer)], inputs)
-    return dataclasses.replace(changes_between(before, groups, written, records), protected=tuple(protected))
+    return dataclasses.replace(changes_between(before, groups, written, records, routine="mirrored from"),
+                               protected=tuple(protected))
 
 
 # --- groups: list, remove, rename the groups of a CORRECTIVES layer -------------------------------

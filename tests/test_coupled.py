@@ -208,7 +208,7 @@ def test_a_coupled_chain_that_snaps_to_a_grid_stalls_cleanly(run, rig_folder, tm
     deformer = tmp_path / "snapping.py"
     deformer.write_text(SNAPPING_DEFORMER)
     out, report = tmp_path / "c.usda", tmp_path / "r.json"
-    code, stdout, err = run("fit", rig.asset, rig.examples, "-o", out, "--deformer", f"{deformer}:snap",
+    code, _, err = run("fit", rig.asset, rig.examples, "-o", out, "--deformer", f"{deformer}:snap",
                             "--report", report)
     assert code == 7 and not out.exists(), err
     assert json.loads(report.read_text())["written"] is False
