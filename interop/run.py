@@ -33,8 +33,10 @@ drivers compute the weights from the armature's pose), opens the .blend as a use
 auto-run off, plays every frame and asserts: each channel's shape-key value within 1e-6 of
 ``psdbake eval``'s weight (what UsdSkel reads from WEIGHTS), the evaluated mesh within plain +
 1e-6 of the corrected stack's BakeSkinning (the criterion above), every driver a valid simple
-expression and no Python blocked. ``interop/blender_speed.py`` then times a frame of the plain
-stack, the baked corrected stack and the live rig side by side in one Blender process.
+expression and no Python blocked; and (``interop/blender_constraints.py``) that a driver bone
+turned by a constraint drives the correctives as the same turn keyed on the bone, within 1e-6.
+``interop/blender_speed.py`` then times a frame of the plain stack, the baked corrected stack and
+the live rig side by side in one Blender process.
 """
 
 from __future__ import annotations
@@ -59,6 +61,7 @@ FIXTURES = os.path.join(ROOT, "fixtures")
 HERE = os.path.dirname(os.path.abspath(__file__))
 BLENDER_SCRIPT = os.path.join(HERE, "blender_points.py")
 SPEED_SCRIPT = os.path.join(HERE, "blender_speed.py")
+CONSTRAINTS_SCRIPT = os.path.join(HERE, "blender_constraints.py")
 DEFAULT_BLENDER_PYTHON = os.path.join(ROOT, ".venv-blender", "bin", "python")
 
 CRITERION = 1e-6  # corrected error may exceed plain error by at most this (fraction of the diagonal)
@@ -665,21 +668,29 @@ def live_case(case: Case, stacks: Stacks, ref: Reference, plain: dict[str, float
                                   "channels": len(mesh.channels), "matched": weights.get("matched", 0),
                                   "clamped_samples": weights.get("clamped_samples", 0), "passed": ok}
         passed = passed and ok
+    report["constraints"] = blender_json(CONSTRAINTS_SCRIPT, [blend], os.path.join(folder, "constraints.json"), case)
+    passed = (passed and report["constraints"]["max_abs_dw"] <= LIVE_WEIGHT_ATOL
+              and report["constraints"]["max_value"] > LIVE_WEIGHT_ATOL)
     report["speed"] = speed(case, stacks, blend, frames, folder)
     report["passed"] = passed
     return report
 
 
-def speed(case: Case, stacks: Stacks, blend: str, frames: list[float], folder: str) -> dict:
-    """blender_speed.py on the plain stack, the baked corrected stack and the live rig."""
-    out = os.path.join(folder, "speed.json")
-    cmd = [blender_python(), SPEED_SCRIPT, "--frames", ",".join(f"{f:g}" for f in frames), "--rounds", str(SPEED_ROUNDS),
-           "-o", out, f"plain={stacks.plain}", f"baked={stacks.corrected}", f"live={blend}"]
-    proc = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT)
+def blender_json(script: str, args: list[str], out: str, case: Case) -> dict:
+    """Run an interop script in the bpy venv; the JSON it wrote to ``out``."""
+    proc = subprocess.run([blender_python(), script, *args, "-o", out], capture_output=True, text=True, cwd=ROOT)
     if proc.returncode != 0 or not os.path.exists(out):
-        raise HarnessError(f"blender_speed.py failed (exit {proc.returncode}) on {case.name}:\n{proc.stderr[-2000:]}")
+        raise HarnessError(f"{os.path.basename(script)} failed (exit {proc.returncode}) on {case.name}:\n"
+                           f"{proc.stderr[-2000:]}")
     with open(out, encoding="utf-8") as fh:
         return json.load(fh)
+
+
+def speed(case: Case, stacks: Stacks, blend: str, frames: list[float], folder: str) -> dict:
+    """blender_speed.py on the plain stack, the baked corrected stack and the live rig."""
+    return blender_json(SPEED_SCRIPT, ["--frames", ",".join(f"{f:g}" for f in frames), "--rounds", str(SPEED_ROUNDS),
+                                       f"plain={stacks.plain}", f"baked={stacks.corrected}", f"live={blend}"],
+                        os.path.join(folder, "speed.json"), case)
 
 
 # --- glTF ---------------------------------------------------------------------------------------
@@ -904,9 +915,12 @@ def live_report(results: list[CaseResult]) -> list[str]:
     lines = ["", "## Live rig: psdbake export-blender, opened with Python auto-run off, posed at every frame", "",
              f"Criteria: every shape-key value within {LIVE_WEIGHT_ATOL:g} of eval's weight (max |Δw|); the evaluated "
              f"mesh within plain + {CRITERION:g} of the corrected stack's BakeSkinning (live err, as corrected err "
-             "above); every driver a valid simple expression, no Python blocked.", "",
-             "| case | mesh | frames | channels | drivers (simple, valid) | max \\|Δw\\| | plain err | live err | criterion |",
-             "|---|---|---|---|---|---|---|---|---|"]
+             "above); every driver a valid simple expression, no Python blocked; a driver bone turned by a Copy "
+             f"Rotation constraint gives the weights of the same turn keyed on it within {LIVE_WEIGHT_ATOL:g} "
+             "(constraint \\|Δw\\|: every driver bone, 3 turns each).", "",
+             "| case | mesh | frames | channels | drivers (simple, valid) | max \\|Δw\\| | plain err | live err | "
+             "constraint \\|Δw\\| | criterion |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
     for res in results:
         live = res.live
         if not live:
@@ -916,7 +930,8 @@ def live_report(results: list[CaseResult]) -> list[str]:
             lines.append(f"| {res.case.name} | `{path}` | {len(res.frames)} | {m.get('channels', '—')} | "
                          f"{d['drivers']} ({d['simple']}, {d['valid']}) | {fmt(m.get('max_abs_dw', math.nan))} | "
                          f"{fmt(m.get('plain', math.nan))} | {fmt(m.get('error', math.nan))} | "
-                         f"{'PASS' if m.get('passed') else 'FAIL'} |")
+                         f"{fmt(live.get('constraints', {}).get('max_abs_dw', math.nan))} | "
+                         f"{'PASS' if m.get('passed') and live.get('passed') else 'FAIL'} |")
     lines += ["", "Per-frame cost in Blender (`scene.frame_set`: animation, drivers, armature deform; median over "
               f"{SPEED_ROUNDS} interleaved rounds in one process, each playing the shot 3 times per variant):", "",
               "| case | vertices | plain rig | baked shot (shape keys keyed) | live rig | live / plain | live / baked |",

@@ -23,7 +23,7 @@ layout. Registries are keyed by the schema's own tokens (``POSE_COORDINATES`` by
 refused at compile time, naming it.
 
 Blender side of delta_j: the variables read each bone's rotation away from its rest pose
-(quaternion, ``TRANSFORM_SPACE``: after constraints, before parenting). Blender's USD importer
+(quaternion, ``LOCAL_SPACE``: after constraints, before parenting). Blender's USD importer
 makes every bone's rest the joint's bind transform (``bindTransforms``; the script Blender
 runs checks this), so the joint's local rotation is R_j = q_rest,j b_j, b_j the bone's
 rotation, and delta_j = (q_bind,j^-1 q_rest,j) b_j. psdbake writes q_bind from the same

@@ -3,7 +3,7 @@
 A mesh's live correctives are a list of drivers on its shape-key datablock (``Key``): each
 either drives a custom property of the Key (an intermediate quantity, a *node*) or a shape
 key's value (a *channel*). A driver's variables read a bone's rotation (``BoneChannel``:
-a ``TRANSFORMS`` variable, quaternion component, transform space, so constraints such as IK
+a ``TRANSFORMS`` variable, quaternion component, local space, so constraints such as IK
 count) or a node (``Prop``: a ``SINGLE_PROP`` variable on the same Key). Drivers are listed
 in dependency order.
 
@@ -49,7 +49,8 @@ QUATERNION_CHANNELS = ("W", "X", "Y", "Z")
 @dataclass(frozen=True)
 class BoneChannel:
     """One component of a joint's rotation away from its rest (= bind) pose, as Blender's
-    ``TRANSFORMS`` driver variable reads it (``rotation_mode`` QUATERNION, ``TRANSFORM_SPACE``)."""
+    ``TRANSFORMS`` driver variable reads it (``rotation_mode`` QUATERNION, ``LOCAL_SPACE``: after
+    constraints such as IK, relative to the rest pose and the parent)."""
 
     joint: str  # skeleton joint path
     channel: str  # one of QUATERNION_CHANNELS

@@ -150,7 +150,7 @@ def add_drivers(key, arm, bones: dict[str, str], drivers: list[dict]) -> dict:
                 target.bone_target = bones[source[1]]
                 target.transform_type = f"ROT_{source[2]}"
                 target.rotation_mode = "QUATERNION"
-                target.transform_space = "TRANSFORM_SPACE"
+                target.transform_space = "LOCAL_SPACE"
             else:
                 var.type = "SINGLE_PROP"
                 target.id_type = "KEY"
