@@ -51,7 +51,8 @@ def strip_suffix(name: str) -> str:
 
 
 def blender_name(name: str) -> str:
-    """A name as Blender keeps it: at most 63 bytes."""
+    """A name as Blender keeps it: at most 63 bytes (psdbake's channel names fit; a pre-v4
+    layer's psd:shapes might not, and the importer names their shape keys cut so)."""
     return name.encode()[:63].decode(errors="ignore")
 
 
@@ -68,7 +69,7 @@ def find_mesh(entry: dict):
     found = [o for o in bpy.data.objects if o.type == "MESH" and strip_suffix(o.name) == name
              and len(o.data.vertices) == entry["points"]]
     keyed = [o for o in found if o.data.shape_keys is not None
-             and all(c in o.data.shape_keys.key_blocks for c in entry["channels"])]
+             and all(blender_name(c) in o.data.shape_keys.key_blocks for c in entry["channels"])]
     if len(keyed) != 1:
         what = "no" if not found else f"{len(found)}" if not keyed else f"{len(keyed)} matching"
         raise RigError(f"<{entry['path']}>: {what} Blender mesh object(s) named {name!r} with {entry['points']} "
@@ -133,7 +134,7 @@ def add_drivers(key, arm, bones: dict[str, str], drivers: list[dict]) -> dict:
             key[d["target"]] = 0.0
             fc = key.driver_add(f'["{esc(d["target"])}"]')
         else:
-            fc = key.key_blocks[d["target"]].driver_add("value")
+            fc = key.key_blocks[blender_name(d["target"])].driver_add("value")
         # driver_add gives the F-Curve two Bezier keys, (0, 0) and (1, 1), through which the
         # driver's value is mapped: not the identity (5e-5 comes out as 0, measured in bpy
         # 5.0.1). Without keys or modifiers the value is written as the driver computes it.
