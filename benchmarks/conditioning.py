@@ -27,9 +27,10 @@ import warnings
 import numpy as np
 from pxr import Gf, Sdf, Usd, UsdGeom, UsdSkel
 
-from psdbake import api, rbf
+from psdbake import api
 from psdbake import tolerances as tol
 from psdbake.errors import PsdWarning
+from psdbake.fitting import rbf_fit as rbf
 from psdbake.settings import FitSettings
 
 from . import rigs

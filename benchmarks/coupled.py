@@ -7,7 +7,7 @@ the 13k and 100k bench rigs):
 * one-shot: cvShapeInverter's linearisation, a 3x3 Jacobian per vertex from 3 calls moving
   every sculpted vertex together, D = J^-1 r, no iteration (its residual checked here);
 * coupled: ``coupled.invert`` (coupling probe, Newton-Krylov from zero, then from the smooth
-  start where that misses: ``psdbake.smoothbasis``).
+  start where that misses: ``psdbake.solver.smoothbasis``).
 
 Every residual is measured here by running the full chain on rest + offsets. Usage:
 ``python -m benchmarks.coupled [--examples N] [--examples-100k N]``.
@@ -23,10 +23,10 @@ from collections.abc import Callable
 import numpy as np
 from numpy.typing import NDArray
 
-from psdbake import coupled
 from psdbake import tolerances as tol
-from psdbake.inverse import invert_example, sculpted_vertices
-from psdbake.smoothbasis import edge_adjacency
+from psdbake.solver import coupled
+from psdbake.solver.inverse import invert_example, sculpted_vertices
+from psdbake.solver.smoothbasis import edge_adjacency
 from psdbake.usd.meshrest import rest_mesh
 
 from . import rigs

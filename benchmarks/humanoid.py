@@ -51,7 +51,7 @@ import generate  # noqa: E402
 import humanoid as hum  # noqa: E402
 
 from psdbake import api  # noqa: E402
-from psdbake.channels import column_weights  # noqa: E402
+from psdbake.model.channels import column_weights  # noqa: E402
 from psdbake.results import FitResult, WeightsResult  # noqa: E402
 from psdbake.settings import FitSettings  # noqa: E402
 

@@ -50,9 +50,9 @@ from pxr import Gf, Sdf, Usd, UsdGeom, UsdSkel
 import psdbake
 from psdbake import api
 from psdbake import tolerances as tol
-from psdbake.inverse import InverseResult, invert_example, invert_example_with
 from psdbake.results import FitResult
 from psdbake.settings import FitSettings
+from psdbake.solver.inverse import InverseResult, invert_example, invert_example_with
 from psdbake.usd.read import Scene
 
 from . import references, rigs

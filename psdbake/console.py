@@ -22,7 +22,7 @@ from .errors import PsdWarning, StrictError
 if TYPE_CHECKING:  # the results are only read here: importing them would load numpy and USD with --help
     from .farm import JobResult
     from .farm.chunked import ChunkedWeights, WrittenChunks
-    from .groups import GroupChanges
+    from .fitting.groups import GroupChanges
     from .results import FitResult, MirrorResult, Progress, SculptsResult, WeightsResult
 
 

@@ -13,8 +13,8 @@ import numpy as np
 
 from . import tolerances as tol
 from .errors import SettingError
-from .posespace import POSE_SPACES
-from .rbf_model import KERNELS
+from .model.posespace import POSE_SPACES
+from .model.rbf import KERNELS
 from .usd.schema import RESERVED_GROUP_NAMES
 
 

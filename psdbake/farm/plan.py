@@ -22,7 +22,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..errors import InputError, PsdError
-from ..frames import frame_count, parse_frames
+from ..shot.frames import frame_count, parse_frames
 
 
 class ChunkUsageError(PsdError):

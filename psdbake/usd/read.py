@@ -19,7 +19,7 @@ from numpy.typing import NDArray
 from pxr import Sdf, Usd, UsdGeom, UsdSkel
 
 from ..errors import InputError, where
-from ..posespace import undefined_rotations
+from ..model.posespace import undefined_rotations
 from .compose import compose
 from .schema import BlendShapeData, DriverData, read_blend_shape, read_groups
 from .valuetypes import Checked, check_value_types

@@ -20,9 +20,9 @@ from numpy.typing import NDArray
 from pxr import Gf, Sdf, Usd, UsdSkel, Vt
 
 from ..errors import InputError, where
+from ..model.posespace import POSE_SPACES
+from ..model.rbf import KERNELS
 from ..names import DEFAULT_GROUP
-from ..posespace import POSE_SPACES
-from ..rbf_model import KERNELS
 from .author import attribute, double_array, int_array, over, quatd_array
 
 #: Version of the psd: attribute schema written by this psdbake.
