@@ -39,7 +39,7 @@ _EXPORTS = {
     "model.rbf": ("KERNELS", "CardinalRbf"),
     "fitting.rbf_fit": ("fit_cardinal",),
     "model.posespace": ("POSE_SPACES",),
-    "usd.schema": ("DriverData", "PSD_VERSION"),
+    "model.data": ("DriverData", "PSD_VERSION"),
     "export.blender.export": ("BlenderRigResult",),
 }
 _WHERE = {name: module for module, names in _EXPORTS.items() for name in names}
@@ -97,6 +97,7 @@ if TYPE_CHECKING:  # for type checkers and IDEs: the same names, eagerly
     from .farm.chunked import ChunkedWeights, evaluate_chunks, write_chunks  # noqa: F401
     from .farm.plan import ChunkPlan, plan_chunks  # noqa: F401
     from .fitting.rbf_fit import fit_cardinal  # noqa: F401
+    from .model.data import PSD_VERSION, DriverData  # noqa: F401
     from .model.posespace import POSE_SPACES  # noqa: F401
     from .model.rbf import KERNELS, CardinalRbf  # noqa: F401
     from .results import (  # noqa: F401
@@ -115,4 +116,3 @@ if TYPE_CHECKING:  # for type checkers and IDEs: the same names, eagerly
     from .shot.frames import parse_frames  # noqa: F401
     from .solver.inverse import InverseResult, invert_example  # noqa: F401
     from .solver.powell import PowellResult, minimize_lockstep  # noqa: F401
-    from .usd.schema import PSD_VERSION, DriverData  # noqa: F401

@@ -521,8 +521,8 @@ def _eval_chunked(ui: Ui, asset, correctives, anim, output, frames, points_cache
     """eval --chunk-size N [--chunk K]: chunk layers plus the value-clip manifest(s) (psdbake.farm.chunked)."""
     from . import api, atomic
     from .deformers import load_deformers
+    from .errors import ChunkUsageError
     from .farm import chunked
-    from .farm.plan import ChunkUsageError
     from .shot.frames import parse_frames
 
     if chunk_size is None:

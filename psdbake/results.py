@@ -9,10 +9,10 @@ import numpy as np
 from numpy.typing import NDArray
 
 from . import tolerances as tol
+from .model.data import DEFAULT_GROUP, BlendShapeData, DriverData
 from .normals import CorrectiveNormals
 from .settings import FitSettings, MirrorSettings
 from .solver.inverse import InverseResult
-from .usd.schema import DEFAULT_GROUP, BlendShapeData, DriverData
 
 Progress = Callable[[int, int, str], None]  # (done, total, what)
 

@@ -18,12 +18,12 @@ from psdbake.export.blender.graph import BoneChannel, Evaluator, bone_inputs, ch
 from psdbake.export.blender.simple import Named, Var
 from psdbake.model import posespace
 from psdbake.model.channels import channel_weights
+from psdbake.model.data import DriverData
 from psdbake.model.quaternions import Rotations
 from psdbake.model.rbf import KERNELS, monomial_powers
 from psdbake.model.weights import column_weights_of_local, group_weights
 from psdbake.names import KERNEL_NAMES, POSE_SPACE_NAMES
 from psdbake.usd.read import Scene
-from psdbake.usd.schema import DriverData
 
 #: Blender's drivers against ``eval``: the done-when criterion, per channel.
 WEIGHT_ATOL = 1e-6

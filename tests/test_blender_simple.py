@@ -14,9 +14,10 @@ import numpy as np
 import pytest
 from conftest import ROOT
 
+from psdbake.errors import SimpleExpressionError
 from psdbake.export.blender import graph, simple
 from psdbake.export.blender.graph import BoneChannel, Evaluator, check_graph, lay_out
-from psdbake.export.blender.simple import EXPRESSION_LIMIT, Named, SimpleExpressionError, Var, add, call, mul, num
+from psdbake.export.blender.simple import EXPRESSION_LIMIT, Named, Var, add, call, mul, num
 
 
 def identity(v: float) -> float:

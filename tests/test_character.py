@@ -22,7 +22,8 @@ import pytest
 from conftest import ROOT, bake, diagonal, fixture, points, pose_only, run_cli, sculpt
 from pxr import Sdf, Usd
 
-ROUNDTRIP_RTOL = 1e-5
+from psdbake.tolerances import ROUNDTRIP_RTOL
+
 ASSET = fixture("character", "character.usda")
 ANIM = fixture("character", "character_anim.usda")
 

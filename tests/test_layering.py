@@ -1,7 +1,9 @@
 """The package's layering, checked from its source: who may import what.
 
 - Only ``psdbake/usd/`` imports ``pxr``: USD stays at the edge, the numerics are testable
-  without it.
+  without it. And not only directly: importing the pure modules (``PURE``: the psd: model,
+  settings, results, farm planning, the OBJ format) in a fresh interpreter loads no ``pxr``
+  at all, so a third party can evaluate the weights formula without usd-core.
 - No import cycles between psdbake's modules, counting imports inside functions too (a cycle
   held together by a function-level import is still a cycle); only ``if TYPE_CHECKING:``
   blocks are left out, since they never run.
@@ -78,6 +80,40 @@ def test_only_psdbake_usd_imports_pxr():
     offenders = [f"{MODULES[m]}:{line} imports {target}" for m, edges in GRAPH.items()
                  if not m.startswith("psdbake.usd") for target, line in edges if target.split(".")[0] == "pxr"]
     assert not offenders, "\n".join(offenders)
+
+
+#: Modules (and packages, every module under them) that must not load pxr, even transitively.
+PURE = ("psdbake.model", "psdbake.settings", "psdbake.results", "psdbake.errors", "psdbake.tolerances",
+        "psdbake.names", "psdbake.lookup", "psdbake.shot.frames", "psdbake.farm.plan", "psdbake.farm.jobs",
+        "psdbake.sculpting.obj", "psdbake.fitting.regions", "psdbake.solver.powell", "psdbake.solver.inverse",
+        "psdbake.export.blender.compiler", "psdbake.outputs", "psdbake.atomic")
+
+
+def test_the_pure_modules_load_no_pxr_transitively():
+    import subprocess
+    import sys
+
+    wanted = sorted(m for m in MODULES if any(m == p or m.startswith(p + ".") for p in PURE))
+    code = ("import importlib, sys\n"
+            f"for m in {wanted!r}:\n"
+            "    importlib.import_module(m)\n"
+            "    assert 'pxr' not in sys.modules, m\n")
+    done = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert len(wanted) >= 20  # the model and its neighbours are all here
+
+
+def test_registries_are_keyed_by_their_names():
+    """A registry is a dictionary keyed by the literal names the CLI offers (names.py), so
+    reordering one table can never rebind an entry to another name."""
+    from psdbake import names
+    from psdbake.model.posespace import POSE_SPACES
+    from psdbake.model.rbf import KERNELS
+    from psdbake.usd.write import FORMATS
+
+    assert tuple(POSE_SPACES) == names.POSE_SPACE_NAMES
+    assert tuple(KERNELS) == names.KERNEL_NAMES
+    assert tuple(FORMATS) == names.LAYER_FORMATS
 
 
 def test_the_cli_is_imported_by_no_library_module():

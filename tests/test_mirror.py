@@ -38,7 +38,7 @@ from scipy.spatial.transform import Rotation
 from psdbake.mirroring.poses import COORDINATE_MAPS, driver_turns, rotations_of
 from psdbake.mirroring.symmetry import reflection
 from psdbake.model import posespace
-from psdbake.usd.bindspace import BindSpace
+from psdbake.model.rig import BindSpace
 
 M = reflection("x")
 RIGHT = {3.0: 2.0, 6.0: 4.0, 7.0: 5.0, 10.0: 8.0, 11.0: 9.0, 13.0: 12.0}  # right example -> its left mirror

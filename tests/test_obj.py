@@ -50,7 +50,8 @@ BAD = fixture("bad")
 sys.path.insert(0, BAD)
 import make_bad  # noqa: E402  (fixtures/bad/make_bad.py)
 
-ROUNDTRIP_RTOL = 1e-5
+from psdbake.tolerances import ROUNDTRIP_RTOL  # noqa: E402
+
 EXIT_INPUT, EXIT_OUTPUT = 3, 6
 ASSET, POSED = os.path.join(BAD, "good_asset.usda"), os.path.join(BAD, "good_posed.usda")
 GOOD_EXAMPLES = os.path.join(BAD, "good_examples.usda")

@@ -17,8 +17,8 @@ from conftest import ROOT, diagonal, fixture, generate, points, stage_of
 from psdbake import api
 from psdbake.fitting.regions import active_joints, plan_regions
 from psdbake.model.channels import column_weights
+from psdbake.model.data import DEFAULT_GROUP
 from psdbake.settings import FitSettings
-from psdbake.usd.schema import DEFAULT_GROUP
 
 ELBOW, WRIST = "Shoulder/Elbow", "Shoulder/Elbow/Wrist"
 # time -> joint angles (degrees): elbow alone, wrist alone, both (the combination)

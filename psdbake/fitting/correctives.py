@@ -20,13 +20,14 @@ from scipy.spatial.transform import Rotation
 from .. import tolerances as tol
 from ..errors import FitError, InputError, PsdWarning, where
 from ..model.channels import channel_scales, plan_channels, split_shapes, weight_range
+from ..model.data import BlendShapeData, DriverData
+from ..model.rig import SkinnedMesh
 from ..model.weights import activation, pose_coordinates, rbf_weights, sampled_ranges, weights_at_pose
 from ..normals import CorrectiveNormals
 from ..results import Example, MeshFit
 from ..settings import FitSettings
 from ..solver.inverse import InverseResult
-from ..usd.read import Scene, SkinnedMesh
-from ..usd.schema import BlendShapeData, DriverData
+from ..usd.read import Scene
 from .drivers import character_scale, fit_drivers, plan_group, resolve_drivers
 from .groups import shapes_of
 from .rbf_fit import RbfPlan

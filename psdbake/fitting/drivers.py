@@ -20,11 +20,12 @@ from .. import tolerances as tol
 from ..errors import FitError, PsdWarning, SettingError, where
 from ..lookup import did_you_mean, matches
 from ..model import posespace
+from ..model.data import DriverData
+from ..model.rig import SkinnedMesh
 from ..results import Example, MeshFit
 from ..settings import FitSettings
 from ..solver.inverse import InverseResult
-from ..usd.read import Scene, SkinnedMesh, existing_blend_shapes
-from ..usd.schema import DriverData
+from ..usd.read import Scene, existing_blend_shapes
 from . import rbf_fit as rbf
 from .regions import Region
 

@@ -16,11 +16,12 @@ from numpy.typing import NDArray
 
 from ..errors import FitError, InputError, where
 from ..model import posespace
+from ..model.rig import SkinnedMesh
 from ..results import Example
 from ..settings import FitSettings
 from ..solver.solve import InverseTask, cached_rest, cached_scene
 from ..usd.compose import open_layer
-from ..usd.read import Scene, SkinnedMesh, stray_point_prims
+from ..usd.read import Scene, stray_point_prims
 from ..usd.validate import check_examples_binding, require_finite_time_samples, validate_animation
 
 Sculpt = tuple[Scene, str, float, NDArray[np.float64]]  # (stage, EXAMPLES file, time code, points (n, 3))

@@ -16,13 +16,14 @@ import numpy as np
 from ..errors import FitError, InputError, SettingError, where
 from ..lookup import did_you_mean
 from ..model.channels import channel_names
+from ..model.data import BlendShapeData, DriverData
 from ..model.weights import weights_at_pose
 from ..results import FitResult, MeshFit
 from ..usd import write as usdwrite
 from ..usd.author import Layer
 from ..usd.compose import open_layer
 from ..usd.read import Scene, existing_blend_shapes, read_corrective_shapes
-from ..usd.schema import BlendShapeData, DriverData, author_driver_data, psd_prims
+from ..usd.schema import author_driver_data, psd_prims
 
 
 def shapes_of(m: MeshFit) -> list[BlendShapeData]:

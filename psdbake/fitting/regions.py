@@ -33,7 +33,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .. import tolerances as tol
-from ..usd.schema import DEFAULT_GROUP, RESERVED_GROUP_NAMES
+from ..model.data import DEFAULT_GROUP, RESERVED_GROUP_NAMES
 
 
 @dataclass(frozen=True)

@@ -21,11 +21,10 @@ from ..fitting.correctives import client_safe
 from ..fitting.drivers import channel_prefix
 from ..fitting.groups import Groups
 from ..model import posespace
+from ..model.data import BlendShapeData, DriverData
+from ..model.rig import BindSpace, SkinnedMesh
 from ..results import MirroredGroup
 from ..settings import MirrorSettings, is_group_name
-from ..usd.bindspace import BindSpace
-from ..usd.read import SkinnedMesh
-from ..usd.schema import BlendShapeData, DriverData
 from .poses import coordinate_map, driver_turns, mirror_gate_poses, mirror_rbf, mirrored_twist_axis, sculpted_rotations
 from .symmetry import JointMap, check_joints, match_vertices, partner_problem, partners, reflection
 

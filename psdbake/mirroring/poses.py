@@ -34,9 +34,9 @@ from .. import tolerances as tol
 from ..errors import FitError, InputError
 from ..fitting import rbf_fit as rbf
 from ..model import posespace
+from ..model.data import DriverData
+from ..model.rig import BindSpace
 from ..model.weights import rbf_from_driver_data
-from ..usd.bindspace import BindSpace
-from ..usd.schema import DriverData
 
 
 def _rotation_vector(p: NDArray[np.float64]) -> NDArray[np.float64]:

@@ -21,7 +21,7 @@ from scipy.spatial import cKDTree
 from .. import tolerances as tol
 from ..errors import InputError, SettingError
 from ..lookup import did_you_mean
-from ..usd.bindspace import BindSpace
+from ..model.rig import BindSpace
 
 #: Index of each mirror plane's normal axis.
 AXES = {"x": 0, "y": 1, "z": 2}

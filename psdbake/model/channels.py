@@ -24,7 +24,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .. import tolerances as tol
-from ..usd.schema import BlendShapeData, DriverData
+from .data import BlendShapeData, DriverData
 from .posespace import POSE_SPACES
 from .rbf import KERNELS
 

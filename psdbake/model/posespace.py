@@ -36,8 +36,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from ..arrays import Matrices, Quaternions
-from ..names import POSE_SPACE_NAMES
+from ..arrays import Matrices, Quaternions, is_singular
 from .quaternions import RotationLike, Rotations
 
 #: Transform entries beyond float32's range: UsdSkel skins in float32, so such a joint or
@@ -50,11 +49,7 @@ def undefined_rotations(matrices: Matrices) -> NDArray[np.bool_]:
     float32's range, a zero-scale axis, or axes that do not span 3-D (a degenerate frame)."""
     m = np.asarray(matrices, dtype=np.float64)
     usable = np.all(np.isfinite(m), axis=(-2, -1)) & np.all(np.abs(np.nan_to_num(m)) <= LARGEST_ENTRY, axis=(-2, -1))
-    block = np.where(usable[..., None, None], m[..., :3, :3], 0.0)
-    norms = np.linalg.norm(block, axis=-1)
-    unit = block / np.where(norms > 0, norms, 1.0)[..., None]
-    frame = np.abs(np.linalg.det(unit))  # 1 for orthogonal axes, 0 when they are coplanar
-    return ~usable | np.any(norms < 1e-12, axis=-1) | (frame < 1e-9)
+    return ~usable | is_singular(np.where(usable[..., None, None], m[..., :3, :3], 0.0))
 
 
 def rotations(matrices: Matrices) -> Rotations:
@@ -118,14 +113,14 @@ class PoseSpace:
     bound: float = np.pi  # no coordinate of any rotation exceeds this in magnitude (channels.py)
 
 
-#: The pose spaces, by their ``psd:poseSpace`` token (``names.POSE_SPACE_NAMES``, the same
-#: order): the CLI's choices, the fit's and the reader's validation all read these, so a new
+#: The pose spaces, keyed by their ``psd:poseSpace`` token (``names.POSE_SPACE_NAMES``, checked by
+#: tests/test_layering.py): the CLI's choices, the fit's and the reader's validation all read these, so a new
 #: pose space is one name there and one entry here.
-POSE_SPACES: dict[str, PoseSpace] = dict(zip(POSE_SPACE_NAMES, (
-    PoseSpace(3, _rotation_vector),  # rotationVector
-    PoseSpace(4, _swing_twist, needs_twist_axis=True),  # swingTwist
-    PoseSpace(9, _chordal, bound=2.0),  # quaternion: entries of R - I
-), strict=True))
+POSE_SPACES: dict[str, PoseSpace] = {
+    "rotationVector": PoseSpace(3, _rotation_vector),
+    "swingTwist": PoseSpace(4, _swing_twist, needs_twist_axis=True),
+    "quaternion": PoseSpace(9, _chordal, bound=2.0),  # entries of R - I
+}
 
 
 def features(delta: RotationLike, space: str = "rotationVector", twist_axis=None) -> NDArray[np.float64]:

@@ -24,20 +24,19 @@ from numpy.typing import NDArray
 
 from .. import tolerances as tol
 from ..errors import FitError
-from ..names import KERNEL_NAMES
 
 #: phi(r) for r = eps |x - c|, exactly as scipy.interpolate.RBFInterpolator defines them, by
-#: ``names.KERNEL_NAMES`` (the same order).
-KERNELS = dict(zip(KERNEL_NAMES, (
-    lambda r: np.exp(-(r**2)),  # gaussian
-    lambda r: -r,  # linear
-    lambda r: np.where(r > 0, r**2 * np.log(np.where(r > 0, r, 1.0)), 0.0),  # thin_plate_spline
-    lambda r: r**3,  # cubic
-    lambda r: -(r**5),  # quintic
-    lambda r: -np.sqrt(r**2 + 1.0),  # multiquadric
-    lambda r: 1.0 / np.sqrt(r**2 + 1.0),  # inverse_multiquadric
-    lambda r: 1.0 / (r**2 + 1.0),  # inverse_quadratic
-), strict=True))
+#: name, as SciPy keys its table (``names.KERNEL_NAMES``, checked by tests/test_layering.py).
+KERNELS = {
+    "gaussian": lambda r: np.exp(-(r**2)),
+    "linear": lambda r: -r,
+    "thin_plate_spline": lambda r: np.where(r > 0, r**2 * np.log(np.where(r > 0, r, 1.0)), 0.0),
+    "cubic": lambda r: r**3,
+    "quintic": lambda r: -(r**5),
+    "multiquadric": lambda r: -np.sqrt(r**2 + 1.0),
+    "inverse_multiquadric": lambda r: 1.0 / np.sqrt(r**2 + 1.0),
+    "inverse_quadratic": lambda r: 1.0 / (r**2 + 1.0),
+}
 
 
 #: Kernels that need at least this polynomial degree to be well posed (scipy's rule).

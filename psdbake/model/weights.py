@@ -13,9 +13,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..errors import InputError
-from ..usd.schema import DriverData
 from . import posespace
 from .channels import channel_weights
+from .data import DriverData
 from .quaternions import RotationLike, Rotations
 from .rbf import KERNELS, CardinalRbf
 

@@ -29,6 +29,7 @@ from ..arrays import Points
 from ..deformers import DeformerFactory, load_deformers
 from ..errors import InputError, where
 from ..model import posespace
+from ..model.data import DEFAULT_GROUP
 from ..model.weights import check_driver_transforms, driver_weights
 from ..results import FitResult, MeshFit, Progress
 from ..settings import FitSettings
@@ -36,7 +37,6 @@ from ..shot.frames import check_authored, frames_of
 from ..usd.blackbox import SkinningBlackBox
 from ..usd.compose import open_layer
 from ..usd.read import Scene
-from ..usd.schema import DEFAULT_GROUP
 
 
 @dataclass(frozen=True)

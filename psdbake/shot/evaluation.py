@@ -18,12 +18,13 @@ from .. import tolerances as tol
 from ..deformers import DeformerFactory
 from ..errors import InputError, PsdWarning, where
 from ..model.channels import channel_names, channel_weights
+from ..model.data import DriverData
+from ..model.rig import SkinnedMesh
 from ..model.weights import check_driver_transforms, column_weights_of_local
 from ..results import AnimWeights, Progress
 from ..usd.blackbox import FLOAT32_MAX, SkinningBlackBox
 from ..usd.posedpoints import PosedPoints, RestPoints
-from ..usd.read import Scene, SkinnedMesh
-from ..usd.schema import DriverData
+from ..usd.read import Scene
 from ..usd.validate import check_corrective_indices, require_finite_time_samples, validate_animation
 
 Corrected = tuple[SkinnedMesh, list[tuple[str, DriverData]]]  # a mesh and its correctives groups

@@ -5,13 +5,16 @@ from __future__ import annotations
 
 import re
 import warnings
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
 
 from .. import tolerances as tol
 from ..errors import InputError, PsdWarning, where
-from ..usd.read import Scene
+
+if TYPE_CHECKING:
+    from ..usd.read import Scene
 
 
 def parse_frames(text: str | None) -> tuple[float, float] | None:
@@ -78,3 +81,11 @@ def frames_of(scene: Scene, mesh: str, frames: tuple[float, float] | None, label
         anim = scene.animation_prim(mesh) or mesh
         raise InputError(f"{where(label or scene.label, anim)}: the animation has no time samples; give --frames")
     return np.array(times, dtype=np.float64)
+
+
+def frame_label(t: float, width: int) -> str:
+    """A time code in a file name: zero-padded, ``m`` for minus, ``p`` for the decimal point
+    (-12.5 -> m0012p5): no characters that shells or USD asset paths treat specially."""
+    text = np.format_float_positional(abs(float(t)), trim="-")  # shortest text that reads back exactly
+    whole, _, frac = text.partition(".")
+    return ("m" if t < 0 else "") + whole.zfill(width) + (f"p{frac}" if frac else "")

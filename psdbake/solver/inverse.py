@@ -31,20 +31,13 @@ from numpy.typing import NDArray
 
 from .. import tolerances as tol
 from ..arrays import Points, row_norms
+from ..errors import SculptOutOfRangeError
 from . import powell
 
 BlackBox = Callable[[Points], Points]
 #: ``invert_example_with(stop_if_coupled=True)`` stopped after the linearised start: the chain couples vertices.
 COUPLING_SEEN = "coupling seen"
 
-
-class SculptOutOfRangeError(ValueError):
-    """A sculpted vertex lies absurdly far from its skinned position."""
-
-    def __init__(self, vertex: int, distance: float, diagonal: float) -> None:
-        super().__init__(f"vertex {vertex} is {distance:.3g} away from its skinned position, far outside the mesh "
-                         f"({distance / max(diagonal, 1e-300):.3g} times its size): broken data or a unit mix-up")
-        self.vertex, self.distance, self.diagonal = vertex, distance, diagonal
 
 
 @dataclass(frozen=True)

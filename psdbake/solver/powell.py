@@ -53,7 +53,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .. import tolerances as tol
-from ..arrays import row_norms
+from ..arrays import is_singular, row_norms
 
 Offsets = NDArray[np.float64]  # (m, 3)
 Residuals = NDArray[np.float64]  # (m, 3)
@@ -206,10 +206,8 @@ def _adjugate_over(cofactors: list[NDArray[np.float64]], det: NDArray[np.float64
 
 
 def _invertible(jac: NDArray[np.float64], det: NDArray[np.float64], rcond: float) -> NDArray[np.bool_]:
-    """|det J| against |J|_F^3 (no SVD: it is zero for a singular J and ~0.19 for a rotation)."""
-    scale = np.einsum("kab,kab->k", jac, jac) ** 1.5
-    with np.errstate(invalid="ignore", over="ignore"):
-        return np.isfinite(scale) & (np.abs(det) > rcond * np.maximum(scale, 1e-300))
+    """|det J| against |J|_F^3 (``arrays.is_singular``)."""
+    return ~is_singular(jac, rcond, det)
 
 
 def well_conditioned(jac: NDArray[np.float64], rcond: float = QN_RCOND) -> NDArray[np.bool_]:

@@ -20,7 +20,7 @@ import scipy.sparse as sp
 from numpy.typing import NDArray
 
 from ..deformers import load_deformers
-from ..errors import InputError, where
+from ..errors import InputError, SculptOutOfRangeError, where
 from ..normals import CorrectiveNormals, PosedNormals, corrective_normals
 from ..results import Progress
 from ..usd.blackbox import SkinningBlackBox
@@ -28,7 +28,7 @@ from ..usd.compose import open_layer
 from ..usd.normalbox import MeshShading, NormalBlackBox, read_mesh_shading
 from ..usd.read import Scene
 from . import coupled
-from .inverse import InverseResult, SculptOutOfRangeError
+from .inverse import InverseResult
 from .smoothbasis import edge_adjacency
 
 

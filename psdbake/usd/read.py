@@ -12,7 +12,6 @@ Gf convention: matrices are row-vector (p' = p . M); they are converted to numpy
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
@@ -20,24 +19,10 @@ from pxr import Sdf, Usd, UsdGeom, UsdSkel
 
 from ..errors import InputError, where
 from ..model.posespace import undefined_rotations
+from ..model.rig import SkinnedMesh
 from .compose import compose
 from .schema import BlendShapeData, DriverData, read_blend_shape, read_groups
 from .valuetypes import Checked, check_value_types
-
-
-@dataclass(frozen=True)
-class SkinnedMesh:
-    """A skinned point-based prim and the skeleton that deforms it."""
-
-    path: str
-    skeleton: str
-    skel_root: str
-    joints: tuple[str, ...]  # skeleton joint order (full joint paths)
-    point_count: int
-
-
-
-
 
 
 def matrices(values) -> NDArray[np.float64]:

@@ -42,6 +42,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ... import tolerances as tol
+from ...errors import CompileError
 from ...model.channels import channel_names
 from ...model.quaternions import Rotations
 from ...model.weights import gate_slices
@@ -50,14 +51,11 @@ from .graph import QUATERNION_CHANNELS, BoneChannel, DriverGraph, lay_out
 from .simple import Expr, Named, Num, Var, add, call, cmp, div, if_else, mul, neg, num, square, sub
 
 if TYPE_CHECKING:
-    from ...usd.schema import DriverData
+    from ...model.data import DriverData
 
 Quaternion = tuple[Expr, Expr, Expr, Expr]  # (w, x, y, z)
 Floats = Sequence[float] | NDArray[np.float64]
 
-
-class CompileError(ValueError):
-    """``psd:`` data the compiler has no building block for (a new pose space or kernel)."""
 
 
 def _zero() -> Num:

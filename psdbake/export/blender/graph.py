@@ -24,12 +24,12 @@ import hashlib
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 
+from ...errors import LayoutError, SimpleExpressionError
 from .simple import (
     EXPRESSION_LIMIT,
     Add,
     Expr,
     Named,
-    SimpleExpressionError,
     TextBounds,
     Var,
     children,
@@ -93,9 +93,6 @@ class DriverGraph:
         """The joints whose rotations the graph reads, sorted."""
         return tuple(sorted({s.joint for d in self.drivers for _, s in d.variables if isinstance(s, BoneChannel)}))
 
-
-class LayoutError(ValueError):
-    """An expression that no layout fits in Blender's limit (a compiler defect, not bad data)."""
 
 
 def property_name(name: str) -> str:

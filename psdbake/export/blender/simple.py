@@ -39,6 +39,8 @@ from dataclasses import dataclass, fields
 
 import numpy as np
 
+from ...errors import SimpleExpressionError
+
 #: ``ChannelDriver.expression`` is ``char[256]``: longer text is cut.
 EXPRESSION_LIMIT = 255
 
@@ -46,9 +48,6 @@ EXPRESSION_LIMIT = 255
 # precedence is below what its place needs.
 _IF, _OR, _AND, _NOT, _CMP, _ADD, _MUL, _NEG, _ATOM = range(1, 10)
 
-
-class SimpleExpressionError(ValueError):
-    """A text outside Blender's simple subset, or an operation that would fail the driver."""
 
 
 class Expr:

@@ -24,8 +24,8 @@ from dataclasses import dataclass
 
 from ... import __version__, atomic
 from ...errors import InputError, OutputError
-from ...farm.plan import frame_label
 from ...outputs import OutputKind
+from ...shot.frames import frame_label
 
 MANIFEST = "manifest.json"
 #: ``<mesh path, '/' -> '.', other bytes -XX>@<time code, 'm' minus, 'p' point>.obj``
