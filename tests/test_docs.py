@@ -192,6 +192,19 @@ def test_every_repository_path_the_docs_name_exists():
     assert not missing, "\n".join(missing)
 
 
+def test_readme_is_a_front_page():
+    text = _read(README)
+    lines = text.splitlines()
+    assert len(lines) <= 200, f"README.md has {len(lines)} lines"
+    assert "make test" in text and "make demo" in text
+    links = re.findall(r"\]\((docs/[^)#]+)", text)
+    assert links, "README links into docs/"
+    for link in links:
+        assert os.path.exists(os.path.join(ROOT, link)), link
+    for command in ("pose", "sculpts", "fit", "mirror", "eval"):  # the loop in five commands
+        assert f"psdbake {command} " in text, command
+
+
 def _command_lines(text: str) -> list[str]:
     """Command lines of the shell code blocks (```sh): the ones that start with ``psdbake``, continuations joined."""
     out, fence = [], None
