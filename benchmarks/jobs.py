@@ -62,8 +62,10 @@ def main(argv: list[str] | None = None) -> None:
         rig = rigs.build(folder, "lbs", args.size, poses, poses_layer)
         rows = []
         outputs = {}
+        out = os.path.join(folder, "corr.usdc")  # one path: the layer records the command line that wrote it
         for jobs in sorted({1, cores}):
-            out = os.path.join(folder, f"corr_j{jobs}.usdc")
+            if os.path.exists(out):
+                os.remove(out)
             seconds, peak = run_fit(rig.asset, rig.examples, out, jobs)
             with open(out, "rb") as fh:
                 outputs[jobs] = fh.read()
