@@ -25,7 +25,8 @@ _EXPORTS = {
     ),
     "settings": ("FitSettings", "MirrorSettings"),
     "results": ("AnimWeights", "Example", "FitResult", "GltfResult", "MeshFit", "MirroredGroup", "MirrorResult",
-                "PoseResult", "Progress", "WeightsResult"),
+                "PoseResult", "WeightsResult"),
+    "arrays": ("Progress",),
     "shot.frames": ("parse_frames",),
     "farm": ("Batch", "BatchResult", "JobResult", "load_jobs", "run_batch"),
     "farm.chunked": ("ChunkedWeights", "evaluate_chunks", "write_chunks"),
@@ -81,6 +82,7 @@ if TYPE_CHECKING:  # for type checkers and IDEs: the same names, eagerly
         write_stack,
         write_weights,
     )
+    from .arrays import Progress  # noqa: F401
     from .errors import (  # noqa: F401
         DeformerError,
         FitError,
@@ -109,7 +111,6 @@ if TYPE_CHECKING:  # for type checkers and IDEs: the same names, eagerly
         MirroredGroup,
         MirrorResult,
         PoseResult,
-        Progress,
         WeightsResult,
     )
     from .settings import FitSettings, MirrorSettings  # noqa: F401

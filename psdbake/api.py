@@ -25,6 +25,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from . import __version__, atomic, outputs
+from .arrays import Progress
 from .deformers import deformer_files, load_deformers
 from .errors import FitError, InputError, OutputError, PsdWarning, where
 from .fitting.groups import (
@@ -44,9 +45,9 @@ from .fitting.groups import (
     renamed_group,
     without_groups,
 )
-from .fitting.regions import active_joints
 from .lookup import did_you_mean, matches
-from .results import FitResult, GltfResult, MirrorResult, PoseResult, Progress, SculptsResult, WeightsResult
+from .model.posespace import active_joints
+from .results import FitResult, GltfResult, MirrorResult, PoseResult, SculptsResult, WeightsResult
 from .settings import FitSettings, MirrorSettings, SettingError
 from .shot.evaluation import animation_weights, correctives_by_animation, posed_points
 from .shot.frames import check_authored, frames_of

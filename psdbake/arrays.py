@@ -3,6 +3,8 @@ row norms the solver takes of them."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 from numpy.typing import NDArray
 
@@ -11,6 +13,7 @@ from . import tolerances as tol
 Points = NDArray[np.float64]  # (n, 3) positions or offsets, mesh local space
 Matrices = NDArray[np.float64]  # (j, 4, 4) Gf row-vector transforms (p' = p . M)
 Quaternions = NDArray[np.float64]  # (j, 4) scalar-last (x, y, z, w), as scipy
+Progress = Callable[[int, int, str], None]  # (done, total, what)
 
 
 def row_norms(a: NDArray[np.float64], b: NDArray[np.float64] | None = None) -> NDArray[np.float64]:

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -13,8 +12,6 @@ from .model.data import DEFAULT_GROUP, BlendShapeData, DriverData
 from .normals import CorrectiveNormals
 from .settings import FitSettings, MirrorSettings
 from .solver.inverse import InverseResult
-
-Progress = Callable[[int, int, str], None]  # (done, total, what)
 
 
 @dataclass(frozen=True)

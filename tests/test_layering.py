@@ -116,6 +116,43 @@ def test_registries_are_keyed_by_their_names():
     assert tuple(FORMATS) == names.LAYER_FORMATS
 
 
+#: The layers, lowest first: a module imports only from its own layer or lower ones. The tree
+#: reads as the pipeline: read USD -> pose space -> black-box skinning -> inverse -> RBF -> write.
+LAYERS = (
+    ("base", ("errors", "names", "tolerances", "arrays", "lookup", "outputs", "atomic")),
+    ("model", ("model",)),
+    ("geometry", ("normals", "deformers")),
+    ("usd", ("usd",)),
+    ("solver", ("solver", "delta_mush")),
+    ("data", ("settings", "results")),
+    ("stages", ("fitting", "shot", "mirroring", "sculpting")),
+    ("clients", ("export",)),
+    ("api", ("api",)),
+    ("report", ("report",)),
+    ("farm", ("farm",)),
+    ("shell", ("console", "cli", "_entry", "__main__")),
+)
+#: The imports that point up, each for a reason (docs/contributing.md):
+UPWARD = {
+    ("psdbake.farm.job", "psdbake._entry"),  # a farm task is the psdbake command in a process of its own
+    ("psdbake.outputs", "psdbake.usd.provenance"),  # an existing layer's kind is read with USD, lazily
+    ("psdbake.usd.meshfaces", "psdbake.sculpting.obj.faces"),  # USD's faces read into the OBJ format's class
+}
+
+
+def _layer(module: str) -> int:
+    top = module.split(".")[1]
+    return next(i for i, (_, members) in enumerate(LAYERS) if top in members)
+
+
+def test_imports_point_down_the_layers():
+    """Every module (the public facade psdbake/__init__.py aside) imports from its own layer or
+    lower ones, but for the few ``UPWARD`` imports, each with its reason."""
+    up = {(m, t) for m, edges in GRAPH.items() if m != "psdbake" and "rig_script" not in m
+          for t, _ in edges if t in MODULES and t != "psdbake" and t != m and _layer(t) > _layer(m)}
+    assert up == UPWARD, f"imports pointing up the layers: {sorted(up - UPWARD)}; gone: {sorted(UPWARD - up)}"
+
+
 def test_the_cli_is_imported_by_no_library_module():
     offenders = [f"{MODULES[m]}:{line}" for m, edges in GRAPH.items() if m not in ENTRY_POINTS
                  for target, line in edges if target == "psdbake.cli"]

@@ -15,9 +15,10 @@ import pytest
 from conftest import ROOT, diagonal, fixture, generate, points, stage_of
 
 from psdbake import api
-from psdbake.fitting.regions import active_joints, plan_regions
+from psdbake.fitting.regions import plan_regions
 from psdbake.model.channels import column_weights
 from psdbake.model.data import DEFAULT_GROUP
+from psdbake.model.posespace import active_joints
 from psdbake.settings import FitSettings
 
 ELBOW, WRIST = "Shoulder/Elbow", "Shoulder/Elbow/Wrist"

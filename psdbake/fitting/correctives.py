@@ -118,7 +118,7 @@ def _unedited(region: Region, examples: Sequence[Example], solved: Sequence[Solv
 
 
 def _moved(example: Example) -> list[int]:
-    from .regions import active_joints
+    from ..model.posespace import active_joints
 
     return sorted(active_joints(example.pose.reshape(1, -1, 4))[0])
 

@@ -32,7 +32,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from .. import tolerances as tol
+from ..model import posespace
 from ..model.data import DEFAULT_GROUP, RESERVED_GROUP_NAMES
 
 
@@ -45,12 +45,6 @@ class Region:
     examples: tuple[int, ...]  # indices into the mesh's examples
     gated: bool = False  # a combination: fitted on top of the regions of its joints, gated by each
 
-
-def active_joints(poses: NDArray[np.float64], angle: float = tol.ACTIVE_JOINT_ANGLE) -> list[frozenset[int]]:
-    """Per example pose (j, 4) quaternions: the joints turned more than angle from bind."""
-    q = np.asarray(poses, dtype=np.float64)
-    turned = 2.0 * np.arctan2(np.linalg.norm(q[..., :3], axis=-1), np.abs(q[..., 3])) > angle
-    return [frozenset(int(j) for j in np.nonzero(row)[0]) for row in turned]
 
 
 def group_name(joints: Sequence[str], chosen: Sequence[int], taken: set[str]) -> str:
@@ -75,7 +69,7 @@ def plan_regions(poses: NDArray[np.float64], labels: Sequence[str], joints: Sequ
 
     poses: (examples, j, 4), labels name them. group/drivers: the explicit ``--group`` /
     ``--driver`` choice."""
-    active = active_joints(poses)
+    active = posespace.active_joints(poses)
     everything = tuple(range(len(active)))
     if drivers:  # explicit drivers: the examples that move only those joints (and move one of them)
         chosen = set(drivers)

@@ -36,6 +36,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from .. import tolerances as tol
 from ..arrays import Matrices, Quaternions, is_singular
 from .quaternions import RotationLike, Rotations
 
@@ -151,3 +152,9 @@ def rotated_joints(deltas: NDArray[np.float64], atol: float) -> NDArray[np.bool_
     q = np.asarray(deltas, dtype=np.float64)
     angles = 2.0 * np.arctan2(np.linalg.norm(q[..., :3], axis=-1), np.abs(q[..., 3]))
     return np.any(angles > atol, axis=0)
+
+def active_joints(poses: NDArray[np.float64], angle: float = tol.ACTIVE_JOINT_ANGLE) -> list[frozenset[int]]:
+    """Per example pose (j, 4) quaternions: the joints turned more than angle from bind."""
+    q = np.asarray(poses, dtype=np.float64)
+    turned = 2.0 * np.arctan2(np.linalg.norm(q[..., :3], axis=-1), np.abs(q[..., 3])) > angle
+    return [frozenset(int(j) for j in np.nonzero(row)[0]) for row in turned]

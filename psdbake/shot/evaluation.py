@@ -15,13 +15,14 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .. import tolerances as tol
+from ..arrays import Progress
 from ..deformers import DeformerFactory
 from ..errors import InputError, PsdWarning, where
 from ..model.channels import channel_names, channel_weights
 from ..model.data import DriverData
 from ..model.rig import SkinnedMesh
 from ..model.weights import check_driver_transforms, column_weights_of_local
-from ..results import AnimWeights, Progress
+from ..results import AnimWeights
 from ..usd.blackbox import FLOAT32_MAX, SkinningBlackBox
 from ..usd.posedpoints import PosedPoints, RestPoints
 from ..usd.read import Scene

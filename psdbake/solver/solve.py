@@ -19,10 +19,10 @@ import numpy as np
 import scipy.sparse as sp
 from numpy.typing import NDArray
 
+from ..arrays import Progress
 from ..deformers import load_deformers
 from ..errors import InputError, SculptOutOfRangeError, where
 from ..normals import CorrectiveNormals, PosedNormals, corrective_normals
-from ..results import Progress
 from ..usd.blackbox import SkinningBlackBox
 from ..usd.compose import open_layer
 from ..usd.normalbox import MeshShading, NormalBlackBox, read_mesh_shading
