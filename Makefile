@@ -7,7 +7,7 @@ BIN    := $(VENV)/bin
 OUT    ?= out
 STAMP  := $(VENV)/.installed
 
-.PHONY: demo test lint docs pages bench fidelity fuzz fixtures interop clean
+.PHONY: demo test lint docs pages bench fidelity fuzz fixtures interop clean test-fast
 
 $(STAMP): pyproject.toml tests/gltf/package-lock.json
 	$(PYTHON) -m venv $(VENV)
@@ -48,6 +48,11 @@ test: $(STAMP)
 	$(BIN)/ruff check $(LINTED)
 	$(BIN)/mypy
 	$(BIN)/python -m pytest -q
+
+# the tests that take under a second each (no fuzz, faults, farm or real characters): under a
+# minute on 2 cores, for the edit-test loop; make test still runs everything, and CI calls it
+test-fast: $(STAMP)
+	$(BIN)/python -m pytest -q -m "not slow"
 
 lint: $(STAMP)
 	$(BIN)/ruff check $(LINTED)

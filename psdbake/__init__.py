@@ -19,9 +19,10 @@ __version__ = "0.1.0"
 #: view below are derived from it; tests/test_layering.py checks they agree).
 _EXPORTS = {
     "api": (
-        "correctives_layer", "describe", "evaluate", "export_blender", "export_gltf", "files_read", "fit", "mirror",
-        "mirror_reads", "points_cache_layer", "pose", "weights_layer", "write_correctives", "write_mirror", "write_points_cache",
-        "write_pose", "write_stack", "write_weights",
+        "correctives_layer", "describe", "edit_groups", "evaluate", "export_blender", "export_gltf", "files_read", "fit",
+        "list_groups", "mirror", "mirror_reads", "points_cache_layer", "pose", "sculpts", "weights_layer",
+        "write_correctives", "write_mirror", "write_points_cache", "write_pose", "write_sculpts", "write_stack",
+        "write_weights",
     ),
     "settings": ("FitSettings", "MirrorSettings"),
     "results": ("AnimWeights", "Example", "FitResult", "GltfResult", "MeshFit", "MirroredGroup", "MirrorResult",
@@ -65,20 +66,24 @@ if TYPE_CHECKING:  # for type checkers and IDEs: the same names, eagerly
     from .api import (  # noqa: F401
         correctives_layer,
         describe,
+        edit_groups,
         evaluate,
         export_blender,
         export_gltf,
         files_read,
         fit,
+        list_groups,
         mirror,
         mirror_reads,
         points_cache_layer,
         pose,
+        sculpts,
         weights_layer,
         write_correctives,
         write_mirror,
         write_points_cache,
         write_pose,
+        write_sculpts,
         write_stack,
         write_weights,
     )

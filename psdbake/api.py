@@ -9,7 +9,7 @@ prints. ``write_*`` export layers atomically.
 
 The machinery of fit, mirror and the OBJ round trip (SciPy's interpolation and spatial
 modules among it) is imported by the functions that run it, so ``eval`` loads only what it
-uses (issue 16: every farm chunk pays its start-up).
+uses (every farm chunk pays its start-up).
 """
 
 from __future__ import annotations
@@ -66,20 +66,12 @@ from .usd.valuetypes import Checked
 if TYPE_CHECKING:
     from .export.blender.export import BlenderRigResult
 
-__all__ = [  # noqa: RUF022 - in pipeline order; the public surface is psdbake/__init__.py
-    "fit", "write_correctives", "evaluate", "weights_layer", "write_weights", "points_cache_layer",
-    "write_points_cache", "pose", "write_pose", "write_stack", "describe", "open_asset", "files_read",
-    "correctives_layer", "export_gltf", "export_blender",
-    "mirror", "mirror_reads", "write_mirror",
+__all__ = [  # noqa: RUF022 - in pipeline order; psdbake/__init__.py re-exports exactly these (tests/test_layering.py)
+    "pose", "write_pose", "sculpts", "write_sculpts", "fit", "write_correctives", "correctives_layer", "evaluate",
+    "weights_layer", "write_weights", "points_cache_layer", "write_points_cache", "mirror", "mirror_reads",
+    "write_mirror", "list_groups", "edit_groups", "write_stack", "export_gltf", "export_blender", "describe",
+    "files_read",
 ]
-
-
-
-
-
-
-
-
 
 
 # --- provenance: what every output records, and the check it allows ---------------------------

@@ -268,13 +268,6 @@ def replacing(path: str, inputs: Iterable[str] = (), extensions: Iterable[str] |
             raise OutputError(f"{path}: cannot write ({exc.strerror or exc})") from None
 
 
-def write_text(path: str, text: str, inputs: Iterable[str] = ()) -> str:
-    """Write a small text file (JSON reports) atomically."""
-    with replacing(path, inputs) as tmp, open(tmp, "w", encoding="utf-8") as fh:
-        fh.write(text)
-    return path
-
-
 @contextlib.contextmanager
 def updating(path: str) -> Iterator[None]:
     """Serialise read-modify-write updates of path (``fit --group`` into one CORRECTIVES

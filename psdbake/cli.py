@@ -18,6 +18,7 @@ job's code (1 if that job died otherwise).
 from __future__ import annotations
 
 import contextlib
+import functools
 import json
 import os
 import re
@@ -46,8 +47,6 @@ _COMMON = [
     click.option("-v", "--verbose", count=True, help="More detail in the summary."),
     click.option("--json", "as_json", is_flag=True, help="Print a machine-readable summary on stdout."),
 ]
-
-
 
 
 deformer_option = click.option(
@@ -108,8 +107,22 @@ def _stacked(options: Sequence[Callable]) -> Callable[[Callable], Callable]:
     return apply
 
 
-#: The pose-space and RBF options, shared by ``fit`` and ``compare`` (which fits too).
-rbf_options = _stacked(_RBF_OPTIONS)
+_RBF_NAMES = ("drivers", "kernel", "sigma", "degree", "smoothing", "no_rest_example", "pose_space", "twist_axis",
+              "clamp_weights", "normalize_weights")
+
+
+def rbf_options(fn: Callable) -> Callable:
+    """The pose-space and RBF options, shared by ``fit`` and ``compare`` (which fits too), given
+    to the command as one ``rbf`` dict of ``FitSettings`` fields (``_settings``)."""
+
+    @functools.wraps(fn)
+    def command(*args, **kwargs):
+        rbf = {name: kwargs.pop(name) for name in _RBF_NAMES}
+        return fn(*args, rbf=rbf, **kwargs)
+
+    return _stacked(_RBF_OPTIONS)(command)
+
+
 #: --frames and --hold, shared by every command that evaluates a shot.
 frame_options = _stacked(_FRAMES)
 _common = _stacked(_COMMON)
@@ -179,11 +192,12 @@ class _Command(click.Command):
 cli.command_class = _Command
 
 
-def _settings(drivers, kernel, sigma, degree, smoothing, no_rest_example, pose_space, twist_axis, clamp_weights,
-              normalize_weights, deformers, **more) -> FitSettings:
+def _settings(rbf: dict, deformers, **more) -> FitSettings:
     """FitSettings from the shared RBF options (``rbf_options``) and a command's own."""
     from .settings import FitSettings
 
+    drivers, kernel, sigma, degree, smoothing, no_rest_example, pose_space, twist_axis, clamp_weights, \
+        normalize_weights = (rbf[name] for name in _RBF_NAMES)
     return FitSettings(
         drivers=tuple(drivers), kernel=kernel, sigma=sigma, degree=degree, smoothing=smoothing,
         rest_example=not no_rest_example, pose_space=pose_space, twist_axis=twist_axis,
@@ -320,18 +334,15 @@ def _per_file(flag: str, values: Sequence[str], convert: Callable[[str, str], An
 @deformer_option
 @force_option
 @_common
-def fit_cmd(asset, examples, output, drivers, kernel, sigma, degree, smoothing, no_rest_example, pose_space,
-            twist_axis, clamp_weights, normalize_weights, tolerance, meshes, group, report, strict, allow_degraded,
-            jobs, deformers, force, quiet, verbose, as_json) -> None:
+def fit_cmd(asset, examples, output, rbf, tolerance, meshes, group, report, strict, allow_degraded, jobs, deformers,
+            force, quiet, verbose, as_json) -> None:
     """Fit rest-space corrective BlendShapes and their RBF drivers from sculpted EXAMPLES."""
     from . import api, atomic
     from .fitting.groups import read_correctives
     from .usd.provenance import existing_kind
 
     ui = Ui(quiet, verbose, as_json)
-    settings = _settings(drivers, kernel, sigma, degree, smoothing, no_rest_example, pose_space, twist_axis,
-                         clamp_weights, normalize_weights, deformers, rtol=tolerance, meshes=tuple(meshes),
-                         group=group)
+    settings = _settings(rbf, deformers, rtol=tolerance, meshes=tuple(meshes), group=group)
     reads = api.files_read([asset, *examples], deformers)
     with atomic.forcing(force):
         atomic.check_outputs([(output, outputs.CORRECTIVES), *([(report, outputs.FIT_REPORT)] if report else [])],
@@ -558,9 +569,8 @@ def _eval_chunked(ui: Ui, asset, correctives, anim, output, frames, points_cache
 @rbf_options
 @deformer_option
 @_common
-def compare_cmd(asset, examples, anim, report_dir, vertex, mesh, frames, hold, views, drivers, kernel, sigma, degree,
-                smoothing, no_rest_example, pose_space, twist_axis, clamp_weights, normalize_weights,
-                deformers, quiet, verbose, as_json) -> None:
+def compare_cmd(asset, examples, anim, report_dir, vertex, mesh, frames, hold, views, rbf, deformers, quiet, verbose,
+                as_json) -> None:
     """Fit EXAMPLES, then compare plain skinning, forward PSD and inverse PSD (same RBF weights)
     at every frame of ANIM; write an HTML report with figures and per-frame statistics."""
     from . import api, report
@@ -568,9 +578,8 @@ def compare_cmd(asset, examples, anim, report_dir, vertex, mesh, frames, hold, v
     from .shot.frames import parse_frames
 
     ui = Ui(quiet, verbose, as_json)
-    settings = _settings(drivers, kernel, sigma, degree, smoothing, no_rest_example, pose_space, twist_axis,
-                         clamp_weights, normalize_weights, deformers, meshes=(mesh,) if mesh else (),
-                         group=DEFAULT_GROUP)  # the paper's comparison: one RBF, the same weights for both
+    # the paper's comparison: one RBF, the same weights for forward and inverse PSD
+    settings = _settings(rbf, deformers, meshes=(mesh,) if mesh else (), group=DEFAULT_GROUP)
     span, view_frames = parse_frames(frames), report.parse_views(views)
     report.check_report_dir(report_dir, api.files_read([asset, *examples, anim], deformers))  # before the fit
     with ui.warnings(), ui.progress("fitting examples") as progress:

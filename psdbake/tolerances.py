@@ -4,7 +4,7 @@ Lengths are relative to the mesh's bounding-box diagonal unless stated, so the
 same defaults work for a 2 cm eyebrow and a 20 m dragon.
 
 Plain numbers, no numpy at import: the CLI reads its defaults from here while it parses
-options, and ``psdbake --help`` loads no numerics (issue 16).
+options, and ``psdbake --help`` loads no numerics.
 """
 
 from __future__ import annotations

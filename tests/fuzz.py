@@ -985,7 +985,6 @@ def _worker(mode: str, seed: int, folder: str, err_path: str) -> None:
     os.dup2(log, 2)  # USD's diagnostics while mutating, and any fuzzer error
     capture = _Capture(err_path)
     # the CLI and the library it loads per command, before the first case: their time is not a case's
-    import psdbake.api
     import psdbake.cli  # noqa: F401
 
     _pristine()

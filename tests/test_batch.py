@@ -21,6 +21,9 @@ from psdbake import farm
 from psdbake.cli import cli
 from psdbake.errors import InputError, PsdError
 
+pytestmark = pytest.mark.slow  # make test-fast leaves this module out (make test runs it)
+
+
 ASSET, EXAMPLES = fixture("arm_lbs.usda"), fixture("arm_lbs_examples.usda")
 POSES, ANIM = fixture("arm_poses.usda"), fixture("arm_anim.usda")
 UNSCULPTED = fixture("bad", "examples_unsculpted.usda")

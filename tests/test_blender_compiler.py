@@ -207,6 +207,7 @@ def shots(tmp_path_factory):
 DRIVER_BUDGETS = {"humanoid": 53, "mirrored": 53, "character": 21 + 7, "cesiumman": 43}
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("case", sorted(DRIVER_BUDGETS))
 def test_every_shot_frame_gives_evals_weights_through_float32_drivers(shots, case):
     asset, correctives, anim = shots[case]

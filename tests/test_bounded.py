@@ -26,6 +26,9 @@ from conftest import FIXTURES, digest, fixture, refused
 from psdbake import farm
 from psdbake import tolerances as tol
 
+pytestmark = pytest.mark.slow  # make test-fast leaves this module out (make test runs it)
+
+
 BAD = os.path.join(FIXTURES, "bad")
 ASSET, EXAMPLES = os.path.join(BAD, "good_asset.usda"), os.path.join(BAD, "good_examples.usda")
 CORRECTIVES, ANIM = os.path.join(BAD, "good_correctives.usda"), fixture("arm_anim.usda")

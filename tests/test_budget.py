@@ -53,6 +53,7 @@ def test_affine_skinning_takes_exactly_five_calls(bench, variant):
         assert res.qn_steps == 0 and res.cycles == 0
 
 
+@pytest.mark.slow
 def test_nonlinear_uncoupled_chain_within_twelve_calls(bench):
     rig = bench["lbs+bulge"]
     calls = []

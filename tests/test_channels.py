@@ -35,6 +35,7 @@ def _random_rotations(n: int, seed: int) -> Rotation:
     ("multiquadric", None, "rotationVector"), ("inverse_quadratic", 1, "rotationVector"),
     ("inverse_multiquadric", 1, "rotationVector"), ("linear", None, "rotationVector"),
 ])
+@pytest.mark.slow
 def test_weight_bounds_hold_over_every_pose(kernel, degree, space):
     """weight_range bounds each corrective's weight over the whole rotation group: no sampled
     pose (20,000 uniform rotations per driver and turns of nearly pi) leaves it. The scales
@@ -59,6 +60,7 @@ def test_weight_bounds_hold_over_every_pose(kernel, degree, space):
     assert np.all(lo >= 1000 * np.minimum(b.min(axis=0), -1e-3))
 
 
+@pytest.mark.slow
 def test_scales_keep_sampled_poses_in_range_and_examples_well_above_zero(tmp_path):
     """The channel scales (channels.channel_scales): over 20,000 other sampled poses per driver
     (another seed than the fit's) every channel weight stays within [0, 1], and at each
@@ -96,6 +98,7 @@ def test_scales_keep_sampled_poses_in_range_and_examples_well_above_zero(tmp_pat
         assert anim.weights[:, -anim.psd_channels:].max() <= 1.0
 
 
+@pytest.mark.slow
 def test_an_ill_conditioned_group_keeps_usable_channels(tmp_path):
     """32 examples on the 13k bench rig: the RBF system's condition number is ~4e7 and the
     interval bound of its weights ~3e6; far from its examples the RBF does reach +-170 (the

@@ -153,6 +153,7 @@ def test_a_group_that_would_double_another_is_refused(fitted, run, tmp_path):
     assert out.read_bytes() == fitted.read_bytes()
 
 
+@pytest.mark.slow
 def test_concurrent_group_fits_all_land(tmp_path):
     """Two processes updating one CORRECTIVES layer: the update is locked, both groups land."""
     out = tmp_path / "correctives.usda"

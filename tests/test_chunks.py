@@ -47,6 +47,7 @@ def _bake_all(layers) -> np.ndarray:
     return np.stack([points(stage, generate.MESH, float(t), np.float32) for t in range(1, FRAMES + 1)])
 
 
+@pytest.mark.slow
 def test_ten_chunks_bake_exactly_like_one_eval(shot):
     names = sorted(os.listdir(shot["manifest"].parent))
     weights_chunks = [n for n in names if n.startswith("weights.f")]
@@ -81,6 +82,7 @@ def test_points_cache_manifest_gives_the_single_cache(shot):
             assert np.array_equal(np.array(a.Get(t)), np.array(b.Get(t))), (name, t)
 
 
+@pytest.mark.slow
 def test_farm_tasks_write_the_same_bytes(shot, tmp_path):
     """Chunks by their own processes (at once, racing on the manifests) = the one-run files.
     Three of the ten tasks (first, middle, last): each process spends ~1 s importing USD."""

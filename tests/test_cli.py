@@ -52,6 +52,7 @@ def test_fit_report_and_summary(run, tmp_path):
     assert data["meshes"][0]["drivers"] == ["Shoulder/Elbow", "Shoulder/Elbow/Wrist"]
 
 
+@pytest.mark.slow
 def test_outputs_are_byte_identical_across_runs(run, tmp_path):
     for ext in ("usda", "usdc"):
         outs = []
@@ -139,6 +140,7 @@ def test_deformer_chain_in_pose_fit_eval(run, tmp_path):
         assert ex["missed"] == 0 and ex["max_residual_rel"] <= 1e-5
 
 
+@pytest.mark.slow
 def test_console_script_and_module_entry_points():
     exe = os.path.join(os.path.dirname(sys.executable), "psdbake")
     for cmd in ([exe, "--help"], [sys.executable, "-m", "psdbake", "--version"]):
@@ -158,7 +160,7 @@ def test_inputs_are_never_modified(run, tmp_path):
     assert {p: Path(p).read_bytes() for p in before} == before
 
 
-
+@pytest.mark.slow
 def test_jobs_do_not_change_the_output(run, tmp_path):
     """Examples solved in worker processes give byte-identical CORRECTIVES."""
     outs = []
@@ -280,6 +282,7 @@ def _assert_bars(text: str, bars: dict[str, int], lines: tuple[str, ...]) -> Non
     assert text.rfind(HIDE_CURSOR) < text.rfind(SHOW_CURSOR), f"the cursor is left hidden: {text[-200:]!r}"
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("command", ["eval", "eval --points-cache", "eval --chunk-size", "fit (warning)"])
 def test_progress_bars_on_a_terminal(command, run, tmp_path):
     corr = tmp_path / "c.usda"

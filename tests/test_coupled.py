@@ -22,6 +22,8 @@ from psdbake.solver.smoothbasis import edge_adjacency
 sys.path.insert(0, ROOT)
 from benchmarks import rigs
 
+pytestmark = pytest.mark.slow  # make test-fast leaves this module out (make test runs it)
+
 #: Elbow bends small enough that LBS does not fold the elbow (a folded elbow makes Delta
 #: Mush's frames flip: the chain is then discontinuous there).
 POSES = {1.0: {"Elbow": ((0, 0, 1), 20.0), "Wrist": ((1, 0, 0), 25.0)},
@@ -187,6 +189,7 @@ JOINT_STAGES_BOUND = (3 + coupled.SMOOTH_STEPS + coupled.MAX_EVALUATIONS + coupl
 SNAPPING_DEFORMER = '''
 import numpy as np
 from psdbake.delta_mush import make
+
 
 _mush = make()
 

@@ -85,6 +85,7 @@ def _options(help_text: str) -> set[str]:
     return flags
 
 
+@pytest.mark.slow
 def test_site_builds_strict_and_the_cli_reference_covers_help(site):
     """Every command and option ``--help`` prints is on the generated CLI reference."""
     text = _text(os.path.join(site, "reference", "cli", "index.html"))

@@ -15,6 +15,8 @@ import time
 import pytest
 from conftest import ROOT, fixture
 
+pytestmark = pytest.mark.slow  # make test-fast leaves this module out (make test runs it)
+
 ASSET, EXAMPLES = fixture("arm_lbs.usda"), fixture("arm_lbs_examples.usda")
 OLD = b"#usda 1.0\n(\n    doc = \"an older CORRECTIVES layer\"\n)\n"
 
@@ -69,6 +71,7 @@ class PauseAtUsdImport:
 sys.meta_path.insert(0, PauseAtUsdImport())
 sys.argv[0] = "psdbake"
 from psdbake._entry import main
+
 main()
 """
 

@@ -48,6 +48,7 @@ def _ok(result) -> str:
     return out
 
 
+@pytest.mark.slow
 def test_a_first_day(character, tmp_path, monkeypatch):
     asset, truth, poses = character["asset"], character["truth"], character["poses"]
     monkeypatch.chdir(tmp_path)  # the TD works in a shot folder, with relative paths as README shows

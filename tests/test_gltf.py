@@ -215,6 +215,7 @@ def validate(path: str) -> dict:
     return json.loads(done.stdout)
 
 
+@pytest.mark.slow
 def test_khronos_validator_finds_nothing(exported):
     report = validate(exported[-1])
     issues = report["issues"]

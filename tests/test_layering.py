@@ -16,6 +16,7 @@ from __future__ import annotations
 import ast
 import os
 
+import pytest
 from conftest import ROOT
 
 PACKAGE = os.path.join(ROOT, "psdbake")
@@ -222,6 +223,14 @@ def test_one_public_surface():
     assert eager == set(psdbake.__all__) - {"__version__"}
 
 
+def test_api_and_the_package_export_the_same_pipeline():
+    """``psdbake.api.__all__`` and the names psdbake re-exports from it are one list."""
+    import psdbake
+    import psdbake.api
+
+    assert set(psdbake.api.__all__) == set(psdbake._EXPORTS["api"])
+
+
 def test_no_public_name_is_also_a_submodule():
     """``psdbake.evaluate`` and ``psdbake.mirror`` once named both api functions and modules of
     the package: importing the module (api does, on first use) rebinds the package attribute,
@@ -233,6 +242,7 @@ def test_no_public_name_is_also_a_submodule():
     assert not submodules & set(psdbake.__all__)
 
 
+@pytest.mark.slow
 def test_the_public_functions_stay_functions_after_every_module_loads():
     """In a fresh interpreter: every public name, read after the whole package is imported,
     is what its defining module says (a function, not a module of the same name)."""

@@ -43,6 +43,7 @@ ROLES = ["fit ASSET", "fit EXAMPLES", "eval CORRECTIVES", "eval --anim", "pose A
          "inspect", "compare ASSET"]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("where", ["given", "sublayer"])
 @pytest.mark.parametrize("role", ROLES)
 def test_fifo_never_blocks(role, where, tmp_path):
@@ -111,6 +112,7 @@ CRATES = {
 }
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("role", ["fit ASSET", "pose ASSET", "stack LAYER", "inspect"])
 @pytest.mark.parametrize("name", list(CRATES))
 def test_corrupt_crate_file(name, role, cli, tmp_path):

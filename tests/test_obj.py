@@ -239,6 +239,7 @@ def test_obj_dir_policy(run, tmp_path):
             names=[str(examples)], says=r"not a folder", outputs=[out])
 
 
+@pytest.mark.slow
 def test_interrupted_before_the_commit_leaves_nothing(tmp_path):
     """SIGTERM with EXAMPLES, every OBJ and the manifest written to temporary files (psdbake's
     commit hook holds the run there): exit 130, no EXAMPLES, and the folder it made is gone."""
@@ -477,6 +478,7 @@ def test_round_trip_arm(run, tmp_path):
     print(f"arm: max round-trip error {worst:.2e} of the diagonal")
 
 
+@pytest.mark.slow
 def test_round_trip_cesiumman(run, tmp_path):
     mesh = generate.CESIUM_MESH
     times = [float(t) for t in Sdf.Layer.FindOrOpen(CESIUM_EXAMPLES).ListTimeSamplesForPath(
@@ -493,6 +495,7 @@ def test_round_trip_cesiumman(run, tmp_path):
     print(f"cesiumman: max round-trip error {worst:.2e} of the diagonal")
 
 
+@pytest.mark.slow
 def test_round_trip_character(run, tmp_path):
     """Every example set through OBJ: only its sculpted meshes' OBJs are edited, the others
     (the brow with its own blend shape, the sleeve or body at the other set's poses) go

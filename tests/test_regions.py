@@ -269,6 +269,7 @@ def test_groups_that_will_not_combine_are_warned(rig, run, tmp_path):
                      r"'Wrist' \(its own examples: examples\.usda@1, examples\.usda@2\)", err), err
 
 
+@pytest.mark.slow
 def test_whole_character_default_fit_beats_plain_and_hand_made_groups(tmp_path):
     """Issue 12's targets on the humanoid fixture (benchmarks/humanoid.py, the table in README):
     over the frames where every region moves, the default fit's mean error is at most 10% of

@@ -36,6 +36,7 @@ def test_edge_adjacency_of_a_quad_tube():
     assert degree[:8].tolist() == [3] * 8 and degree[8:16].tolist() == [4] * 8
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("rings", [20, 70])  # 320 vertices: dense path; 1,120: ARPACK's
 def test_the_basis_is_the_regions_smoothest_orthonormal_fields(rings):
     adj = _tube_adjacency(rings, 16)

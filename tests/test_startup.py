@@ -70,6 +70,7 @@ def test_importing_the_cli_loads_no_numerics_and_no_usd():
     assert proc.stdout.strip() == "[]"
 
 
+@pytest.mark.slow
 def test_eval_loads_no_scipy(run, tmp_path):
     """eval evaluates the stored formula with numpy (pose space: ``psdbake.model.quaternions``,
     distances: ``rbf_model.distances``); SciPy's interpolation and spatial modules are the fit's."""

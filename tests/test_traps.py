@@ -138,6 +138,7 @@ def test_2_stack_refuses_contradictions(shot, tmp_path):
 # 3. a failed fit exited 0 (CesiumMan through Delta Mush), and -q printed nothing
 
 
+@pytest.mark.slow
 def test_3_a_degraded_fit_fails_and_minus_q_still_says_why(tmp_path):
     out, report = tmp_path / "c.usda", tmp_path / "fit.json"
     code, stdout, err = run_cli("fit", CESIUM, CESIUM_EXAMPLES, "-o", out, "--deformer", "psdbake.delta_mush:delta_mush",

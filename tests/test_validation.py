@@ -20,6 +20,7 @@ def _errors(context, target) -> list[str]:
     return [f"{e.GetName()}: {e.GetMessage()}" for e in context.Validate(target) if e.GetType() == ERROR]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("rig", ["arm_lbs", "cesiumman"])
 def test_written_layers_validate(rig, run, tmp_path, context):
     if rig == "cesiumman":

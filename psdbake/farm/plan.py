@@ -128,13 +128,6 @@ class ChunkPlan:
         return self._make(index - 1)
 
 
-def whole_frames(frames: tuple[float, float]) -> NDArray[np.float64]:
-    """Whole frames A..B inclusive: the rule of ``frames_of`` for ``--frames`` (at most
-    ``tolerances.MAX_FRAMES``, refused before anything is allocated)."""
-    count = frame_count(frames)
-    return np.ceil(float(frames[0])) + np.arange(count, dtype=np.float64)
-
-
 def _check_size(size: int, count: int) -> int:
     if int(size) < 1:
         raise ChunkUsageError(f"--chunk-size {size}: must be at least 1 frame")

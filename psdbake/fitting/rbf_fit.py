@@ -64,23 +64,6 @@ __all__ = [  # the model's names, re-exported: callers import the RBF from one p
 ]
 
 
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
 @dataclass(frozen=True)
 class RbfPlan:
     """The checked RBF system of one group, made before any example is solved.

@@ -15,7 +15,7 @@ example's corrective is driven only by the joints it moves (turned more than
   of them returns to bind (the way combination shapes work in facial rigs);
 - when some example moves several joints that are not all covered by single-joint
   examples (an animation frame used as a sculpt, say), local regions cannot be formed:
-  every example goes into one global group, ``main``, as psdbake 0.1 did.
+  every example goes into one global group, ``main``.
 
 ``--group`` (one named group) and ``--driver`` (chosen drivers) override this; with
 explicit drivers, the group uses exactly the examples that move only those drivers, and
@@ -44,7 +44,6 @@ class Region:
     joints: tuple[int, ...]  # driver joint indices, skeleton order; () = every joint any example rotates
     examples: tuple[int, ...]  # indices into the mesh's examples
     gated: bool = False  # a combination: fitted on top of the regions of its joints, gated by each
-
 
 
 def group_name(joints: Sequence[str], chosen: Sequence[int], taken: set[str]) -> str:

@@ -138,12 +138,6 @@ def pose_coordinates(bind_local: Matrices, local: Matrices, space: str = "rotati
     return features(relative_rotations(bind_local, local), space, twist_axis)
 
 
-def pose_coordinates_from_quaternions(bind_rotations: Quaternions, local: Matrices, space: str = "rotationVector",
-                                      twist_axis=None) -> NDArray[np.float64]:
-    """As ``pose_coordinates`` with the bind rotations given as stored quaternions."""
-    return features(relative_from_quaternions(bind_rotations, local), space, twist_axis)
-
-
 def rotated_joints(deltas: NDArray[np.float64], atol: float) -> NDArray[np.bool_]:
     """Which joints rotate more than atol (radians) in any of the given poses.
 

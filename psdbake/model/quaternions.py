@@ -2,7 +2,7 @@
 
 Why not ``scipy.spatial.transform.Rotation``: importing it loads ``scipy.spatial`` whole
 (k-d trees, Qhull, ``scipy.sparse``, ``scipy.special``: ~0.3 s on the project's machine),
-which every ``psdbake eval`` paid before its first frame (issue 16), when eval needs half a
+which every ``psdbake eval`` (every farm chunk) would pay before its first frame, when eval needs half a
 dozen formulas.
 
 Bit for bit. Every operation here does what ``Rotation``'s compiled backend does (SciPy 1.17,

@@ -93,7 +93,7 @@ def distances(x: NDArray[np.float64], centers: NDArray[np.float64]) -> NDArray[n
     bit, its squares summed coordinate by coordinate in order and each sum's root taken once.
 
     Why not cdist: importing it loads ``scipy.spatial`` whole (~0.3 s, k-d trees, Qhull,
-    ``scipy.sparse``), which ``psdbake eval`` paid before its first frame (issue 16). Separate
+    ``scipy.sparse``), which every ``psdbake eval`` would pay before its first frame. Separate
     multiplies and adds in numpy (never fused) give cdist's bits; tests/test_quaternions.py
     holds the two equal on random input.
     """

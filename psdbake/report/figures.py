@@ -34,7 +34,6 @@ FAINT = 0.02
 DEG = 180.0 / math.pi
 
 
-
 def require_matplotlib() -> tuple[Any, Any, Any]:
     """(matplotlib, Figure, FigureCanvasAgg), or ReportError saying how to install it."""
     try:

@@ -100,10 +100,8 @@ BACKTRACKS = 4
 #: solution), counted from that start.
 MAX_EVALUATIONS = 160
 #: The joint solve from zero, where the smooth start missed (or there is none), counted from
-#: its start. Run first, as it was before the smooth start came first, it converged in 14-29
-#: calls per example in all (unfolded bench and test examples, 1.3k to 100k points); where
-#: skinning folds the mesh, never within 160 (12 bench examples, elbow at 60-160 degrees, 13k
-#: and 100k).
+#: its start: enough for unfolded examples (docs/decisions/coupled-inverse.md); where skinning
+#: folds the mesh the smooth start is what converges.
 FROM_ZERO_EVALUATIONS = 64
 #: Smooth fields in ``smooth_start``'s span (3 calls each, one per axis, when its Jacobian is
 #: measured). With the measured Jacobian, on the 13k bench's six folded examples 32 left 18

@@ -39,7 +39,6 @@ BlackBox = Callable[[Points], Points]
 COUPLING_SEEN = "coupling seen"
 
 
-
 @dataclass(frozen=True)
 class InverseResult:
     """Rest-space offsets for the sculpted vertices of one example."""
@@ -177,8 +176,8 @@ def invert_example_with(
     stop_if_coupled: bool = False,
 ) -> InverseResult:
     """``invert_example`` with the solver's switches. ``quasi_newton=False`` skips the
-    Broyden refresh and runs Powell alone after the linearised start (the solver before
-    issue 15; kept for the benchmarks' side-by-side comparison). ``stop_if_coupled``: when
+    Broyden refresh and runs Powell alone after the linearised start (the benchmarks'
+    reference method, side by side). ``stop_if_coupled``: when
     the Jacobian calls show the chain couples vertices and the linearised start misses the
     tolerance, return there (regime ``COUPLING_SEEN``, 5 calls) for a joint solve to take over."""
     started = time.perf_counter()

@@ -181,19 +181,8 @@ def _cofactors(m: NDArray[np.float64]) -> tuple[NDArray[np.float64], ...]:
 
 def det3(m: NDArray[np.float64]) -> NDArray[np.float64]:
     """Determinants of 3x3 blocks (k, 3, 3) by cofactors: ~5x faster than ``np.linalg.det``'s
-    batched LU on a million blocks, and the very value ``inverse3`` divides by."""
+    batched LU on a million blocks, and the very value ``conditioned_inverses`` divides by."""
     return _cofactors(m)[-1]
-
-
-def inverse3(m: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Inverses of 3x3 blocks (k, 3, 3): the adjugate over the determinant (Cramer's rule), in
-    float64. ~3x faster than ``np.linalg.inv`` on a million blocks (per-vertex Jacobians). The
-    two differ by rounding, relative ~eps |J|_F^3 / |det J| (the cofactors' cancellation), which
-    on the blocks it is used for, those ``well_conditioned`` passes, is below eps / rcond (~2e-10
-    at JACOBIAN_RCOND; tests/test_powell.py): far below the forward-difference Jacobian's own
-    error. A singular block gives inf or NaN, not an error."""
-    *cofactors, det = _cofactors(m)
-    return _adjugate_over(cofactors, det)
 
 
 def _adjugate_over(cofactors: list[NDArray[np.float64]], det: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -217,8 +206,12 @@ def well_conditioned(jac: NDArray[np.float64], rcond: float = QN_RCOND) -> NDArr
 
 def conditioned_inverses(jac: NDArray[np.float64], rcond: float = QN_RCOND
                          ) -> tuple[NDArray[np.bool_], NDArray[np.float64]]:
-    """``well_conditioned(jac, rcond)`` and ``inverse3`` of the blocks that pass, from one set of
-    cofactors (the same values as the two calls: every operation is per block)."""
+    """``well_conditioned(jac, rcond)`` and the inverses of the blocks that pass, from one set of
+    cofactors: the adjugate over the determinant (Cramer's rule), in float64, ~3x faster than
+    ``np.linalg.inv`` on a million blocks (per-vertex Jacobians). The two differ by rounding,
+    relative ~eps |J|_F^3 / |det J| (the cofactors' cancellation), which on the blocks that pass
+    is below eps / rcond (~2e-10 at JACOBIAN_RCOND; tests/test_powell.py): far below the
+    forward-difference Jacobian's own error."""
     *cofactors, det = _cofactors(jac)
     ok = _invertible(jac, det, rcond)
     if ok.all():  # the usual case: no masked copies of the cofactors

@@ -256,7 +256,6 @@ def rig_differences(recorded: Mapping[str, Any], current: Mapping[str, Mapping[s
     return out
 
 
-
 # --- stack roles -----------------------------------------------------------------------------
 
 #: The roles of a viewable stack's layers, weakest first: the order ``stack`` composes them in.

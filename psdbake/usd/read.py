@@ -30,12 +30,6 @@ def matrices(values) -> NDArray[np.float64]:
     return np.array(values, dtype=np.float64).reshape(-1, 4, 4)
 
 
-
-
-
-
-
-
 class Scene:
     """A composed stage with its UsdSkel cache: the skinned meshes and their skeletons."""
 
@@ -301,28 +295,6 @@ class Scene:
             ) from None
 
 
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
 def corrective_targets(scene: Scene, mesh: str, channels: Sequence[str]) -> list[Usd.Prim]:
     """The BlendShape prim behind each of the given channels of mesh, in order."""
     names, targets = existing_blend_shapes(scene, mesh)
@@ -348,8 +320,6 @@ def read_corrective_shapes(scene: Scene, mesh: str, channels: Sequence[str]) -> 
     touch into the updated CORRECTIVES layer unchanged)."""
     return [read_blend_shape(prim, channel)
             for prim, channel in zip(corrective_targets(scene, mesh, channels), channels, strict=True)]
-
-
 
 
 def stray_point_prims(layer: Sdf.Layer, skinned: set[str]) -> list[str]:

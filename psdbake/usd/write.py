@@ -147,28 +147,6 @@ def new_layer(doc: str, times: Sequence[float] | None = None, fps: float | None 
     return layer
 
 
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
 def author_blend_shapes(
     layer: Sdf.Layer,
     mesh: str,
@@ -192,12 +170,6 @@ def author_blend_shapes(
         if shape.normal_offsets is not None:
             attribute(spec, "normalOffsets", Sdf.ValueTypeNames.Vector3fArray, vec3f_array(shape.normal_offsets),
                       uniform=True)
-
-
-
-
-
-
 
 
 def flattened(layer: Sdf.Layer, asset: str) -> Sdf.Layer:

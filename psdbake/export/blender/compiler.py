@@ -57,7 +57,6 @@ Quaternion = tuple[Expr, Expr, Expr, Expr]  # (w, x, y, z)
 Floats = Sequence[float] | NDArray[np.float64]
 
 
-
 def _zero() -> Num:
     return Num(0.0)
 

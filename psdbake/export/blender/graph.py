@@ -94,7 +94,6 @@ class DriverGraph:
         return tuple(sorted({s.joint for d in self.drivers for _, s in d.variables if isinstance(s, BoneChannel)}))
 
 
-
 def property_name(name: str) -> str:
     """A custom-property name Blender keeps whole and a driver path can quote: at most
     ``MAX_NAME_BYTES`` bytes (longer names keep a prefix and 8 hex digits of their SHA-1, as

@@ -49,7 +49,6 @@ EXPRESSION_LIMIT = 255
 _IF, _OR, _AND, _NOT, _CMP, _ADD, _MUL, _NEG, _ATOM = range(1, 10)
 
 
-
 class Expr:
     """A node of an expression tree: immutable, compared and hashed by value.
 
