@@ -22,6 +22,7 @@ from . import provenance
 from .author import apply_binding_api, attribute, define, int_array, over, relationship, vec3f_array
 from .dependencies import layer_files
 from .diagnostics import first_line
+from .integrity import verdict_of_written, vouch_written
 from .schema import BlendShapeData
 
 #: Output layer formats by extension (``names.LAYER_FORMATS``), with the arguments
@@ -44,6 +45,7 @@ def export_all(outputs: Sequence[tuple[str, Sdf.Layer | str]], inputs: Iterable[
     ``other_inputs`` (files read that are not layers: ``sculpts``' OBJ files). Each layer
     replaces only an earlier output of the kind it is stamped with (``provenance.stamp``),
     each text file only an earlier report, unless forced (``atomic.forcing``)."""
+    written: list[str | None] = []
     with atomic.Transaction([*files_read(inputs), *other_inputs]) as tx:
         for path, layer in outputs:
             if isinstance(layer, str):
@@ -57,7 +59,10 @@ def export_all(outputs: Sequence[tuple[str, Sdf.Layer | str]], inputs: Iterable[
             kind = provenance.layer_kind(layer)
             if kind not in KINDS:
                 raise RuntimeError(f"{path}: psdbake's layer carries no output kind (provenance.stamp)")
-            export_layer(layer, tx.path(path, FORMATS, KINDS[kind]), path)
+            tmp = tx.path(path, FORMATS, KINDS[kind])
+            export_layer(layer, tmp, path)
+            written.append(verdict_of_written(tmp))
+    vouch_written(written)
     return [path for path, _ in outputs]
 
 
