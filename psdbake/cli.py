@@ -88,7 +88,8 @@ _RBF_OPTIONS = [
     click.option("--smoothing", type=float, default=0.0, show_default=True, help="RBF smoothing (0 interpolates exactly)."),
     click.option("--no-rest-example", is_flag=True, help="Do not add the bind pose as an implicit zero example."),
     click.option("--pose-space", type=click.Choice(list(POSE_SPACE_NAMES)),
-                 default="rotationVector", show_default=True, help="Pose coordinates of each driver joint (README)."),
+                 default="rotationVector", show_default=True,
+                 help="Pose coordinates of each driver joint (docs: explanation/pose-space-and-rbf.md)."),
     click.option("--twist-axis", type=(float, float, float), default=None, metavar="X Y Z",
                  help="swingTwist: the twist axis in each driver's bind frame, e.g. 1 0 0 for a bone along x."),
     click.option("--clamp-weights", is_flag=True, help="Clamp weights to [0, 1] at eval time (stored in psd:)."),
@@ -133,7 +134,7 @@ _common = _stacked(_COMMON)
 def cli() -> None:
     """Inverse Pose Space Deformation correctives for UsdSkel assets.
 
-    pose -> (artists sculpt) -> fit -> eval. See README.md for the file conventions.
+    pose -> (artists sculpt) -> fit -> eval. File conventions: docs/guide/file-conventions.md.
     """
 
 
@@ -322,7 +323,7 @@ def _per_file(flag: str, values: Sequence[str], convert: Callable[[str, str], An
 @click.option("--group", default=None, metavar="NAME",
               help="Fit one correctives group (its own examples, drivers, kernel and sigma) and write or update it "
                    "inside OUTPUT, keeping OUTPUT's other groups. Without it, OUTPUT is replaced by local, additive "
-                   "groups: one per joint the examples move, plus combinations (README).")
+                   "groups: one per joint the examples move, plus combinations (docs: explanation/pose-space-and-rbf.md).")
 @click.option("--report", type=str, help="Write a JSON report here.")
 @click.option("--strict", is_flag=True, help="Fail (exit 7, nothing written) if any vertex misses --tolerance.")
 @click.option("--allow-degraded", is_flag=True,

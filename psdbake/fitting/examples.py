@@ -1,7 +1,7 @@
 """The sculpted examples of a fit: gathered from the EXAMPLES files, each one checked.
 
 Every time code at which an EXAMPLES file authors a skinned mesh's points is one example
-(README: File conventions). All of them are checked here — point counts, finite values,
+(docs/guide/file-conventions.md). All of them are checked here — point counts, finite values,
 a bound animation, a usable pose, the binding left alone — before any is solved, so a
 bad example fails in a second instead of after the long inverses.
 """

@@ -82,7 +82,7 @@ class BlendShapeData:
 @dataclass(frozen=True)
 class DriverData:
     """The RBF driver data of one correctives group on one mesh, as stored in the psd:
-    namespace (README: psd schema)."""
+    namespace (docs/reference/psd-schema.md)."""
 
     drivers: Sequence[str]  # joint paths, skeleton joint tokens
     bind_rotations: NDArray[np.float64]  # (d, 4) xyzw, each driver's bind local rotation

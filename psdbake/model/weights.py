@@ -2,7 +2,7 @@
 options -> channels.
 
 The numerics of ``eval`` (and of ``compare``), from the documented ``psd:`` attributes alone,
-as a third party would evaluate them (README: "To evaluate at a frame without psdbake").
+as a third party would evaluate them (docs/reference/psd-schema.md, "The weights formula").
 """
 
 from __future__ import annotations

@@ -1,8 +1,8 @@
 """The ``psd:`` schema, in one place: names, version, data classes, read and write.
 
-Authored on each corrected mesh of a CORRECTIVES layer, all ``custom uniform`` (README:
-"The psd: schema"): ``psd:version``, ``psd:groups`` (sorted) and each correctives group's
-RBF driver data under ``psd:<group>:``. Version 1 (psdbake 0.1) held one flat group,
+Authored on each corrected mesh of a CORRECTIVES layer, all ``custom uniform``
+(docs/reference/psd-schema.md): ``psd:version``, ``psd:groups`` (sorted) and each correctives
+group's RBF driver data under ``psd:<group>:``. Version 1 (psdbake 0.1) held one flat group,
 read as group ``main``. Readers refuse larger versions and validate every value on read,
 naming the attribute, so evaluation never computes NaN weights from a tampered layer.
 """
@@ -199,7 +199,7 @@ class _GroupReader:
 
     def _gates(self, drivers: list[str], space: str) -> dict[str, Any]:
         """psd:gates (driver joints) and psd:gatePoses (g x width): each gate's activation
-        clamp(x_j . g_j / g_j . g_j, 0, 1) multiplies the group's weights (README)."""
+        clamp(x_j . g_j / g_j . g_j, 0, 1) multiplies the group's weights (docs/reference/psd-schema.md)."""
         gates = [str(g) for g in self.get("gates", required=False) or []]
         if not gates:
             return {}

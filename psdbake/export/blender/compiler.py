@@ -1,7 +1,7 @@
 """The ``psd:`` weight formula compiled into Blender driver expressions, one building block
 per function.
 
-What is compiled is README's "To evaluate at a frame without psdbake" (``weights`` is the
+What is compiled is the weights formula of docs/reference/psd-schema.md (``weights`` is the
 reference evaluator), term by term, from a mesh's ``DriverData`` alone:
 
     delta_j   = q_bind_j^-1 R_j                         joint_rotation
