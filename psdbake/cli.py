@@ -113,6 +113,16 @@ def cli() -> None:
 FLAGS = {"rtol": "--tolerance", "meshes": "--mesh", "drivers": "--driver", "as_name": "--as"}
 
 _INPUT_PARAMS = ("asset", "examples", "correctives", "anim", "poses", "file", "layers", "jobs_file")
+_OUTPUT_PARAMS = ("output", "report", "points_cache", "obj_dir", "report_dir")
+
+
+def _paths(ctx: click.Context, names: Sequence[str]) -> list[str]:
+    """The values of a command's path parameters among names, flattened."""
+    found: list[str] = []
+    for name in names:
+        value = ctx.params.get(name)
+        found += [str(v) for v in value] if isinstance(value, (list, tuple)) else [str(value)] if value else []
+    return found
 
 
 @dataclass
@@ -130,13 +140,14 @@ class _Command(click.Command):
     printed without loading USD)."""
 
     def invoke(self, ctx: click.Context):
+        from .paths import check_paths
+
+        files = _paths(ctx, _INPUT_PARAMS)
+        check_paths(files, _paths(ctx, _OUTPUT_PARAMS))  # before USD sees a path it cannot take
+
         from .usd.dependencies import layers_kept_open
         from .usd.diagnostics import usd_diagnostics, usd_errors
 
-        files: list[str] = []
-        for name in _INPUT_PARAMS:
-            value = ctx.params.get(name)
-            files += [str(v) for v in value] if isinstance(value, (list, tuple)) else [str(value)] if value else []
         run = ctx.find_object(_Run)  # None under click's CliRunner: USD's diagnostics go to stderr, as ever
         trap: contextlib.AbstractContextManager[list[str]] = usd_diagnostics() if run else contextlib.nullcontext([])
         with trap as found, layers_kept_open():  # the inputs' walk parses each file once for the command

@@ -3,6 +3,7 @@ pool and on a real dask.distributed LocalCluster (byte-identical outputs, a work
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import re
@@ -469,3 +470,34 @@ def test_bad_scheduler_address_is_one_line(run, tmp_path, monkeypatch):
     code, _, err = run("batch", path, "--scheduler", f"tcp://127.0.0.1:{port}")
     assert code == 3 and err.startswith(f"psdbake: error: --scheduler tcp://127.0.0.1:{port}: cannot connect (")
     assert err.count("\n") == 1 and not (tmp_path / "out").exists()  # nothing ran, no folder made
+
+
+def test_scheduler_that_speaks_http_is_one_line(run, tmp_path):
+    """``--scheduler`` at an HTTP server (the dashboard's port, a proxy) that answers Dask's
+    handshake with ``HTTP/1.1 400``: distributed read those bytes as a frame length and asked for
+    3.07 EiB (an internal MemoryError); now one line, exit 3, nothing run."""
+    pytest.importorskip("distributed")
+    path = jobs_file(tmp_path, GOOD_FIT)
+    with socket.socket() as server:
+        server.bind(("127.0.0.1", 0))
+        server.listen()
+        port = server.getsockname()[1]
+
+        def answer() -> None:  # every connection, as a web server does (psdbake connects twice)
+            with contextlib.suppress(OSError):
+                while True:
+                    conn, _ = server.accept()
+                    with conn:
+                        if conn.recv(65536):
+                            conn.sendall(b"HTTP/1.1 400 Bad Request\r\nContent-Length: 0\r\n\r\n")
+
+        thread = threading.Thread(target=answer, daemon=True)
+        thread.start()
+        code, _, err = run("batch", path, "--scheduler", f"tcp://127.0.0.1:{port}")
+        with contextlib.suppress(OSError):
+            server.shutdown(socket.SHUT_RDWR)  # wakes the accept (Linux)
+        thread.join(timeout=60)
+    assert code == 3, err
+    assert err.count("\n") == 1 and err.startswith(f"psdbake: error: --scheduler tcp://127.0.0.1:{port}: not a Dask "
+                                                   "scheduler: it answers in another protocol (an HTTP server?")
+    assert "MemoryError" not in err and not (tmp_path / "out").exists()
