@@ -33,7 +33,7 @@ from .usd.bindspace import read_bind_space
 from .usd.compose import compose
 from .usd.describe import describe as describe_file
 from .usd.gltf_source import read_gltf_source
-from .usd.read import Scene, animation_components, open_layers
+from .usd.read import Scene, animation_components, hidden_from_usdskel, open_layers, why_hidden
 from .usd.validate import require_finite_time_samples, require_psd_prims_skinned, validate_animation, validate_skinning
 from .usd.valuetypes import Checked
 
@@ -59,11 +59,17 @@ def open_asset(asset: str, notes: list[str] | None = None) -> Scene:
     """The asset on its own, with every skinned mesh's influences and skeleton validated."""
     scene = Scene([asset])
     scene.require_skinned()
+    hidden = [f"{where(asset, mesh)}: left out: {why_hidden(scene.stage, blocker)}"
+              for mesh, blocker in hidden_from_usdskel(scene.stage)]
     for info in scene.skinned_meshes():
         for msg in validate_skinning(scene, info.path):
             if notes is not None:
                 notes.append(msg)
             warnings.warn(msg, PsdWarning, stacklevel=3)
+    for msg in hidden:
+        if notes is not None:
+            notes.append(msg)
+        warnings.warn(msg, PsdWarning, stacklevel=3)
     return scene
 
 
