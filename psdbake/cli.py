@@ -487,8 +487,11 @@ def stack_cmd(output, layers) -> None:
 @click.option("--retries", type=click.IntRange(min=0), default=2, show_default=True,
               help="Reruns of a job whose process is killed by a signal (a psdbake exit code is final).")
 @click.option("--dry-run", is_flag=True, help="Check the jobs file and print the commands in order; run nothing.")
+@click.option("--allow-deformers-from-jobs", "allow_deformers", is_flag=True,
+              help="Run the deformers the jobs file names (their code runs in every job). Without it, a jobs file "
+                   "naming a deformer is refused.")
 @_common
-def batch_cmd(jobs_file, workers, scheduler, retries, dry_run, quiet, verbose, as_json) -> None:
+def batch_cmd(jobs_file, workers, scheduler, retries, dry_run, allow_deformers, quiet, verbose, as_json) -> None:
     """Run the pose/fit/eval/stack jobs of JOBS.toml, in parallel where their files allow.
 
     A job reading a file other jobs write runs after them; jobs writing one file run in file
@@ -497,7 +500,8 @@ def batch_cmd(jobs_file, workers, scheduler, retries, dry_run, quiet, verbose, a
     from . import farm
 
     ui = Ui(quiet, verbose, as_json)
-    jobs = farm.load_jobs(jobs_file, {name: cli.commands[name] for name in farm.COMMANDS})  # the CLI is the job schema
+    jobs = farm.load_jobs(jobs_file, {name: cli.commands[name] for name in farm.COMMANDS},  # the CLI is the job schema
+                          allow_deformers=allow_deformers)
     if dry_run:
         if as_json:
             click.echo(json.dumps([{"job": t.label, "command": t.command_line, "needs": list(t.needs),

@@ -68,8 +68,8 @@ TASKS = 7  # pose, 2 fits, 3 eval chunks, stack
 COMMANDS = {name: cli.commands[name] for name in farm.COMMANDS}  # what psdbake batch passes: the CLI is the schema
 
 
-def load_jobs(path: str) -> farm.Batch:
-    return farm.load_jobs(path, COMMANDS)
+def load_jobs(path: str, allow_deformers: bool = False) -> farm.Batch:
+    return farm.load_jobs(path, COMMANDS, allow_deformers=allow_deformers)
 
 
 def jobs_file(folder: Path, text: str) -> str:
@@ -114,7 +114,7 @@ correctives = "out/c.usda"
 anim = "shot.usda"
 output = "out/w.usda"
 """)
-    jobs = load_jobs(path)
+    jobs = load_jobs(path, allow_deformers=True)
     fit, ev = jobs.tasks
     assert fit.args == (
         "--output=out/c.usda", "--driver=Elbow", "--kernel=cubic", "--sigma=0.25", "--degree=-1", "--no-rest-example",
@@ -501,3 +501,85 @@ def test_scheduler_that_speaks_http_is_one_line(run, tmp_path):
     assert err.count("\n") == 1 and err.startswith(f"psdbake: error: --scheduler tcp://127.0.0.1:{port}: not a Dask "
                                                    "scheduler: it answers in another protocol (an HTTP server?")
     assert "MemoryError" not in err and not (tmp_path / "out").exists()
+
+
+# --- no code from a data folder -------------------------------------------------------------------
+
+#: Modules a shared asset folder might hold beside a jobs file, shadowing what a job imports: each
+#: leaves a marker in the folder when imported (and would break the job).
+PLANTED = ("click.py", "numpy.py", "json.py", "site.py", "sitecustomize.py", "pxr/__init__.py", "psdbake/__init__.py")
+_PLANT = 'import os\nopen(os.path.join({folder!r}, "IMPORTED-" + __name__), "w").close()\n'
+
+DATA_JOBS = f"""
+[defaults]
+asset = "{ASSET}"
+
+[[fit]]
+examples = ["{EXAMPLES}"]
+output = "out/correctives.usda"
+
+[[eval]]
+correctives = "out/correctives.usda"
+anim = "{ANIM}"
+output = "out/weights.usda"
+points_cache = "out/cache.usda"
+
+[[stack]]
+output = "out/shot.usda"
+layers = ["{ASSET}", "out/correctives.usda", "{ANIM}", "out/weights.usda"]
+"""
+
+
+def _planted_folder(folder: Path) -> str:
+    path = jobs_file(folder, DATA_JOBS)
+    for name in PLANTED:
+        (folder / name).parent.mkdir(exist_ok=True)
+        (folder / name).write_text(_PLANT.format(folder=str(folder)))
+    return path
+
+
+@pytest.mark.parametrize("where", ["local", "dask"])
+def test_modules_beside_the_jobs_file_are_never_imported(where, run, tmp_path, request):
+    """``python -m`` put the jobs file's folder first on the job's sys.path, so a click.py (or
+    numpy.py, json.py, pxr/) left there ran inside every job. Jobs now start isolated (``-I``)
+    with this process's own import path: the batch succeeds and no planted module is imported,
+    on the local pool and on a Dask cluster."""
+    folder = tmp_path / "shared_assets"
+    path = _planted_folder(folder)
+    scheduler = []
+    if where == "dask":
+        c, _ = request.getfixturevalue("cluster")
+        scheduler = ["--scheduler", c.scheduler_address]
+    code, _, err = run("batch", path, *scheduler, "-q")
+    assert code == 0, err
+    assert sorted(p.name for p in folder.iterdir() if p.name.startswith("IMPORTED-")) == []
+    assert all((folder / "out" / name).is_file() for name in ("correctives.usda", "weights.usda", "cache.usda"))
+
+
+IDENTITY_DEFORMER = "def make(stage, mesh, time):\n    return lambda points: points\n"
+
+
+@pytest.mark.parametrize("where", ["local", "dask"])
+@pytest.mark.parametrize("table", ["job", "defaults"])
+def test_a_deformer_named_in_a_jobs_file_needs_the_flag(where, table, run, tmp_path, request):
+    """A deformer is code: named in a jobs file (its own folder's deformer.py, say), it is refused in
+    one line before anything runs, on every back end, unless batch is given
+    --allow-deformers-from-jobs."""
+    (tmp_path / "deformer.py").write_text(IDENTITY_DEFORMER)
+    spec = 'deformer = ["deformer.py:make"]\n'
+    fit = f'[[fit]]\nasset = "{ASSET}"\nexamples = ["{EXAMPLES}"]\noutput = "out/c.usda"\n'
+    path = jobs_file(tmp_path, "[defaults]\n" + spec + fit if table == "defaults" else fit + spec)
+    scheduler = []
+    if where == "dask":
+        c, _ = request.getfixturevalue("cluster")
+        scheduler = ["--scheduler", c.scheduler_address]
+    code, _, err = run("batch", path, *scheduler)
+    named = f"{path} [defaults]" if table == "defaults" else f"{path} [[fit]] #1"
+    assert code == 3 and err == (f"psdbake: error: {named}: deformer 'deformer.py:make' would run code named by the "
+                                 "jobs file: deformers are taken from the command line only, unless batch is given "
+                                 "--allow-deformers-from-jobs\n")
+    assert not (tmp_path / "out").exists()
+    if where == "local" and table == "job":
+        code, _, err = run("batch", path, "--allow-deformers-from-jobs", "-q")
+        assert code == 0, err
+        assert (tmp_path / "out" / "c.usda").is_file()

@@ -1,15 +1,17 @@
 """One task as one psdbake process, on whatever machine calls ``run_job``.
 
-Every task runs as its own process, ``python -m psdbake.farm.job`` (= ``python -m psdbake``):
-USD's global state stays per job, a crashing job cannot take its worker down, and exit codes
-come for free. The commands write their outputs atomically, so a job killed mid-way leaves no
-partial file and is simply run again (they are deterministic). Back ends decide where and when
-``run_job`` runs; this module decides how.
+Every task runs as its own process, ``psdbake.farm.job`` (= ``python -m psdbake``): USD's
+global state stays per job, a crashing job cannot take its worker down, and exit codes come
+for free. The process runs in the jobs file's folder but never imports from it (``job_argv``).
+The commands write their outputs atomically, so a job killed mid-way leaves no partial file and
+is simply run again (they are deterministic). Back ends decide where and when ``run_job``
+runs; this module decides how.
 """
 
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 import signal
 import socket
@@ -31,10 +33,41 @@ def _worker_name() -> str:
     return f"{socket.gethostname()}:{os.getpid()}"
 
 
+#: A job's first code, run as ``python -I -c _BOOT PATH_JSON PARENT_PID COMMAND ARGS...``: ``-I`` keeps
+#: the working folder (the jobs file's, where anyone may have left a ``click.py``, ``numpy.py`` or
+#: ``pxr/``) and ``PYTHON*`` variables off ``sys.path``; the path the job imports from is then
+#: set explicitly, before any import of psdbake or its dependencies, to this process's own
+#: (``import_path``), with the user site's ``.pth`` files read again when this process used it.
+_BOOT = ("import json, site, sys\n"
+         "path, user_site = json.loads(sys.argv.pop(1))\n"
+         "sys.path[:] = path\n"
+         "if user_site:\n"
+         "    site.addsitedir(user_site)\n"
+         "from psdbake.farm.job import main\n"
+         "main()\n")
+
+
+def import_path(folder: str) -> tuple[list[str], str | None]:
+    """(sys.path for a job run in folder, the user site to read ``.pth`` files from, or None):
+    this process's absolute entries except folder itself, which is data, never code."""
+    import site
+
+    here = os.path.realpath(folder)
+    path = [p for p in sys.path if p and os.path.isabs(p) and os.path.realpath(p) != here]
+    user = site.getusersitepackages() if site.ENABLE_USER_SITE else None
+    return path, user if user in path else None
+
+
+def job_argv(task: Task) -> list[str]:
+    """The command line of one job process (see ``_BOOT``): isolated from its working folder."""
+    return [sys.executable, "-I", "-c", _BOOT, json.dumps(import_path(task.cwd)), str(os.getpid()), task.command,
+            *task.args]
+
+
 def _attempts(task: Task, signal_retries: int, started: float) -> tuple[int, int | None, str] | JobResult:
     """(attempts, exit code, stderr) of the last run, rerun while killed by a signal; or the
     failed result when the process cannot start."""
-    argv = [sys.executable, "-m", "psdbake.farm.job", str(os.getpid()), task.command, *task.args]
+    argv = job_argv(task)
     attempts, code, err = 0, None, ""
     while attempts <= signal_retries and not _STOP.is_set():
         attempts += 1
