@@ -64,6 +64,7 @@ fidelity: $(STAMP)
 bench: $(STAMP)
 	$(BIN)/python -m benchmarks.run
 	$(BIN)/python -m benchmarks.jobs
+	$(BIN)/python -m benchmarks.jobsfile
 	$(BIN)/python -m benchmarks.conditioning
 	$(BIN)/python -m benchmarks.coupled
 	$(BIN)/python -m benchmarks.evalspeed

@@ -10,6 +10,7 @@ import re
 import shlex
 import signal
 import socket
+import subprocess
 import sys
 import threading
 import time
@@ -170,8 +171,8 @@ output = "other.usda"
     by = {t.label: t for t in tasks}
     assert by["[[fit]] #1"].needs == (key["[[pose]] #1"],)
     assert by["[[fit]] #2"].needs == () and by["[[fit]] #2"].after == (key["[[fit]] #1"],)
-    assert by["[[eval]] #1"].needs == (key["[[fit]] #1"], key["[[fit]] #2"])  # every writer of c.usda
-    assert by["[[stack]] #1"].needs == (key["[[fit]] #1"], key["[[fit]] #2"], key["[[eval]] #1"])
+    assert by["[[eval]] #1"].needs == (key["[[fit]] #2"],)  # the last writer of c.usda, after the first
+    assert by["[[stack]] #1"].needs == (key["[[fit]] #2"], key["[[eval]] #1"])
     assert by["[[pose]] #2"].needs == by["[[pose]] #2"].after == ()
     assert len(set(key.values())) == len(tasks)
     assert [t.key for t in load_jobs(path).tasks] == [t.key for t in tasks]  # deterministic keys
@@ -336,6 +337,58 @@ output = "out/to_sculpt.usda"
     assert status == {"[[fit]] #1": ("failed", 4), "[[eval]] #1": ("skipped", None), "[[pose]] #1": ("ok", 0)}
     assert (tmp_path / "out" / "to_sculpt.usda").exists()
     assert not (tmp_path / "out" / "c.usda").exists() and not (tmp_path / "out" / "w.usda").exists()
+
+
+def test_a_failed_earlier_writer_still_skips_the_readers(run, tmp_path):
+    """A reader needs only the last job writing a file (edges linear in the jobs), yet is skipped
+    when an earlier writer of that file failed: the failure travels along the writers' chain."""
+    path = jobs_file(tmp_path, f"""
+[[fit]]                     # nothing sculpted: psdbake fit exits 4
+asset = "{fixture("bad", "good_asset.usda")}"
+examples = ["{UNSCULPTED}"]
+group = "first"
+output = "out/c.usda"
+
+[[fit]]                     # the same layer, then: runs after #1, and succeeds
+asset = "{ASSET}"
+examples = ["{EXAMPLES}"]
+group = "second"
+output = "out/c.usda"
+
+[[eval]]
+asset = "{ASSET}"
+correctives = "out/c.usda"
+anim = "{ANIM}"
+output = "out/w.usda"
+""")
+    by = {t.label: t for t in load_jobs(path).tasks}
+    assert by["[[eval]] #1"].needs == (by["[[fit]] #2"].key,)
+    code, out, err = run("batch", path, "--json")
+    assert code == 4, err
+    status = {j["job"]: (j["status"], j["error"]) for j in json.loads(out)["jobs"]}
+    assert status["[[fit]] #2"] == ("ok", None)
+    assert status["[[eval]] #1"] == ("skipped", "needs [[fit]] #1, which did not succeed")
+    assert not (tmp_path / "out" / "w.usda").exists()
+
+
+def test_a_dry_run_of_25000_jobs_is_linear_and_small(tmp_path):
+    """25,000 jobs writing one file (a 614 kB jobs file): every job waited for every earlier one,
+    312 million pairs (19.6 GB); now a chain. Peak memory of the whole ``batch --dry-run``,
+    measured in a fresh process: under 500 MB."""
+    path = tmp_path / "jobs.toml"
+    with open(path, "w", encoding="utf-8") as fh:
+        fh.write('[defaults]\nasset = "a.usda"\nexamples = ["e.usda"]\noutput = "c.usda"\n')
+        fh.writelines(f'[[fit]]\ngroup = "g{i}"\n' for i in range(25_000))
+    script = ("import resource, subprocess, sys\n"
+              "done = subprocess.run([sys.argv[1], 'batch', sys.argv[2], '--dry-run', '--json'], capture_output=True)\n"
+              "tasks = __import__('json').loads(done.stdout)\n"
+              "print(done.returncode, len(tasks), max(len(t['after']) + len(t['needs']) for t in tasks),"
+              " resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss)")
+    psdbake = os.path.join(os.path.dirname(sys.executable), "psdbake")
+    done = subprocess.run([sys.executable, "-c", script, psdbake, str(path)], capture_output=True, text=True, check=True)
+    code, jobs, most_edges, peak_kib = map(int, done.stdout.split())
+    assert (code, jobs, most_edges) == (0, 25_000, 1)
+    assert peak_kib < 500 * 1024, f"peak RSS {peak_kib / 1024:.0f} MiB"
 
 
 def _children(pid: int) -> list[int]:

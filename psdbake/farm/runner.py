@@ -11,6 +11,7 @@ runs; this module decides how.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import json
 import os
 import signal
@@ -95,31 +96,46 @@ def _attempts(task: Task, signal_retries: int, started: float) -> tuple[int, int
 def run_job(task: Task, *deps: JobResult, signal_retries: int = 2) -> JobResult:
     """Run one task as a psdbake process in task.cwd (on whatever machine calls this).
 
-    deps: the results of task.needs and task.after. A process killed by a signal (or
+    deps: the results of task.needs and task.after; the task is skipped when a writer of a
+    file it reads did not succeed (``JobResult.failed_writes``). A process killed by a signal (or
     psdbake's own exit after SIGINT/SIGTERM) is run again, up to signal_retries times: its
     outputs are atomic and the commands deterministic. A psdbake exit code is final.
     """
-    blocked = [d.label for d in deps if d.key in task.needs and d.status != "ok"]
+    reads, writes, needs, after = set(task.reads), set(task.writes), set(task.needs), set(task.after)
+    blocked = [label for d in deps if d.key in needs for p, label in d.failed_writes if p in reads]
+    earlier: dict[str, str] = {}  # written file -> the first earlier writer of it that did not succeed
+    for d in deps:
+        if d.key in after:
+            for p, label in d.failed_writes:
+                if p in writes:
+                    earlier.setdefault(p, label)
+
+    def failed(status: str) -> tuple[tuple[str, str], ...]:
+        if status == "ok":
+            return tuple(sorted(earlier.items()))
+        return tuple((p, earlier.get(p, task.label)) for p in task.writes)
+
     if blocked:
         return JobResult(task.key, task.label, "skipped", None, 0.0, 0, f"needs {blocked[0]}, which did not succeed",
-                         worker=_worker_name())
+                         worker=_worker_name(), failed_writes=failed("skipped"))
     started = time.perf_counter()
     ran = _attempts(task, signal_retries, started)
     if isinstance(ran, JobResult):
-        return ran
+        return dataclasses.replace(ran, failed_writes=failed(ran.status))
     attempts, code, err = ran
     seconds = time.perf_counter() - started
     lines = [ln.strip() for ln in err.splitlines() if ln.strip()]
     warns = tuple(ln.removeprefix("psdbake: warning: ") for ln in lines if ln.startswith("psdbake: warning: "))
     if code == 0:
-        return JobResult(task.key, task.label, "ok", 0, seconds, attempts, "", warns, _worker_name())
+        return JobResult(task.key, task.label, "ok", 0, seconds, attempts, "", warns, _worker_name(), failed("ok"))
     if code is None:
         message = "interrupted before it started"
     elif code < 0:
         message = f"killed by {signal.Signals(-code).name}" + (f" after: {lines[-1]}" if lines else "")
     else:
         message = lines[-1].removeprefix("psdbake: error: ") if lines else f"exit {code} with no message"
-    return JobResult(task.key, task.label, "failed", code, seconds, attempts, message, warns, _worker_name())
+    return JobResult(task.key, task.label, "failed", code, seconds, attempts, message, warns, _worker_name(),
+                     failed("failed"))
 
 
 def stop_running() -> None:

@@ -4,7 +4,8 @@ Every command opens an in-memory root layer whose sublayers are the given files,
 strongest first (e.g. ``[EXAMPLES, ASSET]``), so ``POSES``/``EXAMPLES``/``ANIM`` layers
 need not reference ASSET. Inputs are opened read-only and never saved; only regular
 files are opened, binary ones after a child process has read them whole
-(``integrity``), and layer metadata that would make USD loop is refused.
+(``integrity``), text ones after their nesting is counted (``nesting``), and layer metadata
+that would make USD loop is refused.
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ from ..errors import InputError
 from .dependencies import layer_files, require_regular
 from .diagnostics import first_line as _first_line
 from .integrity import require_readable_crates
+from .nesting import require_shallow
 
 
 def open_layer(path: str) -> Sdf.Layer:
@@ -31,6 +33,7 @@ def open_layer(path: str) -> Sdf.Layer:
         raise InputError(f"{path}: file is not readable (permission denied)")
     require_regular(path)
     require_readable_crates([path])
+    require_shallow(path)
     try:
         layer = Sdf.Layer.FindOrOpen(path)
     except Tf.ErrorException as exc:
