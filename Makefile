@@ -29,7 +29,7 @@ demo: $(STAMP)
 	$(BIN)/psdbake pose $(DEMO_ASSET) --anim $(DEMO_EXAMPLES) -o $(OUT)/to_sculpt.usda
 	$(BIN)/psdbake fit $(DEMO_ASSET) $(DEMO_EXAMPLES) -o $(OUT)/correctives.usda --report $(OUT)/fit_report.json
 	$(BIN)/psdbake eval $(DEMO_ASSET) $(OUT)/correctives.usda --anim $(DEMO_ANIM) -o $(OUT)/weights.usda --points-cache $(OUT)/points_cache.usdc
-	$(BIN)/psdbake stack $(OUT)/shot.usda $(DEMO_ASSET) $(OUT)/correctives.usda $(DEMO_ANIM) $(OUT)/weights.usda
+	$(BIN)/psdbake stack $(DEMO_ASSET) $(OUT)/correctives.usda $(DEMO_ANIM) $(OUT)/weights.usda -o $(OUT)/shot.usda
 	$(BIN)/psdbake export-gltf $(DEMO_ASSET) $(OUT)/correctives.usda --anim $(DEMO_ANIM) -o $(OUT)/shot.glb
 	@echo
 	@echo "Outputs in $(OUT)/:"

@@ -87,7 +87,8 @@ def measure(folder: str, count: int, jobs: int | None) -> dict:
                         for m in result.meshes for inv in m.inverses)
 
     log(f"{count} examples: the written stack at the example poses")
-    corr = api.write_correctives(result, os.path.join(sub, "correctives.usda"))
+    corr = os.path.join(sub, "correctives.usda")
+    api.write_correctives(result, corr)
     weights = api.evaluate(rig.asset, corr, poses_layer)
     cache = api.points_cache_layer(weights)
     spec = Sdf.Path(rigs.MESH).AppendProperty("points")

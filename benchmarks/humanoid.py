@@ -213,7 +213,8 @@ def run(folder: str) -> dict:
         nonlocal combo_weight
         result = api.fit(ASSET, [EXAMPLES], FitSettings())
         notes["default fit"] = [*result.warnings, *result.layout, *(f"skipped {s}" for s in result.skipped)]
-        path = api.write_correctives(result, os.path.join(folder, "correctives_default.usda"))
+        path = os.path.join(folder, "correctives_default.usda")
+        api.write_correctives(result, path)
         shot["inverse PSD, default fit"], w_shot = stacked(path, ANIM, frames, folder, "default")
         ex_pts, w_ex = stacked(path, poses_layer, ex_times, folder, "default_examples")
         at_combos["inverse PSD, default fit"] = ex_pts[[ex_times.index(t) for t in combos]]
@@ -236,7 +237,8 @@ def run(folder: str) -> dict:
     def global_group() -> None:
         """psdbake 0.1's default: one RBF over every driver (``--group main``)."""
         result = api.fit(ASSET, [EXAMPLES], FitSettings(group="main"))
-        path = api.write_correctives(result, os.path.join(folder, "correctives_global.usda"))
+        path = os.path.join(folder, "correctives_global.usda")
+        api.write_correctives(result, path)
         shot["inverse PSD, one global group"], _ = stacked(path, ANIM, frames, folder, "global")
         ex_pts, _ = stacked(path, poses_layer, ex_times, folder, "global_examples")
         at_combos["inverse PSD, one global group"] = ex_pts[[ex_times.index(t) for t in combos]]

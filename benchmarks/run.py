@@ -387,7 +387,8 @@ def _stack_stage(layers: Sequence[str]) -> Usd.Stage:
 
 def measure_eval(folder: str, rig: rigs.Rig, fit_result: FitResult) -> dict:
     """RBF weights over EVAL_FRAMES frames; points cache vs UsdSkel.BakeSkinning over CACHE_FRAMES."""
-    corr = api.write_correctives(fit_result, os.path.join(folder, "eval_correctives.usda"))
+    corr = os.path.join(folder, "eval_correctives.usda")
+    api.write_correctives(fit_result, corr)
     started = time.perf_counter()
     anim = rigs.write_shot(folder, EVAL_FRAMES)
     write_seconds = time.perf_counter() - started

@@ -138,8 +138,7 @@ def run(cmd: list[str], log: list[str]) -> subprocess.CompletedProcess:
 
 
 def psdbake(log: list[str], *args: str) -> None:
-    quiet = [] if args[0] == "stack" else ["-q"]  # stack has no -q
-    run([psdbake_exe(), *args, *quiet], log)
+    run([psdbake_exe(), *args, "-q"], log)
 
 
 def inspect_warnings(asset: str) -> set[str]:
@@ -175,8 +174,8 @@ def build(case: Case, folder: str) -> Stacks:
     psdbake(log, "eval", case.asset, corr, "--anim", anim, "-o", weights)
     anim_layers = [case.anim] if case.anim else []
     plain, corrected = os.path.join(folder, "plain.usda"), os.path.join(folder, "corrected.usda")
-    psdbake(log, "stack", plain, case.asset, *anim_layers)
-    psdbake(log, "stack", corrected, case.asset, corr, *anim_layers, weights)
+    psdbake(log, "stack", case.asset, *anim_layers, "-o", plain)
+    psdbake(log, "stack", case.asset, corr, *anim_layers, weights, "-o", corrected)
     return Stacks(plain, corrected, corr, anim, log)
 
 

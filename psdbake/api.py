@@ -14,26 +14,45 @@ uses (issue 16: every farm chunk pays its start-up).
 
 from __future__ import annotations
 
+import contextlib
+import dataclasses
 import os
 import time as _time
 import warnings
-from collections.abc import Sequence
+from collections.abc import Iterator, Mapping, Sequence
+from typing import Any
 
-from . import __version__, atomic
+from . import __version__, atomic, outputs
 from .deformers import deformer_files, load_deformers
-from .errors import InputError, PsdWarning, where
+from .errors import InputError, OutputError, PsdWarning, where
 from .evaluation import animation_weights, correctives_by_animation, posed_points
 from .frames import frames_of
-from .groups import correctives_layer, read_correctives, updated_layer
+from .groups import (
+    GroupChanges,
+    Groups,
+    changes_between,
+    check_name_case,
+    check_not_doubled,
+    cross_talk,
+    fitted_groups,
+    groups_layer,
+    is_sculpted,
+    merged_groups,
+    names_of,
+    origin_text,
+    read_correctives,
+)
 from .results import FitResult, GltfResult, MirrorResult, PoseResult, Progress, SculptsResult, WeightsResult
 from .settings import FitSettings, MirrorSettings, SettingError
+from .usd import provenance
 from .usd import write as usdwrite
 from .usd.author import Layer
 from .usd.bindspace import read_bind_space
-from .usd.compose import compose
+from .usd.compose import compose, open_layer
 from .usd.describe import describe as describe_file
 from .usd.gltf_source import read_gltf_source
 from .usd.read import Scene, animation_components, hidden_from_usdskel, open_layers, why_hidden
+from .usd.schema import psd_prims
 from .usd.validate import require_finite_time_samples, require_psd_prims_skinned, validate_animation, validate_skinning
 from .usd.valuetypes import Checked
 
@@ -51,6 +70,51 @@ __all__ = [  # noqa: RUF022 - in pipeline order; the public surface is psdbake/_
 
 
 
+
+
+# --- provenance: what every output records, and the check it allows ---------------------------
+
+@contextlib.contextmanager
+def _forced(force: bool) -> Iterator[None]:
+    """``--force``: within the block, outputs may replace files that are not their own kind's."""
+    with atomic.forcing() if force else contextlib.nullcontext():
+        yield
+
+
+def stamped(layer: Any, kind: str, output: str, inputs: Mapping[str, str | Sequence[str]], *,
+            rig: Mapping | None = None, deformers: Sequence[str] = (), settings: Mapping | None = None,
+            command: bool = True, **more: Any) -> Any:
+    """layer stamped with its kind and provenance (``usd.provenance``), paths relative to output."""
+    record: dict[str, Any] = {"command": outputs.command_line(output) if command else None,
+                              "inputs": provenance.inputs_record(inputs, output)}
+    if rig:
+        record["rig"] = dict(rig)
+    if deformers:
+        record["deformers"] = list(deformers)
+    if settings is not None:
+        record["settings"] = dict(settings)
+    record.update(more)
+    return provenance.stamp(layer, kind, record)
+
+
+def check_fitted_on(asset: str, asset_scene: Scene, correctives: str, *, strict: bool = False) -> list[str]:
+    """Warn (or, strict, refuse: exit 3) when the asset's rig is not the one CORRECTIVES were
+    fitted on: another skinning method, other weights, rest points, geomBindTransform or
+    skeleton (``provenance.rig_differences``). A layer from before provenance is not checked."""
+    stamp = provenance.read_stamp(correctives)
+    recorded = provenance.plain(stamp.get("rig", {}))
+    if not recorded:
+        return []
+    differences = provenance.rig_differences(recorded, provenance.rig_record(asset_scene))
+    if not differences:
+        return []
+    fitted_on = provenance.plain(stamp.get("inputs", {})).get("asset", {}).get("path")
+    shown = os.path.normpath(os.path.join(os.path.dirname(correctives), fitted_on)) if fitted_on else "another asset"
+    msg = f"{correctives}: fitted on {shown}, not on {asset} as it is: {'; '.join(differences)}"
+    if strict:
+        raise InputError(f"{msg} (--strict)")
+    warnings.warn(f"{msg}: re-fit the correctives for this asset (--strict refuses)", PsdWarning, stacklevel=3)
+    return [msg]
 
 
 # --- fit: read USD -> pose space -> black-box inverse (Powell) -> RBF -> CORRECTIVES -----------
@@ -130,7 +194,8 @@ def fit(
         clear_caches()  # the example stages die with the fit
     return FitResult(asset=asset, example_files=tuple(example_files), settings=settings, meshes=tuple(fits),
                      warnings=tuple(notes), seconds=_time.perf_counter() - started, skipped=tuple(skipped),
-                     layout=tuple(layout), input_layers=tuple(held[k] for k in sorted(held)))
+                     layout=tuple(layout), input_layers=tuple(held[k] for k in sorted(held)),
+                     rig=provenance.rig_record(asset_scene))
 
 
 def _meshes_to_fit(asset: str, skinned: list[str], wanted: Sequence[str]) -> list[str]:
@@ -159,23 +224,71 @@ def files_read(paths: Sequence[str], deformers: Sequence[str] = ()) -> list[str]
     return sorted(set(usdwrite.files_read(paths)) | set(deformer_files(deformers)))
 
 
-def write_correctives(result: FitResult, path: str, *, update: bool = False,
-                      side_files: Sequence[tuple[str, str]] = ()) -> str:
-    """Export CORRECTIVES atomically; inputs are never overwritten.
+def _existing_groups(asset: str, path: str) -> tuple[Groups, dict[str, dict]]:
+    """The groups of the CORRECTIVES layer at path and their provenance records ({} when path
+    holds no CORRECTIVES layer: nothing there is carried over)."""
+    if not os.path.isfile(path) or provenance.existing_kind(path) != "correctives":
+        return {}, {}
+    records = provenance.plain(provenance.read_stamp(path).get("groups", {}))
+    return read_correctives(asset, path), records if isinstance(records, dict) else {}
 
-    update: when path exists, keep its other groups (``fit --group``); the read, merge and
-    rename happen under a lock, so concurrent group fits into one layer all land.
+
+def _settings_record(settings: FitSettings) -> dict[str, Any]:
+    return {k: v for k, v in dataclasses.asdict(settings).items() if k not in ("deformers", "group")}
+
+
+def write_correctives(result: FitResult, path: str, *, update: bool = False,
+                      side_files: Sequence[tuple[str, str]] = (), force: bool = False) -> GroupChanges:
+    """Export CORRECTIVES atomically; inputs are never overwritten. Returns what happened to
+    the groups already at path.
+
+    update (``fit --group``): keep path's other groups, this fit's groups replacing their
+    namesakes. Without it path is replaced, but only when every group it holds that this fit
+    does not write came from an earlier plain fit: groups from ``--group`` fits or ``mirror``
+    are not dropped without ``force``. Either way the read, the checks and the rename happen
+    under a lock, so concurrent writers of one layer serialise. A group that would double
+    another's correction (the same driver, neither a combination) is refused (exit 4).
     side_files: (path, text) written in the same commit (``fit --report``): both land or neither.
     """
     inputs = files_read([result.asset, *result.example_files], result.settings.deformers)
-    if not update:
-        usdwrite.export_all([(path, correctives_layer(result)), *side_files], inputs)
-        return path
-    atomic.check_output(path, inputs, tuple(usdwrite.FORMATS))
-    with atomic.updating(path):
-        base = path if os.path.exists(path) else None
-        usdwrite.export_all([(path, correctives_layer(result, update=base)), *side_files], inputs)
-        return path
+    written = fitted_groups(result)
+    with _forced(force):
+        atomic.check_output(path, inputs, kind=outputs.CORRECTIVES)
+        with atomic.updating(path):
+            before, records = _existing_groups(result.asset, path)
+            if update:
+                check_name_case(before, written, path)
+                groups = merged_groups(before, written, result.settings.meshes)
+            else:
+                groups = written
+                lost = sorted(g for g in names_of(before) - names_of(written)
+                              if (records.get(g) or {}).get("origin") != "fit")
+                if lost and not atomic.forced():
+                    raise OutputError(
+                        f"{path}: holds groups this fit would drop: "
+                        f"{', '.join(f'{g} ({origin_text(records.get(g))})' for g in lost)}. A fit without --group "
+                        f"replaces the whole layer: fit into it with --group, remove them first (psdbake groups {path} "
+                        "--remove NAME), or give --force to replace the layer")
+            check_not_doubled(groups, written, path)
+            for note in cross_talk(result, groups):  # this fit's groups and the ones carried over
+                warnings.warn(note, PsdWarning, stacklevel=2)
+            entry = {"origin": "fit --group" if update else "fit", "command": outputs.command_line(path),
+                     **provenance.inputs_record({"examples": list(result.example_files)}, path),
+                     "settings": _settings_record(result.settings), "deformers": list(result.settings.deformers)}
+            kept = {g: r for g, r in records.items() if g in names_of(groups)}
+            layer = groups_layer(result.asset, groups, f"psdbake {__version__} fit: rest-space correctives (inverse PSD)")
+            stamped(layer, "correctives", path, {"asset": result.asset}, rig=result.rig, command=False,
+                    groups={**kept, **{g: entry for g in names_of(written)}})
+            usdwrite.export_all([(path, layer), *side_files], inputs)
+    return changes_between(before, groups, written, records)
+
+
+def correctives_layer(result: FitResult) -> Any:
+    """CORRECTIVES of one fit as an in-memory layer (BlendShapes, bindings, psd: driver data),
+    stamped with its kind only: ``write_correctives`` adds the provenance of the path it writes."""
+    layer = groups_layer(result.asset, fitted_groups(result), f"psdbake {__version__} fit: rest-space correctives "
+                         "(inverse PSD)")
+    return provenance.stamp(layer, "correctives")
 
 
 # --- eval: CORRECTIVES + ANIM -> pose space -> RBF weights -> WEIGHTS (+ points cache) ---------
@@ -187,10 +300,13 @@ def evaluate(
     *,
     frames: tuple[float, float] | None = None,
     progress: Progress | None = None,
+    strict: bool = False,
 ) -> WeightsResult:
-    """RBF weights of every corrective at every frame of ANIM."""
+    """RBF weights of every corrective at every frame of ANIM. Warns when ASSET's rig is not
+    the one CORRECTIVES were fitted on (strict: refuses, exit 3)."""
     started = _time.perf_counter()
-    open_asset(asset)
+    asset_scene = open_asset(asset)
+    check_fitted_on(asset, asset_scene, correctives, strict=strict)
     scene = Scene([anim, correctives, asset], label=correctives, checked=Checked.NO_SHAPE_VALUES)  # weights read no offsets
     scene.require_skinned()
     require_psd_prims_skinned(scene, correctives, asset)
@@ -208,25 +324,38 @@ def evaluate(
 
     results = tuple(animation_weights(scene, a, per_anim[a], planned[a], correctives, anim, tick) for a in sorted(per_anim))
     fps = scene.stage.GetTimeCodesPerSecond()
-    return WeightsResult(asset, correctives, anim, results, fps, _time.perf_counter() - started)
+    return WeightsResult(asset, correctives, anim, results, fps, _time.perf_counter() - started,
+                         rig=provenance.rig_record(asset_scene))
 
 
 def weights_layer(result: WeightsResult) -> Layer:
-    """WEIGHTS as an in-memory layer."""
-    return usdwrite.weights_layer(
+    """WEIGHTS as an in-memory layer, stamped with its kind only (``stamp_weights`` adds the
+    provenance of the path it is written to)."""
+    return provenance.stamp(usdwrite.weights_layer(
         f"psdbake {__version__} eval: corrective blend-shape weights",
         [(a.animation, a.channels, a.times, a.weights) for a in result.animations],
         result.fps,
         usdwrite.asset_metadata(result.asset),
-    )
+    ), "weights")
+
+
+def stamp_weights(layer: Layer, kind: str, result: WeightsResult, path: str, deformers: Sequence[str] = (), *,
+                  command: bool = True) -> Layer:
+    """A WEIGHTS layer or points cache of ``eval`` stamped for path (``provenance``)."""
+    return stamped(layer, kind, path, {"asset": result.asset, "correctives": result.correctives, "anim": result.anim},
+                   rig=result.rig, deformers=deformers if kind == "points_cache" else (), command=command)
 
 
 def write_weights(result: WeightsResult, path: str, *, points_cache: tuple[str, Layer] | None = None,
-                  deformers: Sequence[str] = ()) -> str:
+                  deformers: Sequence[str] = (), force: bool = False) -> str:
     """Export WEIGHTS (and, given as (path, layer), the points cache in the same commit:
     both land or neither)."""
-    outputs = [(path, weights_layer(result)), *([points_cache] if points_cache else [])]
-    usdwrite.export_all(outputs, files_read([result.asset, result.correctives, result.anim], deformers))
+    written = [(path, stamp_weights(weights_layer(result), "weights", result, path))]
+    if points_cache:
+        written.append((points_cache[0], stamp_weights(points_cache[1], "points_cache", result, points_cache[0],
+                                                       deformers)))
+    with _forced(force):
+        usdwrite.export_all(written, files_read([result.asset, result.correctives, result.anim], deformers))
     return path
 
 
@@ -250,27 +379,27 @@ def points_cache_layer(result: WeightsResult, deformers: Sequence[str] = (), *, 
                   checked=Checked.SHAPE_VALUES)
     times = sorted({float(t) for a in result.animations for t in a.times})
     meshes = scene.skinned_meshes()
-    return usdwrite.points_layer(
+    return provenance.stamp(usdwrite.points_layer(
         f"psdbake {__version__} eval: points cache (no UsdSkel needed)",
         scene.skel_roots, posed_points(scene, scene, meshes, times, chain, progress), times, result.fps,
         usdwrite.asset_metadata(result.asset),
         blocked=[(m.path, name) for m in meshes for name in ("normals", "primvars:normals")
                  if scene.prim(m.path).GetAttribute(name).HasAuthoredValue()],
-    )
+    ), "points_cache")
 
 
 def write_points_cache(result: WeightsResult, path: str, deformers: Sequence[str] = (), *,
-                       progress: Progress | None = None) -> str:
-    return usdwrite.export_atomic(
-        points_cache_layer(result, deformers, progress=progress), path,
-        files_read([result.asset, result.correctives, result.anim], deformers),
-    )
+                       progress: Progress | None = None, force: bool = False) -> str:
+    layer = stamp_weights(points_cache_layer(result, deformers, progress=progress), "points_cache", result, path,
+                          deformers)
+    with _forced(force):
+        return usdwrite.export_atomic(layer, path, files_read([result.asset, result.correctives, result.anim], deformers))
 
 
 # --- export-gltf: ASSET + CORRECTIVES + ANIM + eval's weights -> one .glb for game engines ---
 
 def export_gltf(asset: str, correctives: str, anim: str, output: str, *, frames: tuple[float, float] | None = None,
-                progress: Progress | None = None) -> GltfResult:
+                progress: Progress | None = None, strict: bool = False, force: bool = False) -> GltfResult:
     """Write the shot as a skinned glTF 2.0 binary: meshes, skins, joint animation (one
     key per time code), every BlendShape channel of the composed stack as a morph target
     and eval's weights animating them. Skinned in glTF (linear blend), it gives
@@ -279,15 +408,17 @@ def export_gltf(asset: str, correctives: str, anim: str, output: str, *, frames:
     from . import gltf  # pygltflib loads only for this command
 
     inputs = files_read([asset, correctives, anim])
-    atomic.check_output(output, inputs, (".glb",))  # before the work, so a bad output fails at once
-    weights = evaluate(asset, correctives, anim, frames=frames, progress=progress)
+    with _forced(force):
+        atomic.check_output(output, inputs, kind=outputs.GLTF)  # before the work, so a bad output fails at once
+    weights = evaluate(asset, correctives, anim, frames=frames, progress=progress, strict=strict)
     scene = Scene([anim, correctives, asset], label=correctives)
     source = read_gltf_source(scene, asset, {a.animation: (a.channels, a.times, a.weights) for a in weights.animations})
     for msg in gltf.differences(source, asset):
         warnings.warn(msg, PsdWarning, stacklevel=2)
     name = os.path.splitext(os.path.basename(anim))[0] or "animation"
     glb = gltf.build_glb(source, name, f"psdbake {__version__} export-gltf")
-    gltf.write_glb(glb.data, output, inputs)
+    with _forced(force):
+        gltf.write_glb(glb.data, output, inputs)
     return GltfResult(output, weights, tuple(m.path for m in source.meshes), glb.morph_targets, glb.sparse_targets,
                       max((len(s.times) for s in source.skeletons), default=0), len(glb.data))
 
@@ -317,23 +448,27 @@ def pose(asset: str, poses: str, deformers: Sequence[str] = (), *, progress: Pro
         seen.add(info.skeleton)
         path, joints, channels, anim_samples = animation_components(scene, info.path, times)
         animations.append((info.skeleton, path, joints, channels, anim_samples))
-    layer = usdwrite.examples_layer(
+    layer = provenance.stamp(usdwrite.examples_layer(
         f"psdbake {__version__} pose: skinned examples to sculpt on", animations,
         posed_points(asset_scene, scene, meshes, times, chain, progress), times, scene.stage.GetTimeCodesPerSecond(),
         usdwrite.asset_metadata(asset),
-    )
-    return PoseResult(asset, poses, tuple(times), tuple(m.path for m in meshes), layer, tuple(deformers))
+    ), "examples")
+    return PoseResult(asset, poses, tuple(times), tuple(m.path for m in meshes), layer, tuple(deformers),
+                      rig=provenance.rig_record(asset_scene))
 
 
-def write_pose(result: PoseResult, path: str, obj_dir: str | None = None) -> str:
+def write_pose(result: PoseResult, path: str, obj_dir: str | None = None, *, force: bool = False) -> str:
     """Export EXAMPLES atomically; with obj_dir, also one OBJ per skinned mesh and time code
     plus ``manifest.json`` there, all in the same commit (``objloop``)."""
     from . import objloop
 
     inputs = files_read([result.asset, result.poses], result.deformers)
-    if obj_dir is None:
-        return usdwrite.export_atomic(result.layer, path, inputs)
-    objloop.write_pose_objs(result, path, obj_dir, inputs)
+    stamped(result.layer, "examples", path, {"asset": result.asset, "poses": result.poses}, rig=result.rig,
+            deformers=result.deformers)
+    with _forced(force):
+        if obj_dir is None:
+            return usdwrite.export_atomic(result.layer, path, inputs)
+        objloop.write_pose_objs(result, path, obj_dir, inputs)
     return path
 
 
@@ -363,31 +498,37 @@ def sculpts(asset: str, examples: str, obj_dir: str, *, scale: float | None = No
     return objloop.read_sculpts(asset, examples, obj_dir, scale=scale, up_axis=up_axis)
 
 
-def write_sculpts(result: SculptsResult, path: str) -> str:
+def write_sculpts(result: SculptsResult, path: str, *, force: bool = False) -> str:
     """Export SCULPTED_EXAMPLES (EXAMPLES with the sculpted points) atomically; no input, OBJ
     or manifest may be the output."""
     from . import objloop
 
-    usdwrite.export_all([(path, objloop.sculpts_layer(result))], [result.asset, result.examples],
-                        other_inputs=result.read)
+    layer = stamped(objloop.sculpts_layer(result), "sculpted_examples", path,
+                    {"asset": result.asset, "examples": result.examples, "sculpts": sorted(result.read)},
+                    settings={"scale": result.scale, "up_axis": result.up_axis})
+    with _forced(force):
+        usdwrite.export_all([(path, layer)], [result.asset, result.examples], other_inputs=result.read)
     return path
 
 
 # --- mirror: one side's correctives groups -> the other side's, in CORRECTIVES ------------------
 
-def mirror(asset: str, correctives: str, settings: MirrorSettings) -> MirrorResult:
+def mirror(asset: str, correctives: str, settings: MirrorSettings, *, strict: bool = False) -> MirrorResult:
     """The other side's correctives groups, made from CORRECTIVES's groups (``settings.group``,
     or every group whose drivers all have partners) by reflecting the rig's bind space
-    (``psdbake/mirroring.py``); refuses a rig or mesh that is not mirror-symmetric."""
+    (``psdbake/mirroring.py``); refuses a rig or mesh that is not mirror-symmetric. Warns (or,
+    strict, refuses) when ASSET's rig is not the one CORRECTIVES were fitted on."""
     from .mirroring import mirror_groups
 
     started = _time.perf_counter()
     scene = open_asset(asset)
+    check_fitted_on(asset, scene, correctives, strict=strict)
     groups = read_correctives(asset, correctives)
     meshes = {m.path: m for m in scene.skinned_meshes() if m.path in groups}
     binds = {path: read_bind_space(scene, info) for path, info in meshes.items()}
     made, skipped = mirror_groups(asset, correctives, groups, binds, meshes, settings)
-    return MirrorResult(asset, correctives, settings, tuple(made), tuple(skipped), _time.perf_counter() - started)
+    return MirrorResult(asset, correctives, settings, tuple(made), tuple(skipped), _time.perf_counter() - started,
+                        rig=provenance.rig_record(scene))
 
 
 def mirror_reads(asset: str, correctives: str, output: str) -> list[str]:
@@ -399,30 +540,122 @@ def mirror_reads(asset: str, correctives: str, output: str) -> list[str]:
     return [f for f in reads if os.path.realpath(f) != os.path.realpath(correctives)]
 
 
-def write_mirror(result: MirrorResult, path: str) -> str:
+def write_mirror(result: MirrorResult, path: str, *, force: bool = False, replace_sculpted: bool = False
+                 ) -> GroupChanges:
     """Export CORRECTIVES's groups with the mirrored ones written in (each replacing its
-    namesake) atomically to path. When path is CORRECTIVES itself, it is re-read and
-    replaced under the update lock, so concurrent group updates all land."""
+    namesake) atomically to path; returns what happened to the groups. When path is
+    CORRECTIVES itself, it is re-read and replaced under the update lock, so concurrent group
+    updates all land.
+
+    A group fitted from sculpts is not replaced by a mirrored one unless ``replace_sculpted``:
+    one named group (``--group``) is refused (exit 6); in whole-layer mode it is left alone and
+    reported (``GroupChanges.protected``)."""
     inputs = mirror_reads(result.asset, result.correctives, path)
-    new: dict = {}
-    for g in result.groups:
-        new.setdefault(g.mesh, {})[g.group] = (g.driver_data, list(g.shapes))
+    in_place = os.path.realpath(path) == os.path.realpath(result.correctives)
     doc = f"psdbake {__version__} mirror: rest-space correctives (inverse PSD), groups mirrored"
-    if os.path.realpath(path) != os.path.realpath(result.correctives):
-        usdwrite.export_all([(path, updated_layer(result.asset, result.correctives, new, doc))], inputs)
-        return path
-    atomic.check_output(path, inputs, tuple(usdwrite.FORMATS))
-    with atomic.updating(path):
-        usdwrite.export_all([(path, updated_layer(result.asset, path, new, doc))], inputs)
-    return path
+    with _forced(force):
+        atomic.check_output(path, inputs, kind=outputs.CORRECTIVES)
+        with atomic.updating(path) if in_place else contextlib.nullcontext():
+            base = path if in_place else result.correctives
+            before = read_correctives(result.asset, base)
+            records = provenance.plain(provenance.read_stamp(base).get("groups", {}))
+            sources = {g.group: g.source for g in result.groups}
+            protected = sorted(g for g in sources if g in names_of(before) and is_sculpted(records.get(g))
+                               and not replace_sculpted)
+            if protected and result.settings.group:
+                raise OutputError(
+                    f"{path}: group {protected[0]!r} there was fitted from sculpts ({origin_text(records.get(protected[0]))}): "
+                    "mirror does not replace it unless asked (--replace-sculpted), or name the mirror otherwise (--as)")
+            written: Groups = {}
+            for g in result.groups:
+                if g.group not in protected:
+                    written.setdefault(g.mesh, {})[g.group] = (g.driver_data, list(g.shapes))
+            groups = merged_groups(before, written)
+            entries = {name: {"origin": "mirror", "source": sources[name], "command": outputs.command_line(path),
+                              "plane": result.settings.plane, "joints": list(result.settings.joints)}
+                       for name in names_of(written)}
+            layer = groups_layer(result.asset, groups, doc)
+            stamped(layer, "correctives", path, {"asset": result.asset}, rig=result.rig, command=False,
+                    groups={**{g: r for g, r in records.items() if g in names_of(groups)}, **entries})
+            usdwrite.export_all([(path, layer)], inputs)
+    return dataclasses.replace(changes_between(before, groups, written, records), protected=tuple(protected))
 
 
 # --- views and descriptions --------------------------------------------------------------
 
-def write_stack(path: str, layers: Sequence[str]) -> str:
-    """A viewable stack: sublayers ``layers`` (weakest first: ASSET, CORRECTIVES, ANIM, WEIGHTS)."""
-    compose(list(reversed(layers)))  # refuse what no viewer could compose (cycles, unreadable sublayers)
-    return usdwrite.export_atomic(usdwrite.stack_layer(path, layers), path, files_read(layers))
+@dataclasses.dataclass(frozen=True)
+class StackResult:
+    """What ``write_stack`` wrote: the layers in the order composed, weakest first, with roles."""
+
+    output: str
+    layers: tuple[tuple[str, str], ...]  # (path, role), weakest first
+    reordered: bool  # the layers were given in another order than composed
+    warnings: tuple[str, ...] = ()
+
+
+def plan_stack(layers: Sequence[str], *, strict: bool = False) -> StackResult:
+    """The layers in the order a viewer must compose them, weakest first: ASSET < CORRECTIVES <
+    ANIM < WEIGHTS < points cache, by each layer's role (its psdbake kind; the asset is the
+    layer that defines a SkelRoot; any other layer of the user's is an ANIM), whatever the order
+    given. Layers of one role keep the order given, strongest first, as in a USD subLayers list.
+    Refuses contradictions: two CORRECTIVES layers on one mesh, two WEIGHTS layers on one
+    animation. Warns (strict: refuses, exit 3) when CORRECTIVES were fitted on another rig than
+    the asset's, or WEIGHTS were evaluated from other CORRECTIVES than the ones stacked."""
+    notes: list[str] = []
+    unique = list(dict.fromkeys(layers))
+    roles = {path: provenance.layer_role(path) for path in unique}
+    rank = {r: i for i, r in enumerate(provenance.STACK_ROLES)}
+    position = {path: i for i, path in enumerate(unique)}
+    ordered = sorted(unique, key=lambda p: (rank[roles[p]], -position[p]))
+    by_role: dict[str, list[str]] = {}
+    for path in ordered:
+        by_role.setdefault(roles[path], []).append(path)
+    stamps = {p: provenance.read_stamp(p) for p in unique if roles[p] != "asset" and roles[p] != "anim"}
+    claimed: dict[str, str] = {}
+    for path in by_role.get("correctives", []):
+        for mesh in psd_prims(open_layer(path)):
+            if mesh in claimed:
+                raise InputError(f"{path}: CORRECTIVES for <{mesh}>, as {claimed[mesh]} is: the stronger layer's "
+                                 "blend shapes would hide the other's; merge them into one layer (fit --group)")
+            claimed[mesh] = path
+    weights_of: dict[str, str] = {}
+    for path in by_role.get("weights", []):
+        anim = provenance.plain(stamps[path].get("inputs", {})).get("anim", {}).get("sha256", path)
+        if anim in weights_of:
+            raise InputError(f"{path}: WEIGHTS for the same animation as {weights_of[anim]}: the stronger layer's "
+                             "weights would hide the other's; stack one of them")
+        weights_of[anim] = path
+    stacked = {provenance.file_sha256(p): p for p in by_role.get("correctives", [])}
+    for path in by_role.get("weights", []):
+        used = provenance.plain(stamps[path].get("inputs", {})).get("correctives", {})
+        if stacked and used.get("sha256") and used["sha256"] not in stacked:
+            msg = (f"{path}: evaluated from {used.get('path', 'other correctives')} (other bytes than "
+                   f"{', '.join(stacked.values())}): re-run psdbake eval with the stacked CORRECTIVES")
+            if strict:
+                raise InputError(f"{msg} (--strict)")
+            notes.append(msg)
+            warnings.warn(msg, PsdWarning, stacklevel=2)
+    assets = by_role.get("asset", [])
+    if assets:
+        scene = open_asset(assets[-1])
+        for path in by_role.get("correctives", []):
+            notes += check_fitted_on(assets[-1], scene, path, strict=strict)
+    return StackResult("", tuple((p, roles[p]) for p in ordered), ordered != list(reversed(unique)) and
+                       ordered != unique, tuple(notes))
+
+
+def write_stack(path: str, layers: Sequence[str], *, strict: bool = False, force: bool = False) -> StackResult:
+    """A viewable stack of layers, given in any order (``plan_stack``): one layer sublayering
+    them, paths relative to it, written atomically."""
+    plan = dataclasses.replace(plan_stack(layers, strict=strict), output=path)
+    ordered = [p for p, _ in plan.layers]
+    compose(list(reversed(ordered)))  # refuse what no viewer could compose (cycles, unreadable sublayers)
+    layer = stamped(usdwrite.stack_layer(path, ordered), "stack", path,
+                    {role: [p for p, r in plan.layers if r == role] for role in provenance.STACK_ROLES
+                     if any(r == role for _, r in plan.layers)})
+    with _forced(force):
+        usdwrite.export_atomic(layer, path, files_read(ordered))
+    return plan
 
 
 def describe(path: str) -> dict:

@@ -29,11 +29,11 @@ from typing import TYPE_CHECKING
 
 import click
 
-from . import __version__, console
+from . import __version__, console, outputs
 from . import tolerances as tol
 from .console import Ui
 from .errors import PsdError, SettingError, StrictError, UsdDataError
-from .names import DEFAULT_GROUP, KERNEL_NAMES, LAYER_FORMATS, POSE_SPACE_NAMES
+from .names import DEFAULT_GROUP, KERNEL_NAMES, POSE_SPACE_NAMES
 
 if TYPE_CHECKING:
     from .settings import FitSettings
@@ -41,11 +41,8 @@ if TYPE_CHECKING:
 EXIT_INTERNAL, EXIT_USAGE, EXIT_INTERRUPTED = 1, 2, 130
 
 
-REPORT_FORMATS = (".json",)
-
-
 _COMMON = [
-    click.option("-q", "--quiet", is_flag=True, help="Print nothing but errors."),
+    click.option("-q", "--quiet", is_flag=True, help="Print nothing on stdout; warnings and errors still go to stderr."),
     click.option("-v", "--verbose", count=True, help="More detail in the summary."),
     click.option("--json", "as_json", is_flag=True, help="Print a machine-readable summary on stdout."),
 ]
@@ -57,6 +54,18 @@ deformer_option = click.option(
     "--deformer", "deformers", multiple=True, metavar="MODULE:FACTORY",
     help="A studio deformer applied after skinning (repeatable, chained in order): "
          "package.module:factory or file.py:factory. This runs your code.",
+)
+
+force_option = click.option(
+    "--force", is_flag=True,
+    help="Replace an existing output even when it is not this command's own earlier output (an asset, a sculpt, "
+         "another kind of layer) or is read-only. Inputs are never replaced.",
+)
+
+strict_provenance_option = click.option(
+    "--strict", is_flag=True,
+    help="Refuse (exit 3) when the asset's rig is not the one the correctives were fitted on (another skinning "
+         "method, weights, rest points or skeleton), instead of warning.",
 )
 
 frames_option = click.option(
@@ -113,6 +122,7 @@ def cli() -> None:
 FLAGS = {"rtol": "--tolerance", "meshes": "--mesh", "drivers": "--driver", "as_name": "--as"}
 
 _INPUT_PARAMS = ("asset", "examples", "correctives", "anim", "poses", "file", "layers", "jobs_file")
+#: Parameters naming files or folders a command writes (with the inputs: recorded relative to the output).
 _OUTPUT_PARAMS = ("output", "report", "points_cache", "obj_dir", "report_dir")
 
 
@@ -131,6 +141,7 @@ class _Run:
     diagnostics while the command runs, for ``main`` to show once it has succeeded."""
 
     usd_messages: list[str] = field(default_factory=list)
+    argv: tuple[str, ...] = ()  # the command line, recorded in every output's provenance
 
 
 class _Command(click.Command):
@@ -150,7 +161,9 @@ class _Command(click.Command):
 
         run = ctx.find_object(_Run)  # None under click's CliRunner: USD's diagnostics go to stderr, as ever
         trap: contextlib.AbstractContextManager[list[str]] = usd_diagnostics() if run else contextlib.nullcontext([])
-        with trap as found, layers_kept_open():  # the inputs' walk parses each file once for the command
+        paths = files + _paths(ctx, _OUTPUT_PARAMS)
+        invoked = outputs.invoked_as(run.argv, paths) if run else contextlib.nullcontext()
+        with trap as found, layers_kept_open(), invoked:
             try:
                 with usd_errors():
                     result = super().invoke(ctx)
@@ -188,19 +201,21 @@ def _settings(drivers, kernel, sigma, degree, smoothing, no_rest_example, pose_s
                    "applications (read back with psdbake sculpts). Created if missing; a non-empty DIR must hold an "
                    "earlier manifest (its unedited files are replaced).")
 @deformer_option
+@force_option
 @_common
-def pose_cmd(asset, poses, output, obj_dir, deformers, quiet, verbose, as_json) -> None:
+def pose_cmd(asset, poses, output, obj_dir, deformers, force, quiet, verbose, as_json) -> None:
     """Write the skinned character at every time code of POSES, for artists to sculpt."""
     from . import api, atomic
 
     ui = Ui(quiet, verbose, as_json)
     reads = api.files_read([asset, poses], deformers)
-    atomic.check_outputs([(output, LAYER_FORMATS)], reads)
+    with atomic.forcing(force):
+        atomic.check_outputs([(output, outputs.EXAMPLES)], reads)
     if obj_dir is not None:
         api.check_obj_dir(obj_dir, reads)
     with ui.warnings(), ui.progress("posing") as progress:
         result = api.pose(asset, poses, deformers, progress=progress)
-        api.write_pose(result, output, obj_dir=obj_dir)
+        api.write_pose(result, output, obj_dir=obj_dir, force=force)
     summary = {"output": output, "times": list(result.times), "meshes": list(result.meshes)}
     if obj_dir is not None:
         summary.update(obj_dir=obj_dir, obj_files=api.obj_files(result))
@@ -226,17 +241,19 @@ def pose_cmd(asset, poses, output, obj_dir, deformers, quiet, verbose, as_json) 
 @click.option("--up-axis", type=click.Choice(["Y", "Z"], case_sensitive=False), default=None, metavar="Y|Z",
               help="The OBJs' up axis, when the sculpting application exported them with another one than the asset's; "
                    "they are turned to the asset's first.")
+@force_option
 @_common
-def sculpts_cmd(asset, examples, obj_dir, output, scale, up_axis, quiet, verbose, as_json) -> None:
+def sculpts_cmd(asset, examples, obj_dir, output, scale, up_axis, force, quiet, verbose, as_json) -> None:
     """Read the sculpted OBJs of DIR back into EXAMPLES (the layer psdbake pose wrote with them):
     each OBJ checked against the asset's mesh and its posed points, written as SCULPTED_EXAMPLES for fit."""
     from . import api, atomic
 
     ui = Ui(quiet, verbose, as_json)
-    atomic.check_outputs([(output, LAYER_FORMATS)], api.files_read([asset, examples]))
+    with atomic.forcing(force):
+        atomic.check_outputs([(output, outputs.SCULPTED_EXAMPLES)], api.files_read([asset, examples]))
     with ui.warnings():
         result = api.sculpts(asset, examples, obj_dir, scale=scale, up_axis=up_axis.upper() if up_axis else None)
-        api.write_sculpts(result, output)
+        api.write_sculpts(result, output, force=force)
     ui.payload(console.sculpts_payload(result, output))
     console.say_sculpts(ui, result, output)
 
@@ -259,21 +276,25 @@ def sculpts_cmd(asset, examples, obj_dir, output, scale, up_axis, quiet, verbose
               help="Worker processes for the examples (default 1: UsdSkel already skins on every core). "
                    "The output is byte-identical whatever N is.")
 @deformer_option
+@force_option
 @_common
 def fit_cmd(asset, examples, output, drivers, kernel, sigma, degree, smoothing, no_rest_example, pose_space,
             twist_axis, clamp_weights, normalize_weights, tolerance, meshes, group, report, strict, jobs, deformers,
-            quiet, verbose, as_json) -> None:
+            force, quiet, verbose, as_json) -> None:
     """Fit rest-space corrective BlendShapes and their RBF drivers from sculpted EXAMPLES."""
     from . import api, atomic
     from .groups import read_correctives
+    from .usd.provenance import existing_kind
 
     ui = Ui(quiet, verbose, as_json)
     settings = _settings(drivers, kernel, sigma, degree, smoothing, no_rest_example, pose_space, twist_axis,
                          clamp_weights, normalize_weights, deformers, rtol=tolerance, meshes=tuple(meshes),
                          group=group)
     reads = api.files_read([asset, *examples], deformers)
-    atomic.check_outputs([(output, LAYER_FORMATS), *([(report, REPORT_FORMATS)] if report else [])], reads)
-    if group and os.path.exists(output):
+    with atomic.forcing(force):
+        atomic.check_outputs([(output, outputs.CORRECTIVES), *([(report, outputs.FIT_REPORT)] if report else [])],
+                             reads)
+    if group and os.path.exists(output) and existing_kind(output) == "correctives":
         read_correctives(asset, output)  # refuse a bad layer to update before the long fit
     with ui.warnings():
         with ui.progress("fitting examples") as progress:
@@ -282,9 +303,10 @@ def fit_cmd(asset, examples, output, drivers, kernel, sigma, degree, smoothing, 
         if strict and result.missed:
             raise StrictError(f"{output}: not written: {result.missed} vertices missed the tolerance (--strict)")
         side = [(report, console.json_text(payload))] if report else []
-        api.write_correctives(result, output, update=bool(group), side_files=side)
+        changes = api.write_correctives(result, output, update=bool(group), side_files=side, force=force)
+    payload["groups"] = console.changes_payload(changes)
     ui.payload(payload)
-    console.say_fit(ui, result, output)
+    console.say_fit(ui, result, output, changes)
 
 
 @cli.command("eval")
@@ -300,10 +322,12 @@ def fit_cmd(asset, examples, output, drivers, kernel, sigma, degree, smoothing, 
                    "them with USD value clips.")
 @click.option("--chunk", type=int, default=None, metavar="K",
               help="Farm: with --chunk-size, write only chunk K (1-based) and the manifest.")
+@strict_provenance_option
 @deformer_option
+@force_option
 @_common
-def eval_cmd(asset, correctives, anim, output, frames, points_cache, chunk_size, chunk, deformers, quiet, verbose,
-             as_json) -> None:
+def eval_cmd(asset, correctives, anim, output, frames, points_cache, chunk_size, chunk, strict, deformers, force, quiet,
+             verbose, as_json) -> None:
     """Compute the correctives' weights over ANIM and write them as a WEIGHTS layer."""
     from . import api, atomic
     from .deformers import load_deformers
@@ -311,21 +335,24 @@ def eval_cmd(asset, correctives, anim, output, frames, points_cache, chunk_size,
 
     ui = Ui(quiet, verbose, as_json)
     if chunk_size is not None or chunk is not None:
-        _eval_chunked(ui, asset, correctives, anim, output, frames, points_cache, chunk_size, chunk, deformers)
+        with atomic.forcing(force):
+            _eval_chunked(ui, asset, correctives, anim, output, frames, points_cache, chunk_size, chunk, deformers,
+                          strict)
         return
     with ui.warnings():
         reads = api.files_read([asset, correctives, anim], deformers)
-        atomic.check_outputs([(output, LAYER_FORMATS), *([(points_cache, LAYER_FORMATS)] if points_cache else [])],
-                             reads)
+        with atomic.forcing(force):
+            atomic.check_outputs([(output, outputs.WEIGHTS),
+                                  *([(points_cache, outputs.POINTS_CACHE)] if points_cache else [])], reads)
         span = parse_frames(frames)
         load_deformers(deformers)
         with ui.progress("weights") as progress:
-            result = api.evaluate(asset, correctives, anim, frames=span, progress=progress)
+            result = api.evaluate(asset, correctives, anim, frames=span, progress=progress, strict=strict)
         cache = None
         if points_cache:
             with ui.progress("points cache") as progress:
                 cache = (points_cache, api.points_cache_layer(result, deformers, progress=progress))
-        api.write_weights(result, output, points_cache=cache, deformers=deformers)
+        api.write_weights(result, output, points_cache=cache, deformers=deformers, force=force)
     console.say_eval(ui, result, output, points_cache)
 
 
@@ -344,8 +371,14 @@ def eval_cmd(asset, correctives, anim, output, frames, points_cache, chunk_size,
               help="With --group: the mirrored group's name (default: the joint map applied to NAME).")
 @click.option("--plane", type=click.Choice(["x", "y", "z"]), default="x", show_default=True,
               help="Mirror plane: the skeleton-space plane through the origin normal to this axis.")
+@click.option("--replace-sculpted", is_flag=True,
+              help="Replace groups on the other side that were fitted from sculpts (by default they are kept, and "
+                   "only groups made by an earlier mirror are replaced).")
+@strict_provenance_option
+@force_option
 @_common
-def mirror_cmd(asset, correctives, output, joint_rules, group, as_name, plane, quiet, verbose, as_json) -> None:
+def mirror_cmd(asset, correctives, output, joint_rules, group, as_name, plane, replace_sculpted, strict, force, quiet,
+               verbose, as_json) -> None:
     """Make the other side's correctives groups from one side's (a symmetric rig and mesh) and write them
     into CORRECTIVES's groups."""
     from . import api, atomic
@@ -353,12 +386,13 @@ def mirror_cmd(asset, correctives, output, joint_rules, group, as_name, plane, q
 
     ui = Ui(quiet, verbose, as_json)
     settings = MirrorSettings(joints=tuple(joint_rules), plane=plane, group=group, as_name=as_name)
-    atomic.check_outputs([(output, LAYER_FORMATS)], api.mirror_reads(asset, correctives, output))
+    with atomic.forcing(force):
+        atomic.check_outputs([(output, outputs.CORRECTIVES)], api.mirror_reads(asset, correctives, output))
     with ui.warnings():
-        result = api.mirror(asset, correctives, settings)
-        api.write_mirror(result, output)
-    ui.payload(console.mirror_report(result, output))
-    console.say_mirror(ui, result, output)
+        result = api.mirror(asset, correctives, settings, strict=strict)
+        changes = api.write_mirror(result, output, force=force, replace_sculpted=replace_sculpted)
+    ui.payload({**console.mirror_report(result, output), "changes": console.changes_payload(changes)})
+    console.say_mirror(ui, result, output, changes)
 
 
 @cli.command("export-gltf")
@@ -367,8 +401,10 @@ def mirror_cmd(asset, correctives, output, joint_rules, group, as_name, plane, q
 @click.option("--anim", required=True, type=str, help="ANIM layer: the shot to animate.")
 @click.option("-o", "--output", required=True, type=str, help="SHOT.glb to write (glTF 2.0 binary).")
 @frames_option
+@strict_provenance_option
+@force_option
 @_common
-def export_gltf_cmd(asset, correctives, anim, output, frames, quiet, verbose, as_json) -> None:
+def export_gltf_cmd(asset, correctives, anim, output, frames, strict, force, quiet, verbose, as_json) -> None:
     """Write a skinned glTF 2.0 binary for game engines: meshes, skin, joint animation, the correctives
     as morph targets and eval's weights animating them."""
     from . import api
@@ -376,7 +412,8 @@ def export_gltf_cmd(asset, correctives, anim, output, frames, quiet, verbose, as
 
     ui = Ui(quiet, verbose, as_json)
     with ui.warnings(), ui.progress("weights") as progress:  # the output is checked before any work
-        result = api.export_gltf(asset, correctives, anim, output, frames=parse_frames(frames), progress=progress)
+        result = api.export_gltf(asset, correctives, anim, output, frames=parse_frames(frames), progress=progress,
+                                 strict=strict, force=force)
     ui.payload({"output": output, "meshes": list(result.meshes), "morph_targets": result.morph_targets,
                 "sparse_targets": result.sparse_targets, "frames": result.frames, "bytes": result.size})
     ui.say(f"psdbake export-gltf: {len(result.meshes)} mesh(es), {result.morph_targets} morph target(s) "
@@ -385,7 +422,7 @@ def export_gltf_cmd(asset, correctives, anim, output, frames, quiet, verbose, as
 
 
 def _eval_chunked(ui: Ui, asset, correctives, anim, output, frames, points_cache, chunk_size, chunk,
-                  deformers) -> None:
+                  deformers, strict) -> None:
     """eval --chunk-size N [--chunk K]: chunk layers plus the value-clip manifest(s) (psdbake.farm.chunked)."""
     from . import api, atomic
     from .deformers import load_deformers
@@ -398,13 +435,13 @@ def _eval_chunked(ui: Ui, asset, correctives, anim, output, frames, points_cache
     if chunk_size < 1:
         raise ChunkUsageError(f"--chunk-size {chunk_size}: must be at least 1 frame")
     reads = api.files_read([asset, correctives, anim], deformers)
-    atomic.check_outputs([(output, LAYER_FORMATS), *([(points_cache, LAYER_FORMATS)] if points_cache else [])],
+    atomic.check_outputs([(output, outputs.WEIGHTS), *([(points_cache, outputs.POINTS_CACHE)] if points_cache else [])],
                          reads)
     with ui.warnings():
         load_deformers(deformers)
         with ui.progress("weights") as progress:
             ev = chunked.evaluate_chunks(asset, correctives, anim, chunk_size, frames=parse_frames(frames),
-                                         chunk=chunk, progress=progress)
+                                         chunk=chunk, progress=progress, strict=strict)
         with ui.progress("points cache") as progress:
             written = chunked.write_chunks(ev, output, points_cache=points_cache, deformers=deformers, progress=progress)
     console.say_chunks(ui, ev, written)
@@ -467,15 +504,30 @@ def inspect_cmd(file, as_json) -> None:
 
 
 @cli.command("stack")
-@click.argument("output", type=str)
 @click.argument("layers", nargs=-1, required=True, type=str)
-def stack_cmd(output, layers) -> None:
-    """Write OUTPUT sublayering LAYERS, given weakest first (ASSET CORRECTIVES ANIM WEIGHTS),
-    so any UsdSkel viewer shows the corrected character."""
-    from . import api
+@click.option("-o", "--output", required=True, type=str, help="The stack layer to write (open it in any UsdSkel viewer).")
+@strict_provenance_option
+@force_option
+@_common
+def stack_cmd(layers, output, strict, force, quiet, verbose, as_json) -> None:
+    """Write OUTPUT sublayering LAYERS, so any UsdSkel viewer shows the corrected character.
 
-    api.write_stack(output, layers)
-    click.echo(f"wrote {output}")
+    LAYERS in any order: each layer's role (ASSET, CORRECTIVES, ANIM, WEIGHTS, points cache) is
+    read from the layer itself, and they are stacked in the order a viewer needs.
+    """
+    from . import api, atomic
+
+    ui = Ui(quiet, verbose, as_json)
+    with atomic.forcing(force):
+        atomic.check_outputs([(output, outputs.STACK)], api.files_read(layers))
+    with ui.warnings():
+        result = api.write_stack(output, layers, strict=strict, force=force)
+    ui.payload({"output": output, "layers": [{"layer": p, "role": r} for p, r in reversed(result.layers)],
+                "reordered": result.reordered})
+    shown = " > ".join(f"{p} ({r.upper().replace('_', ' ')})" for p, r in reversed(result.layers))
+    ui.say(f"psdbake stack: {len(result.layers)} layer(s), strongest first: {shown}"
+           + ("  (reordered by role)" if result.reordered else ""))
+    ui.say(f"wrote {output}")
 
 
 @cli.command("batch")
@@ -535,17 +587,16 @@ def main(argv: Sequence[str] | None = None) -> None:
     """Entry point: run the CLI, turn every failure into one line and an exit code."""
     with contextlib.suppress(ValueError):  # only the main thread may set handlers
         signal.signal(signal.SIGTERM, _terminate)
-    quiet = any(a in ("-q", "--quiet", "--json") for a in (argv if argv is not None else sys.argv[1:]))
     run = _Run()
     try:
         # make_context + invoke rather than cli.main: click's main echoes a blank line on
         # Ctrl-C (for the terminal's ^C), and a refusal must be exactly one line
         args = list(argv) if argv is not None else sys.argv[1:]
+        run.argv = tuple(args)
         with cli.make_context("psdbake", args, obj=run) as ctx:
             cli.invoke(ctx)
-        if not quiet:
-            for message in dict.fromkeys(run.usd_messages):  # USD repeats itself; once is enough
-                click.echo(f"psdbake: warning: USD: {message}", err=True)
+        for message in dict.fromkeys(run.usd_messages):  # USD repeats itself; once is enough
+            click.echo(f"psdbake: warning: USD: {message}", err=True)
     except click.exceptions.Exit as exc:  # --help, --version
         sys.exit(exc.exit_code)
     except click.exceptions.Abort:

@@ -20,6 +20,7 @@ from .errors import PsdWarning
 if TYPE_CHECKING:  # the results are only read here: importing them would load numpy and USD with --help
     from .farm import JobResult
     from .farm.chunked import ChunkedWeights, WrittenChunks
+    from .groups import GroupChanges
     from .results import FitResult, MirrorResult, Progress, SculptsResult, WeightsResult
 
 
@@ -32,6 +33,10 @@ class Ui:
     def say(self, text: str = "") -> None:
         if not self.quiet and not self.as_json:
             click.echo(text)
+
+    def warn(self, text: str) -> None:
+        """A warning: on stderr, even with -q or --json (a farm log must see it)."""
+        click.echo(f"psdbake: warning: {text}", err=True)
 
     def payload(self, data: Any) -> None:
         """The --json summary, on stdout."""
@@ -70,8 +75,7 @@ class Ui:
         for w in caught:
             if issubclass(w.category, PsdWarning):
                 found.append(str(w.message))
-                if not self.quiet:
-                    click.echo(f"psdbake: warning: {w.message}", err=True)
+                self.warn(str(w.message))
 
 
 def json_text(payload: dict) -> str:
@@ -112,7 +116,29 @@ def fit_report(result: FitResult, output: str) -> dict:
     }
 
 
-def say_fit(ui: Ui, result: FitResult, output: str) -> None:
+def changes_payload(changes: GroupChanges) -> dict:
+    """What a write did to the groups already in its CORRECTIVES layer (--json, --report)."""
+    return {"added": list(changes.added), "replaced": list(changes.replaced), "kept": list(changes.kept),
+            "removed": list(changes.removed), "protected": list(changes.protected),
+            "origins": {g: changes.origins[g] for g in (*changes.replaced, *changes.removed, *changes.protected)
+                        if g in changes.origins}}
+
+
+def say_changes(ui: Ui, changes: GroupChanges, output: str) -> None:
+    """One line per kind of change to the groups of output; removals and protections always shown."""
+    parts = [f"added {', '.join(changes.added)}"] if changes.added else []
+    parts += [f"{what} {changes.shown(names)}" for what, names in (("replaced", changes.replaced),
+                                                                  ("removed", changes.removed)) if names]
+    if changes.kept:
+        parts.append(f"kept {len(changes.kept)}" + (f" ({', '.join(changes.kept)})" if ui.verbose else ""))
+    if parts:
+        ui.say(f"  groups: {'; '.join(parts)}")
+    if changes.protected:
+        ui.warn(f"{output}: kept {len(changes.protected)} group(s) fitted from sculpts instead of their mirror: "
+                f"{changes.shown(changes.protected)} (--replace-sculpted replaces them)")
+
+
+def say_fit(ui: Ui, result: FitResult, output: str, changes: GroupChanges | None = None) -> None:
     n_ex = sum(len(m.examples) for m in result.meshes)
     solved = sum(len(inv.indices) for m in result.meshes for inv in m.inverses)
     ui.say(f"psdbake fit: {len(result.meshes)} mesh(es), {n_ex} example(s), {solved} vertices solved in {result.seconds:.2f} s")
@@ -146,6 +172,8 @@ def say_fit(ui: Ui, result: FitResult, output: str) -> None:
         detail = ", ".join(f"{name} {count}" for name, count in sorted(why.items()))
         ui.say(f"  DEGRADED: {result.missed} vertices missed the tolerance ({detail}; see --report; --strict makes "
                "this fatal)")
+    if changes is not None:
+        say_changes(ui, changes, output)
     ui.say(f"wrote {output}")
 
 
@@ -166,7 +194,7 @@ def mirror_report(result: MirrorResult, output: str) -> dict:
     }
 
 
-def say_mirror(ui: Ui, result: MirrorResult, output: str) -> None:
+def say_mirror(ui: Ui, result: MirrorResult, output: str, changes: GroupChanges | None = None) -> None:
     ui.say(f"psdbake mirror: {len(result.groups)} group(s) mirrored about the {result.settings.plane} plane, "
            f"{sum(g.vertices for g in result.groups)} vertices paired in {result.seconds:.2f} s")
     for g in result.groups:
@@ -177,6 +205,8 @@ def say_mirror(ui: Ui, result: MirrorResult, output: str) -> None:
         ui.say(f"  skipped {len(result.skipped)} group(s):")
         for line in result.skipped:
             ui.say(f"    {line}")
+    if changes is not None:
+        say_changes(ui, changes, output)
     ui.say(f"wrote {output}")
 
 
@@ -255,9 +285,8 @@ def batch_lines(jobs_file: str, quiet: bool, verbose: int) -> Callable[[JobResul
         elif not quiet:
             extra = f" ({r.error})" if r.status == "skipped" else f" {r.seconds:.2f} s" + (f" on {r.worker}" if verbose else "")
             click.echo(f"psdbake batch: [{n}/{total}] {r.status:<7} {r.label}{extra}", err=True)
-        if not quiet:
-            for w in r.warnings:
-                click.echo(f"psdbake: warning: {jobs_file} {r.label}: {w}", err=True)
+        for w in r.warnings:  # even when quiet: a farm log must see them
+            click.echo(f"psdbake: warning: {jobs_file} {r.label}: {w}", err=True)
 
     return done
 

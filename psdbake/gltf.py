@@ -26,6 +26,7 @@ from numpy.typing import NDArray
 
 from . import atomic
 from .errors import InputError, where
+from .outputs import GLTF
 from .usd.gltf_source import GltfSource, MeshSource, MorphTarget, SkeletonSource
 
 #: A matrix whose rotation part is off orthonormal by more than this (after taking the
@@ -62,7 +63,7 @@ def build_glb(source: GltfSource, animation_name: str, generator: str) -> Glb:
 
 def write_glb(data: bytes, path: str, inputs: Iterable[str] = ()) -> str:
     """Write the .glb atomically (temp file + rename); an input is never overwritten."""
-    with atomic.replacing(path, inputs, (".glb",)) as tmp, open(tmp, "wb") as fh:  # OSError -> OutputError
+    with atomic.replacing(path, inputs, kind=GLTF) as tmp, open(tmp, "wb") as fh:  # OSError -> OutputError
         fh.write(data)
     return path
 

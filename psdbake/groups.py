@@ -6,12 +6,14 @@ at eval, so a group must be (nearly) off at the other groups' examples (``cross_
 
 from __future__ import annotations
 
-import warnings
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
 from .channels import channel_names
-from .errors import InputError, PsdWarning, where
+from .errors import FitError, InputError, SettingError, where
 from .results import FitResult, MeshFit
 from .usd import write as usdwrite
 from .usd.author import Layer
@@ -40,6 +42,14 @@ def shapes_of(m: MeshFit) -> list[BlendShapeData]:
 
 
 Groups = dict[str, dict[str, tuple[DriverData, list[BlendShapeData]]]]  # mesh -> group -> data
+
+
+def fitted_groups(result: FitResult) -> Groups:
+    """The groups one fit made, as written (mesh -> group -> driver data and BlendShapes)."""
+    out: Groups = {}
+    for m in result.meshes:
+        out.setdefault(m.mesh, {})[m.group] = (m.driver_data, shapes_of(m))
+    return out
 
 
 def read_correctives(asset: str, correctives: str) -> Groups:
@@ -97,36 +107,105 @@ def cross_talk(result: FitResult, others: Groups) -> list[str]:
     return notes
 
 
-def correctives_layer(result: FitResult, update: str | None = None):
-    """CORRECTIVES as an in-memory layer: BlendShapes, bindings and psd: driver data.
+@dataclass(frozen=True)
+class GroupChanges:
+    """What writing a CORRECTIVES layer did to the groups already there (by group name)."""
 
-    update: an existing CORRECTIVES layer whose other groups are carried over unchanged;
-    this fit's group replaces its namesake on the fitted meshes (on every mesh when the
-    fit was not restricted with ``--mesh``). Groups are written sorted by name, so the
-    layer does not depend on the order the groups were fitted in.
-    """
-    from . import __version__
+    added: tuple[str, ...] = ()
+    replaced: tuple[str, ...] = ()
+    kept: tuple[str, ...] = ()
+    removed: tuple[str, ...] = ()
+    protected: tuple[str, ...] = ()  # mirror: fitted from sculpts, so left alone
+    origins: Mapping[str, str] = field(default_factory=dict)  # replaced and protected groups: where they came from
 
-    groups: Groups = read_correctives(result.asset, update) if update else {}
-    fitted = {m.mesh for m in result.meshes}
-    for mesh, per_group in groups.items():
-        if not result.settings.meshes or mesh in fitted:
-            for group in {m.group for m in result.meshes}:
+    def shown(self, names: Sequence[str]) -> str:
+        """Group names, each with its origin when it was not a plain fit's (a TD wants to see those)."""
+        return ", ".join(n if self.origins.get(n, "").startswith(("fit of", "fit ")) and "--group" not in
+                         self.origins.get(n, "") else f"{n} ({self.origins.get(n, 'origin not recorded')})"
+                         for n in names)
+
+
+def names_of(groups: Groups) -> set[str]:
+    return {g for per in groups.values() for g in per}
+
+
+def origin_text(record: Mapping[str, Any] | None) -> str:
+    """Where a group came from, in words, from its provenance record."""
+    if not record:
+        return "origin not recorded"
+    origin = str(record.get("origin", "?"))
+    if origin == "mirror":
+        return f"mirrored from {record.get('source', '?')}"
+    examples = [e.get("path", "?") if isinstance(e, Mapping) else str(e) for e in record.get("examples") or []]
+    return f"{origin} of {', '.join(examples)}" if examples else origin
+
+
+def is_sculpted(record: Mapping[str, Any] | None) -> bool:
+    """A group fitted from sculpts (or of unknown origin, which is treated the same: it may be)."""
+    return not record or record.get("origin") != "mirror"
+
+
+def merged_groups(existing: Groups, new: Groups, meshes: Sequence[str] = ()) -> Groups:
+    """existing with every group of new written in: each replaces its namesake (on every mesh
+    when ``meshes`` is empty, else only on those), every other group carried over unchanged."""
+    out: Groups = {mesh: dict(per) for mesh, per in existing.items()}
+    names = names_of(new)
+    for mesh, per_group in out.items():
+        if not meshes or mesh in meshes:
+            for group in names:
                 per_group.pop(group, None)
-    for m in result.meshes:
-        groups.setdefault(m.mesh, {})[m.group] = (m.driver_data, shapes_of(m))
-    for note in cross_talk(result, groups):  # this fit's groups and the ones carried over
-        warnings.warn(note, PsdWarning, stacklevel=2)
-    return groups_layer(result.asset, groups, f"psdbake {__version__} fit: rest-space correctives (inverse PSD)")
-
-
-def updated_layer(asset: str, base: str, new: Groups, doc: str) -> Layer:
-    """CORRECTIVES ``base`` (a layer over asset) with the groups ``new`` written into it: each
-    replaces its namesake on its mesh, every other group is carried over unchanged."""
-    groups = read_correctives(asset, base)
     for mesh, per_group in new.items():
-        groups.setdefault(mesh, {}).update(per_group)
-    return groups_layer(asset, groups, doc)
+        out.setdefault(mesh, {}).update(per_group)
+    return out
+
+
+def changes_between(before: Groups, after: Groups, written: Groups,
+                    records: Mapping[str, Mapping[str, Any]]) -> GroupChanges:
+    """Which groups a write added, replaced (and where those came from), kept and removed."""
+    old, new, mine = names_of(before), names_of(after), names_of(written)
+    return GroupChanges(
+        added=tuple(sorted(mine - old)),
+        replaced=tuple(sorted(mine & old)),
+        kept=tuple(sorted((old & new) - mine)),
+        removed=tuple(sorted(old - new)),
+        origins={g: origin_text(records.get(g)) for g in old},
+    )
+
+
+def _driver_names(data: DriverData) -> str:
+    return ", ".join(d.split("/")[-1] for d in data.drivers)
+
+
+def check_not_doubled(groups: Groups, written: Groups, label: str) -> None:
+    """Refuse two groups that would both correct the same joint's poses: groups add at eval, so
+    a second group driven by a joint another group already corrects applies that correction
+    twice. Combinations (gated groups) sit on their joints' groups by design and are exempt."""
+    for mesh in sorted(written):
+        for group, (data, _) in sorted(written[mesh].items()):
+            if _combination_of(data):
+                continue
+            for other, (odata, _) in sorted(groups.get(mesh, {}).items()):
+                if other == group or _combination_of(odata):
+                    continue
+                shared = sorted(set(data.drivers) & set(odata.drivers))
+                if shared:
+                    joints = ", ".join(j.split("/")[-1] for j in shared)
+                    raise FitError(
+                        f"{where(label, mesh)}: group {group!r} (drivers {_driver_names(data)}) would double the "
+                        f"correction of group {other!r} (drivers {_driver_names(odata)}): both are driven by {joints}. "
+                        f"Fit into {other!r} instead (--group {other}), or remove it first (psdbake groups {label} "
+                        f"--remove {other})"
+                    )
+
+
+def check_name_case(existing: Groups, written: Groups, label: str) -> None:
+    """A group name that differs from an existing one only in case (``l_elbow`` beside
+    ``L_Elbow``) is almost always the same region named twice: refused, naming the existing one."""
+    old = names_of(existing)
+    for name in sorted(names_of(written)):
+        twins = sorted(g for g in old if g != name and g.lower() == name.lower())
+        if twins:
+            raise SettingError("group", name, f"{label} already has group {twins[0]!r}: did you mean {twins[0]}?")
 
 
 def groups_layer(asset: str, groups: Groups, doc: str) -> Layer:

@@ -35,6 +35,7 @@ from .obj.folder import (
 )
 from .obj.read import read_obj
 from .obj.text import obj_text
+from .outputs import EXAMPLES
 from .results import PoseResult, SculptFile, SculptsResult
 from .usd import write as usdwrite
 from .usd.author import Layer
@@ -88,7 +89,7 @@ def write_pose_objs(result: PoseResult, examples: str, obj_dir: str, inputs: lis
     def write_examples(tmp: str) -> None:
         usdwrite.export_layer(result.layer, tmp, examples)
 
-    return write_obj_dir(obj_dir, examples, write_examples, usdwrite.FORMATS, objs, sources, inputs)
+    return write_obj_dir(obj_dir, examples, write_examples, EXAMPLES, objs, sources, inputs)
 
 
 # --- sculpts: DIR's OBJs -> EXAMPLES with the sculpted points ------------------------------

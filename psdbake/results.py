@@ -62,6 +62,8 @@ class FitResult:
     #: the input files' layers (``Sdf.Layer``), kept open so that writing CORRECTIVES reads
     #: no input again: a 1M-point .usda asset took seconds to parse each time
     input_layers: tuple[object, ...] = field(default=(), repr=False, compare=False)
+    #: the asset's rig as fitted on (``usd.provenance.rig_record``), stamped in CORRECTIVES
+    rig: dict = field(default_factory=dict, repr=False, compare=False)
 
     @property
     def missed(self) -> int:
@@ -87,6 +89,7 @@ class WeightsResult:
     animations: tuple[AnimWeights, ...]
     fps: float | None
     seconds: float = 0.0
+    rig: dict = field(default_factory=dict, repr=False, compare=False)  # the asset's, stamped in WEIGHTS
 
 
 @dataclass(frozen=True)
@@ -110,6 +113,7 @@ class PoseResult:
     meshes: tuple[str, ...]
     layer: object  # Sdf.Layer
     deformers: tuple[str, ...] = ()
+    rig: dict = field(default_factory=dict, repr=False, compare=False)  # the asset's, stamped in EXAMPLES
 
 
 @dataclass(frozen=True)
@@ -165,3 +169,4 @@ class MirrorResult:
     groups: tuple[MirroredGroup, ...]
     skipped: tuple[str, ...] = ()  # whole-layer mode: groups left out, each with why
     seconds: float = 0.0
+    rig: dict = field(default_factory=dict, repr=False, compare=False)  # the asset's, stamped in CORRECTIVES

@@ -244,3 +244,13 @@ def corrective_weights(asset: str, correctives: str, weights: str, anim_prim: st
             b = column_weights(data, w[:, [names.index(c) for c in channels]])
             out.update({name: b[:, s] for s, name in enumerate(data.shapes)})
     return out
+
+
+def without_provenance(path) -> str:
+    """A layer's text without the provenance psdbake records in it (its command line and
+    inputs), for comparing what two differently invoked commands wrote."""
+    layer = Sdf.Layer.OpenAsAnonymous(str(path))
+    custom = dict(layer.customLayerData)
+    custom.pop("psdbake", None)
+    layer.customLayerData = custom
+    return layer.ExportToString()

@@ -26,31 +26,34 @@ from psdbake.errors import InputError, PsdError
 ASSET, EXAMPLES = fixture("arm_lbs.usda"), fixture("arm_lbs_examples.usda")
 POSES, ANIM = fixture("arm_poses.usda"), fixture("arm_anim.usda")
 UNSCULPTED = fixture("bad", "examples_unsculpted.usda")
+HUMANOID, HUMANOID_EXAMPLES = fixture("humanoid", "humanoid.usda"), fixture("humanoid", "humanoid_examples.usda")
+HUMANOID_ANIM = fixture("humanoid", "humanoid_anim.usda")
 
 # pose (independent) | two correctives groups fitted into one layer (read-modify-write, in file order)
 # -> eval cut into 3 chunk tasks (600 frames and a points cache: the slowest tasks) -> stack
 PIPELINE = f"""
 [defaults]
-asset = "{ASSET}"
+asset = "{HUMANOID}"
 
 [[pose]]
-anim = "{POSES}"
+anim = "{HUMANOID_EXAMPLES}"
 output = "out/to_sculpt.usda"
 
 [[fit]]
-examples = ["{EXAMPLES}"]
-group = "elbow"
-driver = ["Elbow"]
+examples = ["{HUMANOID_EXAMPLES}"]
+group = "L_Elbow"
+driver = ["L_Elbow"]
 output = "out/correctives.usda"
 
 [[fit]]
-examples = ["{EXAMPLES}"]
-group = "arm"
+examples = ["{HUMANOID_EXAMPLES}"]
+group = "R_Elbow"
+driver = ["R_Elbow"]
 output = "out/correctives.usda"
 
 [[eval]]
 correctives = "out/correctives.usda"
-anim = "{ANIM}"
+anim = "{HUMANOID_ANIM}"
 frames = "1:600"
 chunk_size = 200
 output = "out/weights.usda"
@@ -58,7 +61,7 @@ points_cache = "out/cache.usda"
 
 [[stack]]
 output = "out/shot.usda"
-layers = ["{ASSET}", "out/correctives.usda", "{ANIM}", "out/weights.usda"]
+layers = ["{HUMANOID}", "out/correctives.usda", "{HUMANOID_ANIM}", "out/weights.usda"]
 """
 OUTPUTS = (
     "to_sculpt.usda", "correctives.usda", "shot.usda",

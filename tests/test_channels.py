@@ -87,7 +87,8 @@ def test_scales_keep_sampled_poses_in_range_and_examples_well_above_zero(tmp_pat
     from psdbake.errors import PsdWarning
 
     for settings in (FitSettings(), FitSettings(group="main")):
-        corr = api.write_correctives(api.fit(asset, [examples], settings), str(tmp_path / "c.usda"))
+        corr = str(tmp_path / "c.usda")
+        api.write_correctives(api.fit(asset, [examples], settings), corr)
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always", PsdWarning)
             (anim,) = api.evaluate(asset, corr, fixture("humanoid", "humanoid_anim.usda")).animations
@@ -111,7 +112,8 @@ def test_an_ill_conditioned_group_keeps_usable_channels(tmp_path):
     _lo, hi = weight_range(m.driver_data, {m.group: m.driver_data})
     assert hi.max() > 1e4  # the loose bound this test is about
     assert np.abs(m.driver_data.channel_scales).max() < 1e3
-    corr = api.write_correctives(result, str(tmp_path / "c.usda"))
+    corr = str(tmp_path / "c.usda")
+    api.write_correctives(result, corr)
     cache = api.points_cache_layer(api.evaluate(rig.asset, corr, poses_layer))
     from pxr import Sdf
 
@@ -129,7 +131,8 @@ def test_a_pose_beyond_the_scales_is_written_as_is_and_warned(tmp_path, cli):
     from pxr import Sdf, Vt
 
     result = api.fit(ASSET, [EXAMPLES])
-    corr = api.write_correctives(result, str(tmp_path / "c.usda"))
+    corr = str(tmp_path / "c.usda")
+    api.write_correctives(result, corr)
     layer = Sdf.Layer.FindOrOpen(corr)
     attr = layer.GetAttributeAtPath(Sdf.Path(generate.MESH).AppendProperty("psd:main:channelScales"))
     attr.default = Vt.DoubleArray([v / 100.0 for v in attr.default])
@@ -185,7 +188,8 @@ def test_channels_bake_like_the_unclamped_design():
 
     folder = tempfile.mkdtemp()
     result = api.fit(ASSET, [EXAMPLES], FitSettings(group="main"))
-    v4 = api.write_correctives(result, os.path.join(folder, "v4.usda"))
+    v4 = os.path.join(folder, "v4.usda")
+    api.write_correctives(result, v4)
     v2 = os.path.join(ROOT, "tests", "data", "correctives_v2.usda")
     out = {}
     for name, corr in (("v2", v2), ("v4", v4)):

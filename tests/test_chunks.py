@@ -6,6 +6,7 @@ from __future__ import annotations
 import filecmp
 import json
 import os
+import shutil
 import subprocess
 import sys
 
@@ -84,9 +85,13 @@ def test_farm_tasks_write_the_same_bytes(shot, tmp_path):
     """Chunks by their own processes (at once, racing on the manifests) = the one-run files.
     Three of the ten tasks (first, middle, last): each process spends ~1 s importing USD."""
     env = {**os.environ, "PYTHONPATH": ROOT}
+    # the inputs where the shot has them relative to its outputs: each layer records its inputs' relative paths
+    corr, anim = shutil.copy(shot["corr"], tmp_path), shutil.copy(shot["anim"], tmp_path)
+    tmp_path = tmp_path / "farm"
+    tmp_path.mkdir()
     out, cache = tmp_path / "weights.usda", tmp_path / "cache.usda"
     procs = [
-        subprocess.Popen([sys.executable, "-m", "psdbake", "eval", ASSET, str(shot["corr"]), "--anim", str(shot["anim"]),
+        subprocess.Popen([sys.executable, "-m", "psdbake", "eval", ASSET, str(corr), "--anim", str(anim),
                           "-o", str(out), "--points-cache", str(cache), "--frames", f"1:{FRAMES}",
                           "--chunk-size", str(SIZE), "--chunk", str(k), "-q"], env=env, stderr=subprocess.PIPE)
         for k in (1, 6, 10)
@@ -138,7 +143,7 @@ def test_manifests_validate(shot, run, tmp_path):
         assert errors(Sdf.Layer.FindOrOpen(str(folder / name))) == [], name
         assert errors(Usd.Stage.Open(str(folder / name))) == [], name
     view = tmp_path / "shot.usda"  # stacked over the asset, the manifest adds no error to the asset's own
-    assert run("stack", view, ASSET, shot["corr"], shot["anim"], shot["manifest"])[0] == 0
+    assert run("stack", ASSET, shot["corr"], shot["anim"], shot["manifest"], "-o", view)[0] == 0
     assert set(errors(Usd.Stage.Open(str(view)))) <= set(errors(Usd.Stage.Open(ASSET)))
 
 

@@ -55,8 +55,9 @@ def test_fit_report_and_summary(run, tmp_path):
 def test_outputs_are_byte_identical_across_runs(run, tmp_path):
     for ext in ("usda", "usdc"):
         outs = []
-        for k in range(2):
-            corr, weights = tmp_path / f"c{k}.{ext}", tmp_path / f"w{k}.{ext}"
+        for k in range(2):  # the same command line in two folders (the output records its command)
+            (tmp_path / f"run{k}").mkdir(exist_ok=True)
+            corr, weights = tmp_path / f"run{k}" / f"c.{ext}", tmp_path / f"run{k}" / f"w.{ext}"
             assert run("fit", ASSET, EXAMPLES, "-o", corr, "-q")[0] == 0
             assert run("eval", ASSET, corr, "--anim", ANIM, "-o", weights, "-q")[0] == 0
             outs.append((corr.read_bytes(), weights.read_bytes()))
@@ -162,7 +163,8 @@ def test_jobs_do_not_change_the_output(run, tmp_path):
     """Examples solved in worker processes give byte-identical CORRECTIVES."""
     outs = []
     for jobs in ("1", "2"):
-        out = tmp_path / f"c{jobs}.usdc"
+        (tmp_path / jobs).mkdir()
+        out = tmp_path / jobs / "c.usdc"
         code, _, err = run("fit", ASSET, EXAMPLES, fixture("arm_lbs_examples.usda"), "-o", out, "-j", jobs, "-q")
         assert code == 4 and "same pose" in err  # the same file twice: duplicate poses, named
         code, _, err = run("fit", ASSET, EXAMPLES, "-o", out, "-j", jobs, "-q")

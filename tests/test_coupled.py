@@ -120,7 +120,8 @@ def test_per_vertex_chains_keep_the_per_vertex_solver(rig_folder):
 
 def test_fit_and_points_cache_with_delta_mush_end_to_end(run, rig_folder, tmp_path):
     rig = _rig(rig_folder, "lbs+deltamush")
-    corr, report, weights, cache = (tmp_path / name for name in ("c.usda", "r.json", "w.usda", "cache.usda"))
+    (tmp_path / "first").mkdir()  # beside "single" below: each layer records its inputs relative to itself
+    corr, report, weights, cache = (tmp_path / "first" / name for name in ("c.usda", "r.json", "w.usda", "cache.usda"))
     spec = rigs.DELTA_MUSH_SPEC
     code, _, err = run("fit", rig.asset, rig.examples, "-o", corr, "--deformer", spec, "--report", report, "-q")
     assert code == 0, err
@@ -146,7 +147,8 @@ def test_a_folded_elbow_reaches_the_tolerance_from_the_smooth_start(run, tmp_pat
     poses_layer, poses = rigs.write_poses(str(tmp_path), 8)
     rig = rigs.build(str(tmp_path), "lbs+deltamush", "13k", {4.0: poses[4.0]}, poses_layer)
     assert len(invert_example(rig.blackbox(rig.scene(), 4.0), rig.rest, rig.sculpts[4.0]).missed) > 500
-    corr, report, weights, cache = (tmp_path / name for name in ("c.usda", "r.json", "w.usda", "cache.usda"))
+    (tmp_path / "first").mkdir()  # beside "single" below: each layer records its inputs relative to itself
+    corr, report, weights, cache = (tmp_path / "first" / name for name in ("c.usda", "r.json", "w.usda", "cache.usda"))
     code, _, err = run("fit", rig.asset, rig.examples, "-o", corr, "--deformer", rigs.DELTA_MUSH_SPEC,
                        "--report", report, "-q")
     assert code == 0, err
@@ -158,7 +160,8 @@ def test_a_folded_elbow_reaches_the_tolerance_from_the_smooth_start(run, tmp_pat
     single = tmp_path / "single" / "c.usda"
     single.parent.mkdir()
     done = subprocess.run([sys.executable, "-m", "psdbake", "fit", rig.asset, rig.examples, "-o", str(single),
-                           "--deformer", rigs.DELTA_MUSH_SPEC, "-q"], capture_output=True, text=True, cwd=ROOT,
+                           "--deformer", rigs.DELTA_MUSH_SPEC, "--report", str(single.parent / "r.json"), "-q"],
+                          capture_output=True, text=True, cwd=ROOT,
                           env={**os.environ, "OPENBLAS_NUM_THREADS": "1"})
     assert done.returncode == 0, done.stderr
     assert single.read_bytes() == corr.read_bytes()

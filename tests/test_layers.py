@@ -33,7 +33,7 @@ def _roles(path: str, tmp) -> dict[str, tuple[list, list]]:
         "eval --anim": (["eval", ASSET, CORRECTIVES, "--anim", path, "-o", w], [w]),
         "pose ASSET": (["pose", path, "--anim", POSES, "-o", e], [e]),
         "pose --anim": (["pose", ASSET, "--anim", path, "-o", e], [e]),
-        "stack LAYER": (["stack", s, ASSET, path], [s]),
+        "stack LAYER": (["stack", ASSET, path, "-o", s], [s]),
         "inspect": (["inspect", path], []),
         "compare ASSET": (["compare", path, EXAMPLES, "--anim", ANIM, "-o", tmp / "report"], [tmp / "report"]),
     }

@@ -37,6 +37,7 @@ from conftest import (
     refused,
     sculpt,
     warned,
+    without_provenance,
 )
 from pxr import Sdf, Usd, UsdGeom, Vt
 
@@ -140,10 +141,10 @@ def test_pose_writes_one_obj_per_mesh_and_time_code_exactly_as_examples(run, tmp
         mesh = UsdGeom.Mesh(stage.GetPrimAtPath(MESH))
         assert obj.counts.tolist() == list(mesh.GetFaceVertexCountsAttr().Get())
         assert obj.indices.tolist() == list(mesh.GetFaceVertexIndicesAttr().Get())
-    # without --obj-dir, the same EXAMPLES bytes
+    # without --obj-dir, the same EXAMPLES (but for the command line each records)
     plain = tmp_path / "plain.usda"
     ok(run("pose", ASSET, "--anim", GOOD_EXAMPLES, "-o", plain, "-q"))
-    assert plain.read_bytes() == examples.read_bytes()
+    assert without_provenance(plain) == without_provenance(examples)
 
 
 def _asset_with_uvs(tmp_path, interpolation: str, indexed: bool, left_handed: bool) -> str:
@@ -410,10 +411,11 @@ def test_examples_not_the_posed_file_warns(run, tmp_path):
 def test_sculpts_is_deterministic_and_unedited_objs_read_back_bit_for_bit(run, tmp_path):
     examples, objs = tmp_path / "posed.usda", tmp_path / "objs"
     ok(run("pose", ARM, "--anim", ARM_POSES, "-o", examples, "--obj-dir", objs, "-q"))
-    a, b = tmp_path / "a.usda", tmp_path / "b.usda"
+    a = tmp_path / "a.usda"
     ok(run("sculpts", ARM, examples, "--obj-dir", objs, "-o", a, "-q"))
-    ok(run("sculpts", ARM, examples, "--obj-dir", objs, "-o", b, "-q"))
-    assert a.read_bytes() == b.read_bytes()
+    first = a.read_bytes()
+    ok(run("sculpts", ARM, examples, "--obj-dir", objs, "-o", a, "-q"))
+    assert a.read_bytes() == first
     for t in (1.0, 2.0, 3.0):
         assert np.array_equal(layer_points(a, generate.MESH, t).view(np.uint32),
                               layer_points(examples, generate.MESH, t).view(np.uint32))

@@ -128,7 +128,8 @@ def test_combination_gates_only_on_its_side_of_a_joint_sculpted_both_ways(tmp_pa
     both = generate.write_animation(str(tmp_path / "both.usda"), {
         1.0: {"Elbow": ((0, 0, 1), 60.0), "Wrist": ((1, 0, 0), 60.0)},
         2.0: {"Elbow": ((0, 0, 1), 60.0), "Wrist": ((1, 0, 0), -60.0)}})
-    corr = api.write_correctives(result, str(tmp_path / "corr.usda"))
+    corr = str(tmp_path / "corr.usda")
+    api.write_correctives(result, corr)
     anim_w = api.evaluate(asset, corr, both).animations[0]
     w = dict(zip(anim_w.channels, anim_w.weights.T, strict=True))
     data = {m.group: m.driver_data for m in result.meshes}
@@ -202,7 +203,8 @@ def test_psd_v2_layers_still_evaluate_to_the_same_weights(tmp_path):
     asset, examples, anim = fixture("bad", "good_asset.usda"), fixture("bad", "good_examples.usda"), fixture("arm_anim.usda")
     v2 = os.path.join(ROOT, "tests", "data", "correctives_v2.usda")
     result = api.fit(asset, [examples], FitSettings(group="main"))
-    v4 = api.write_correctives(result, str(tmp_path / "v4.usda"))
+    v4 = str(tmp_path / "v4.usda")
+    api.write_correctives(result, v4)
     w2 = api.evaluate(asset, v2, anim).animations[0]
     w4 = api.evaluate(asset, v4, anim).animations[0]
     (data,) = [m.driver_data for m in result.meshes]
@@ -219,7 +221,8 @@ def test_v3_layer_with_joint_gates_still_evaluates(rig, tmp_path):
     _, asset, examples, _ = rig
     v3 = os.path.join(ROOT, "tests", "data", "correctives_v3.usda")
     result = api.fit(asset, [examples])
-    v4 = api.write_correctives(result, str(tmp_path / "v4.usda"))
+    v4 = str(tmp_path / "v4.usda")
+    api.write_correctives(result, v4)
     poses = {1.0: {"Elbow": ((0, 0, 1), 30.0), "Wrist": ((1, 0, 0), 20.0)},
              2.0: {"Elbow": ((0, 0, 1), 90.0), "Wrist": ((1, 0, 0), 75.0)},
              3.0: {"Elbow": ((0, 0, 1), 60.0)}}

@@ -49,7 +49,8 @@ def test_the_result_keeps_the_inputs_open_until_it_is_dropped(tmp_path):
     result = api.fit(asset, [examples])
     assert {asset, examples} <= {layer.realPath for layer in result.input_layers}
     assert Sdf.Layer.Find(asset) is not None  # write_correctives finds it open: no second parse
-    out = api.write_correctives(result, str(tmp_path / "corr.usda"))
+    out = str(tmp_path / "corr.usda")
+    api.write_correctives(result, out)
     del result
     gc.collect()
     assert Sdf.Layer.Find(asset) is None and Sdf.Layer.Find(examples) is None

@@ -25,6 +25,7 @@ from dataclasses import dataclass
 from .. import __version__, atomic
 from ..errors import InputError, OutputError
 from ..farm.plan import frame_label
+from ..outputs import OutputKind
 
 MANIFEST = "manifest.json"
 #: ``<mesh path, '/' -> '.', other bytes -XX>@<time code, 'm' minus, 'p' point>.obj``
@@ -181,7 +182,7 @@ def check_obj_dir(path: str, inputs: Iterable[str] = (), names: Iterable[str] = 
             raise OutputError(f"{path}: would overwrite the input {src}")
 
 
-def write_obj_dir(folder: str, examples: str, write_examples: Callable[[str], None], extensions: Iterable[str],
+def write_obj_dir(folder: str, examples: str, write_examples: Callable[[str], None], kind: OutputKind,
                   objs: Sequence[tuple[ObjEntry, str]], sources: dict[str, str], inputs: Sequence[str] = ()) -> list[str]:
     """EXAMPLES (written by ``write_examples`` to the temporary path it is given), every OBJ
     text and the manifest, in one ``atomic.Transaction``; then the previous manifest's files
@@ -196,7 +197,7 @@ def write_obj_dir(folder: str, examples: str, write_examples: Callable[[str], No
         raise OutputError(f"{folder}: cannot create the folder ({exc.strerror or exc})") from None
     try:
         with atomic.Transaction(inputs) as tx:
-            tmp = tx.path(examples, tuple(extensions))
+            tmp = tx.path(examples, kind=kind)
             write_examples(tmp)
             sources = {**sources, "examples_sha256": sha256_file(tmp)}
             entries = []

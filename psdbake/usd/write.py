@@ -18,6 +18,8 @@ from pxr import Sdf, Tf, Usd, UsdGeom, Vt
 from .. import atomic
 from ..errors import InputError, OutputError
 from ..names import LAYER_FORMATS
+from ..outputs import KINDS, OutputKind
+from . import provenance
 from .author import apply_binding_api, attribute, define, int_array, over, relationship, vec3f_array
 from .dependencies import layer_files
 from .diagnostics import first_line
@@ -40,19 +42,35 @@ def export_all(outputs: Sequence[tuple[str, Sdf.Layer | str]], inputs: Iterable[
     given as ``str``), every one to a temporary file first, then all renamed
     (``atomic.Transaction``), so a failure leaves every old output in place. ``inputs``
     are expanded to every file they read; no output may be one of them, nor one of
-    ``other_inputs`` (files read that are not layers: ``sculpts``' OBJ files)."""
+    ``other_inputs`` (files read that are not layers: ``sculpts``' OBJ files). Each layer
+    replaces only an earlier output of the kind it is stamped with (``provenance.stamp``),
+    each text file only an earlier report, unless forced (``atomic.forcing``)."""
     with atomic.Transaction([*files_read(inputs), *other_inputs]) as tx:
         for path, layer in outputs:
             if isinstance(layer, str):
-                tmp = tx.path(path, (".json",))
+                tmp = tx.path(path, kind=report_kind(layer))
                 try:
                     with open(tmp, "w", encoding="utf-8") as fh:
                         fh.write(layer)
                 except OSError as exc:
                     raise OutputError(f"{path}: cannot write ({exc.strerror or exc})") from None
                 continue
-            export_layer(layer, tx.path(path, FORMATS), path)
+            kind = provenance.layer_kind(layer)
+            if kind not in KINDS:
+                raise RuntimeError(f"{path}: psdbake's layer carries no output kind (provenance.stamp)")
+            export_layer(layer, tx.path(path, FORMATS, KINDS[kind]), path)
     return [path for path, _ in outputs]
+
+
+def report_kind(text: str) -> OutputKind:
+    """The kind of a JSON side file: the ``--report`` of the command named in it."""
+    import json
+
+    command = json.loads(text).get("command", "")
+    kind = KINDS.get(f"{command}_report")
+    if kind is None:
+        raise RuntimeError(f"no output kind for a {command!r} report")
+    return kind
 
 
 def export_layer(layer: Sdf.Layer, tmp: str, path: str) -> None:
