@@ -48,7 +48,7 @@ from .usd import provenance
 from .usd import write as usdwrite
 from .usd.author import Layer
 from .usd.bindspace import read_bind_space
-from .usd.compose import compose, open_layer
+from .usd.compose import compose, open_layer, reread
 from .usd.describe import describe as describe_file
 from .usd.gltf_source import read_gltf_source
 from .usd.read import Scene, animation_components, hidden_from_usdskel, open_layers, why_hidden
@@ -224,6 +224,29 @@ def files_read(paths: Sequence[str], deformers: Sequence[str] = ()) -> list[str]
     return sorted(set(usdwrite.files_read(paths)) | set(deformer_files(deformers)))
 
 
+@contextlib.contextmanager
+def updating(path: str, *also: str) -> Iterator[None]:
+    """A read-modify-write of the layer at path: the update lock on the folders of path and of
+    also (the other files written in the same commit), then path re-read from disk
+    (``compose.reread``), so the read inside the block is the last writer's result, never a
+    copy this process loaded before it waited."""
+    with atomic.updating(path, *also):
+        reread(path)
+        yield
+
+
+@contextlib.contextmanager
+def mirror_lock(correctives: str, output: str) -> Iterator[None]:
+    """``mirror`` in place (output is CORRECTIVES itself) reads, mirrors and writes under the
+    update lock, CORRECTIVES re-read inside it: one step between any two other writers of the
+    layer, as if run alone. Otherwise nothing: CORRECTIVES is then an input like any other."""
+    if os.path.realpath(output) != os.path.realpath(correctives):
+        yield
+        return
+    with updating(output):
+        yield
+
+
 def _existing_groups(asset: str, path: str) -> tuple[Groups, dict[str, dict]]:
     """The groups of the CORRECTIVES layer at path and their provenance records ({} when path
     holds no CORRECTIVES layer: nothing there is carried over)."""
@@ -254,7 +277,7 @@ def write_correctives(result: FitResult, path: str, *, update: bool = False,
     written = fitted_groups(result)
     with _forced(force):
         atomic.check_output(path, inputs, kind=outputs.CORRECTIVES)
-        with atomic.updating(path):
+        with updating(path, *(side for side, _ in side_files)):
             before, records = _existing_groups(result.asset, path)
             if update:
                 check_name_case(before, written, path)
@@ -555,7 +578,7 @@ def write_mirror(result: MirrorResult, path: str, *, force: bool = False, replac
     doc = f"psdbake {__version__} mirror: rest-space correctives (inverse PSD), groups mirrored"
     with _forced(force):
         atomic.check_output(path, inputs, kind=outputs.CORRECTIVES)
-        with atomic.updating(path) if in_place else contextlib.nullcontext():
+        with updating(path) if in_place else contextlib.nullcontext():
             base = path if in_place else result.correctives
             before = read_correctives(result.asset, base)
             records = provenance.plain(provenance.read_stamp(base).get("groups", {}))

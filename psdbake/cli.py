@@ -388,7 +388,7 @@ def mirror_cmd(asset, correctives, output, joint_rules, group, as_name, plane, r
     settings = MirrorSettings(joints=tuple(joint_rules), plane=plane, group=group, as_name=as_name)
     with atomic.forcing(force):
         atomic.check_outputs([(output, outputs.CORRECTIVES)], api.mirror_reads(asset, correctives, output))
-    with ui.warnings():
+    with ui.warnings(), api.mirror_lock(correctives, output):
         result = api.mirror(asset, correctives, settings, strict=strict)
         changes = api.write_mirror(result, output, force=force, replace_sculpted=replace_sculpted)
     ui.payload({**console.mirror_report(result, output), "changes": console.changes_payload(changes)})

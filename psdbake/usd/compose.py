@@ -56,6 +56,29 @@ def open_layer(path: str) -> Sdf.Layer:
     return layer
 
 
+def reread(path: str) -> None:
+    """Make USD's copy of the layer file at path what the file holds now.
+
+    USD keeps one copy of each layer per process: ``Sdf.Layer.FindOrOpen`` returns the copy
+    this process already loaded (the command walks its inputs, and keeps them open, before it
+    reads them) even after another process has replaced the file. A read-modify-write of an
+    output (``fit --group``, ``mirror`` in place) calls this under its update lock, so what it
+    reads and merges is the file as the last writer left it, not the copy of minutes ago. The
+    new bytes are checked as any input is (regular file, crate probe, text nesting) first."""
+    layer = Sdf.Layer.Find(path)
+    if layer is None or not os.path.isfile(path):
+        return  # not loaded: the next open reads the file; gone: the next open says so
+    require_regular(path)
+    require_readable_crates([path])
+    require_shallow(path)
+    try:
+        reloaded = layer.Reload(force=True)
+    except Tf.ErrorException as exc:
+        raise InputError(f"{path}: not a readable USD file ({_first_line(exc)})") from None
+    if not reloaded:
+        raise InputError(f"{path}: not a readable USD file (USD could not read it again)")
+
+
 def _time_rates(root: Sdf.Layer, layers: Sequence[Sdf.Layer]) -> None:
     """The root takes the strongest authored timeCodesPerSecond (and framesPerSecond): USD
     scales a sublayer's time codes by the root's rate over its own, so an anonymous root at
