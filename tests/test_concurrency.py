@@ -57,10 +57,16 @@ def _run(*args) -> tuple[int, str]:
 
 
 def _files(folder: Path) -> dict[str, bytes]:
-    """Every file of folder by name (no temporary may be left)."""
-    names = sorted(os.listdir(folder))
-    assert not [n for n in names if ".tmp" in n], names
-    return {n: (folder / n).read_bytes() for n in names if not n.startswith(".")}
+    """Every file under folder by relative path (no temporary may be left; markers left out), the
+    folder's own path in them written FOLDER (an OBJ manifest names its EXAMPLES by absolute path)."""
+    found = {}
+    for here, _, names in os.walk(folder):
+        assert not [n for n in names if ".tmp" in n], names
+        for n in names:
+            if not n.startswith("."):
+                data = (Path(here) / n).read_bytes().replace(str(folder).encode(), b"FOLDER")
+                found[os.path.relpath(os.path.join(here, n), folder)] = data
+    return dict(sorted(found.items()))
 
 
 def _serial(folder: Path, initial: dict[str, bytes], *commands) -> tuple[list[int], dict[str, bytes]]:
@@ -255,3 +261,26 @@ def test_chunks_of_one_shot_in_any_order_give_the_one_run(shots, tmp_path):
     assert c2.done()[0] == 0 and c1.done()[0] == 0
     whole = _serial(tmp_path / "b" / "race", {}, lambda d: _eval(a, "--chunk-size", "6")(d))[1]
     assert _files(race) == whole
+
+
+# --- pose --obj-dir: two runs filling one OBJ folder -----------------------------------------------
+
+def test_two_poses_into_one_obj_folder_are_one_after_the_other(tmp_path):
+    """Each run checks the folder, commits its OBJs and removes the files of the previous manifest
+    it does not write. Without the folder's lock around all three, the second run checked (and
+    listed the previous manifest) before the first committed, and kept the first run's extra OBJs
+    beside a manifest that does not list them."""
+    asset, poses = fixture("bad", "good_asset.usda"), fixture("arm_poses.usda")
+
+    def pose(anim: str, name: str):
+        return lambda d: ("pose", asset, "--anim", anim, "-o", d / name, "--obj-dir", d / "objs", "-q")
+
+    race = _start(tmp_path / "a" / "race", {})
+    first = Held(race, "first", ("commit",), *pose(ARM_ANIM, "e1.usda")(race)).at("commit")
+    second = Held(race, "second", (), *pose(poses, "e2.usda")(race)).blocked()
+    first.go("commit")
+    assert first.done()[0] == 0 and second.done()[0] == 0
+    codes, expected = _serial(tmp_path / "b" / "race", {}, pose(ARM_ANIM, "e1.usda"), pose(poses, "e2.usda"))
+    assert codes == [0, 0]
+    assert _files(race) == expected
+    assert sum(name.startswith("objs/") for name in expected) == 4  # the second run's three OBJs and manifest
