@@ -72,7 +72,7 @@ bench: $(STAMP)
 	$(BIN)/python -m benchmarks.startup
 
 fuzz: $(STAMP)
-	$(BIN)/python -m tests.fuzz --mode $${MODE:-all} --cases $${CASES:-20000} --seed $${SEED:-0}
+	$(BIN)/python -m tests.fuzz --mode $${MODE:-all} $${CASES:+--cases $$CASES} --seed $${SEED:-0}
 
 fixtures: $(STAMP)
 	$(BIN)/python fixtures/generate.py

@@ -1,4 +1,4 @@
-"""Mutation fuzzer: psdbake fit and eval on mutated fixture layers, in three modes.
+"""Mutation fuzzer: psdbake fit and eval on mutated fixture layers, in three modes, and a concurrency mode.
 
 ``--mode text`` (the default; case numbers replay as before) takes the small good asset,
 examples and animation from ``fixtures/``, applies a few random mutations to one of them as
@@ -25,6 +25,12 @@ zeroed or set, 32-bit words overwritten (NaN, inf, huge counts), the file trunca
 duplicated or moved — at offsets biased to the value area and the crate sections, not only
 the header — and runs the same commands.
 
+``--mode concurrency`` (``tests/fuzz_concurrency.py``) races two writers of one output
+(``fit --group``, plain ``fit``, ``mirror`` in place; ``eval --points-cache`` of two shots,
+chunked evals of two shots), each held at random moments of its commit and released in a
+random order: the exit codes and every file must be those of the two runs one after the other,
+in one order or the other. It runs 2,000 cases by default, one worker per two cores.
+
 The only allowed outcomes of a command are success with finite output, or a clean psdbake
 refusal (exactly one ``psdbake: error:`` line on stderr, exit code 3-6, no output). A
 failure is: exit 1 or any other code, a traceback, more than one stderr line on a refusal,
@@ -36,7 +42,8 @@ temporary or output file left behind, a hang (> CASE_SECONDS) or a crash of the 
 Cases run in worker subprocesses (a hang or crash inside USD's C++ cannot be interrupted
 in-process; the parent kills the worker and starts another), one worker per core. Cases are
 numbered and seeded per mode: ``python -m tests.fuzz --mode sdf --cases 20000 --seed 0``
-(``make fuzz`` runs every mode; ``MODE=sdf CASES=N SEED=S`` to change), ``--only N``
+(``make fuzz`` runs every mode, 20,000 cases of each mutation mode and 2,000 of concurrency;
+``MODE=sdf CASES=N SEED=S`` to change), ``--only N``
 replays case N and prints its mutations, commands and stderr (``--keep DIR`` keeps its
 files). ``tests/test_fuzz.py`` runs a bounded number of each mode in ``make test``.
 """
@@ -70,7 +77,10 @@ SOURCES = {
     "anim": os.path.join(ROOT, "fixtures", "arm_anim.usda"),
 }
 LAYERS = dict(SOURCES, correctives=os.path.join(BAD, "good_correctives.usda"))
-MODES = ("text", "sdf", "usdc")
+MODES = ("text", "sdf", "usdc", "concurrency")
+MUTATION_MODES = MODES[:3]  # the modes that mutate inputs; concurrency races two writers (tests/fuzz_concurrency.py)
+#: Cases per mode when --cases is not given (make fuzz): a concurrency case runs four psdbake processes.
+DEFAULT_CASES = {"text": 20_000, "sdf": 20_000, "usdc": 20_000, "concurrency": 2_000}
 CLEAN_EXITS = {3, 4, 5, 6}
 NUMBER = re.compile(r"(?<![\w.])-?\d+(?:\.\d+)?(?:e[-+]?\d+)?(?![\w.])")
 TYPES = ["float3[]", "point3f[]", "int[]", "float[]", "quatf[]", "half3[]", "token[]", "double[]", "matrix4d[]",
@@ -915,6 +925,13 @@ def run_case(case: int, seed: int, folder: str, mode: str = "text", *, capture: 
     report = report or (lambda kind, value: None)
     started = time.perf_counter()
     rng = _rng(mode, seed, case)
+    if mode == "concurrency":
+        from tests import fuzz_concurrency
+
+        root = os.path.join(folder, f"concurrency-{os.getpid()}")  # each worker's references and shared inputs
+        family, ok, what, described, command, err = fuzz_concurrency.run_case(case, rng, root, report)
+        return Outcome(case, family, ok, what, mode, tuple(described), command, "" if ok else err[:2000],
+                       time.perf_counter() - started)
     cdir = os.path.join(folder, f"{mode}{case}")
     shutil.rmtree(cdir, ignore_errors=True)
     os.makedirs(cdir)
@@ -1091,7 +1108,8 @@ def run(cases: int, seed: int = 0, only: int | None = None, progress: bool = Fal
         workers: int | None = None, first: int = 0) -> list[Outcome]:
     """Cases first..first+cases-1 (or only one) of a mode, in worker subprocesses."""
     todo = [only] if only is not None else list(range(first, first + cases))
-    workers = max(1, min(workers or os.cpu_count() or 1, len(todo)))
+    cores = os.cpu_count() or 1
+    workers = max(1, min(workers or (cores // 2 if mode == "concurrency" else cores), len(todo)))  # a race: 2 runs
     outcomes: list[Outcome] = []
     started = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="psdbake-fuzz-", dir=_scratch()) as folder:
@@ -1222,7 +1240,8 @@ def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--mode", default="text",
                         help="text (default), sdf, usdc, or several separated by commas, or all")
-    parser.add_argument("--cases", type=int, default=20000)
+    parser.add_argument("--cases", type=int, default=None,
+                        help="cases per mode (default: 20,000 of each mutation mode, 2,000 of concurrency)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--only", type=int, default=None, help="replay one case and show it in full")
     parser.add_argument("--first", type=int, default=0, help="number of the first case")
@@ -1263,7 +1282,8 @@ def main(argv: list[str] | None = None) -> None:
             outcomes = [outcome]
             print(f"case files copied to {args.keep}")
         else:
-            outcomes = run(args.cases, args.seed, args.only, progress=True, mode=mode, workers=args.workers,
+            cases = args.cases if args.cases is not None else DEFAULT_CASES[mode]
+            outcomes = run(cases, args.seed, args.only, progress=True, mode=mode, workers=args.workers,
                            first=args.first)
         seconds = time.perf_counter() - started
         if args.only is not None:
