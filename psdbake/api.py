@@ -152,6 +152,7 @@ def fit(
     """
     from .correctives import fit_regions, plan_mesh, plan_systems
     from .examples import gather_examples
+    from .fitcheck import check_product
     from .solve import clear_caches, share_scene, solve_all
 
     started = _time.perf_counter()
@@ -192,10 +193,14 @@ def fit(
         held = {layer.identifier: layer for layer in [*asset_scene.file_layers(), *open_layers(example_files)]}
     finally:
         clear_caches()  # the example stages die with the fit
-    return FitResult(asset=asset, example_files=tuple(example_files), settings=settings, meshes=tuple(fits),
-                     warnings=tuple(notes), seconds=_time.perf_counter() - started, skipped=tuple(skipped),
-                     layout=tuple(layout), input_layers=tuple(held[k] for k in sorted(held)),
-                     rig=provenance.rig_record(asset_scene))
+    result = FitResult(asset=asset, example_files=tuple(example_files), settings=settings, meshes=tuple(fits),
+                       warnings=tuple(notes), skipped=tuple(skipped), layout=tuple(layout),
+                       input_layers=tuple(held[k] for k in sorted(held)), rig=provenance.rig_record(asset_scene))
+    for note in cross_talk(result, fitted_groups(result)):  # why an example may not be reproduced, said before the check
+        notes.append(note)
+        warnings.warn(note, PsdWarning, stacklevel=2)
+    checks = check_product(result, correctives_layer(result), load_deformers(settings.deformers))
+    return dataclasses.replace(result, checks=checks, warnings=tuple(notes), seconds=_time.perf_counter() - started)
 
 
 def _meshes_to_fit(asset: str, skinned: list[str], wanted: Sequence[str]) -> list[str]:
@@ -293,8 +298,9 @@ def write_correctives(result: FitResult, path: str, *, update: bool = False,
                         f"replaces the whole layer: fit into it with --group, remove them first (psdbake groups {path} "
                         "--remove NAME), or give --force to replace the layer")
             check_not_doubled(groups, written, path)
-            for note in cross_talk(result, groups):  # this fit's groups and the ones carried over
-                warnings.warn(note, PsdWarning, stacklevel=2)
+            for note in cross_talk(result, groups):  # with the groups carried over (its own: said by fit)
+                if note not in result.warnings:
+                    warnings.warn(note, PsdWarning, stacklevel=2)
             entry = {"origin": "fit --group" if update else "fit", "command": outputs.command_line(path),
                      **provenance.inputs_record({"examples": list(result.example_files)}, path),
                      "settings": _settings_record(result.settings), "deformers": list(result.settings.deformers)}
@@ -304,6 +310,14 @@ def write_correctives(result: FitResult, path: str, *, update: bool = False,
                     groups={**kept, **{g: entry for g in names_of(written)}})
             usdwrite.export_all([(path, layer), *side_files], inputs)
     return changes_between(before, groups, written, records)
+
+
+def write_fit_report(result: FitResult, path: str, text: str, *, force: bool = False) -> str:
+    """The ``--report`` of a fit that wrote no CORRECTIVES (degraded, or refused by ``--strict``):
+    the diagnosis on its own, so the fit need not be run again to read it."""
+    with _forced(force):
+        usdwrite.export_all([(path, text)], files_read([result.asset, *result.example_files], result.settings.deformers))
+    return path
 
 
 def correctives_layer(result: FitResult) -> Any:

@@ -271,7 +271,10 @@ def sculpts_cmd(asset, examples, obj_dir, output, scale, up_axis, force, quiet, 
                    "inside OUTPUT, keeping OUTPUT's other groups. Without it, OUTPUT is replaced by local, additive "
                    "groups: one per joint the examples move, plus combinations (README).")
 @click.option("--report", type=str, help="Write a JSON report here.")
-@click.option("--strict", is_flag=True, help="Fail (exit 7, nothing written) if any vertex misses tolerance.")
+@click.option("--strict", is_flag=True, help="Fail (exit 7, nothing written) if any vertex misses --tolerance.")
+@click.option("--allow-degraded", is_flag=True,
+              help="Write the correctives even when the product does not reproduce some example within the round-trip "
+                   "tolerance (1e-5 of the diagonal): by default such a fit fails with exit 7 and writes only --report.")
 @click.option("--jobs", "-j", type=click.IntRange(min=1), default=None,
               help="Worker processes for the examples (default 1: UsdSkel already skins on every core). "
                    "The output is byte-identical whatever N is.")
@@ -279,8 +282,8 @@ def sculpts_cmd(asset, examples, obj_dir, output, scale, up_axis, force, quiet, 
 @force_option
 @_common
 def fit_cmd(asset, examples, output, drivers, kernel, sigma, degree, smoothing, no_rest_example, pose_space,
-            twist_axis, clamp_weights, normalize_weights, tolerance, meshes, group, report, strict, jobs, deformers,
-            force, quiet, verbose, as_json) -> None:
+            twist_axis, clamp_weights, normalize_weights, tolerance, meshes, group, report, strict, allow_degraded,
+            jobs, deformers, force, quiet, verbose, as_json) -> None:
     """Fit rest-space corrective BlendShapes and their RBF drivers from sculpted EXAMPLES."""
     from . import api, atomic
     from .groups import read_correctives
@@ -300,8 +303,13 @@ def fit_cmd(asset, examples, output, drivers, kernel, sigma, degree, smoothing, 
         with ui.progress("fitting examples") as progress:
             result = api.fit(asset, examples, settings, jobs=jobs, progress=progress)
         payload = console.fit_report(result, output)
-        if strict and result.missed:
-            raise StrictError(f"{output}: not written: {result.missed} vertices missed the tolerance (--strict)")
+        failure = console.fit_failure(result, output, strict=strict, allow_degraded=allow_degraded)
+        if failure:
+            payload["written"] = False
+            if report:  # the diagnosis, so the long fit need not be run again to read it
+                api.write_fit_report(result, report, console.json_text(payload), force=force)
+            console.say_fit(ui, result, output, written=False)
+            raise StrictError(failure)
         side = [(report, console.json_text(payload))] if report else []
         changes = api.write_correctives(result, output, update=bool(group), side_files=side, force=force)
     payload["groups"] = console.changes_payload(changes)

@@ -11,11 +11,13 @@ import sys
 import warnings
 from collections.abc import Callable, Iterator
 from typing import TYPE_CHECKING, Any
+from warnings import WarningMessage
 
 import click
 
 from . import __version__
-from .errors import PsdWarning
+from . import tolerances as tol
+from .errors import PsdWarning, StrictError
 
 if TYPE_CHECKING:  # the results are only read here: importing them would load numpy and USD with --help
     from .farm import JobResult
@@ -67,11 +69,20 @@ class Ui:
 
     @contextlib.contextmanager
     def warnings(self) -> Iterator[list[str]]:
-        """psdbake's warnings raised meanwhile, each shown as one ``psdbake: warning:`` line."""
+        """psdbake's warnings raised meanwhile, each shown as one ``psdbake: warning:`` line. A
+        refusal of the inputs stays one line; a result that missed its tolerance (exit 7) keeps
+        its warnings, which say why."""
         found: list[str] = []
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always", PsdWarning)
-            yield found
+            try:
+                yield found
+            except StrictError:
+                self._show(caught, found)
+                raise
+            self._show(caught, found)
+
+    def _show(self, caught: list[WarningMessage], found: list[str]) -> None:
         for w in caught:
             if issubclass(w.category, PsdWarning):
                 found.append(str(w.message))
@@ -86,13 +97,18 @@ def json_text(payload: dict) -> str:
 # --- fit -----------------------------------------------------------------------------------
 
 def fit_report(result: FitResult, output: str) -> dict:
-    """The --report / --json payload: per mesh and example, what was solved and how well."""
+    """The --report / --json payload: per mesh and example, what was solved and how well, and
+    how far the product is from each sculpt through a client's composition."""
+    checks = {(c.mesh, c.source, c.time): c for c in result.checks}
     meshes = []
     for m in result.meshes:
         examples = []
         for ex, inv, channel in zip(m.examples, m.inverses, m.channels, strict=True):
             diag = inv.diagonal or 1.0
+            check = checks.get((m.mesh, ex.source, ex.time))
             examples.append({
+                "product_error_rel": None if check is None else check.error,
+                "reproduced": None if check is None else check.reproduced,
                 "example": ex.label, "source": ex.source, "time": ex.time, "blend_shape": channel or None,
                 "vertices_solved": len(inv.indices), "evaluations": inv.evaluations, "regime": inv.regime,
                 "max_residual": inv.max_residual, "rms_residual": inv.rms_residual,
@@ -113,7 +129,23 @@ def fit_report(result: FitResult, output: str) -> dict:
         "examples": list(result.example_files), "meshes": meshes, "missed": result.missed,
         "warnings": list(result.warnings), "seconds": round(result.seconds, 6),
         "skipped_examples": list(result.skipped), "layout": list(result.layout),
+        "degraded": [f"{c.label} <{c.mesh}>" for c in result.degraded], "written": True,
+        "roundtrip_tolerance": tol.ROUNDTRIP_RTOL,
     }
+
+
+def fit_failure(result: FitResult, output: str, *, strict: bool, allow_degraded: bool) -> str | None:
+    """Why this fit must not be written (exit 7), or None: a degraded product (unless allowed)
+    or, with --strict, any vertex that missed the fit tolerance."""
+    if strict and result.missed:
+        return f"{output}: not written: {result.missed} vertices missed the tolerance (--strict)"
+    if result.degraded and not allow_degraded:
+        worst = max(result.degraded, key=lambda c: c.error)
+        return (f"{output}: not written: the product does not reproduce {len(result.degraded)} of {len(result.checks)} "
+                f"example(s) within {tol.ROUNDTRIP_RTOL:g} of the diagonal (worst {worst.label} <{worst.mesh}>: "
+                f"{worst.error:.2g}, vertex {worst.worst_vertex}); see the warnings above, or give --allow-degraded to "
+                "write it anyway")
+    return None
 
 
 def changes_payload(changes: GroupChanges) -> dict:
@@ -138,7 +170,8 @@ def say_changes(ui: Ui, changes: GroupChanges, output: str) -> None:
                 f"{changes.shown(changes.protected)} (--replace-sculpted replaces them)")
 
 
-def say_fit(ui: Ui, result: FitResult, output: str, changes: GroupChanges | None = None) -> None:
+def say_fit(ui: Ui, result: FitResult, output: str, changes: GroupChanges | None = None, *, written: bool = True
+            ) -> None:
     n_ex = sum(len(m.examples) for m in result.meshes)
     solved = sum(len(inv.indices) for m in result.meshes for inv in m.inverses)
     ui.say(f"psdbake fit: {len(result.meshes)} mesh(es), {n_ex} example(s), {solved} vertices solved in {result.seconds:.2f} s")
@@ -170,11 +203,19 @@ def say_fit(ui: Ui, result: FitResult, output: str, changes: GroupChanges | None
                 for name, count in inv.missed_statuses.items():
                     why[name] = why.get(name, 0) + count
         detail = ", ".join(f"{name} {count}" for name, count in sorted(why.items()))
-        ui.say(f"  DEGRADED: {result.missed} vertices missed the tolerance ({detail}; see --report; --strict makes "
-               "this fatal)")
+        ui.warn(f"{output}: {result.missed} vertices missed the fit tolerance ({detail}; see --report; --strict makes "
+                "this fatal)")
+    if result.settings.smoothing > 0 and result.checks:
+        worst = max(result.checks, key=lambda c: c.error)
+        ui.warn(f"{output}: --smoothing {result.settings.smoothing:g}: the product approximates the examples "
+                f"(worst {worst.label} <{worst.mesh}>: {worst.error:.2g} of the diagonal)")
+    for c in result.degraded:
+        ui.warn(f"{output}: DEGRADED: the product misses example {c.label} of <{c.mesh}> by {c.error:.2g} of the "
+                f"diagonal (vertex {c.worst_vertex}), more than the round-trip tolerance {tol.ROUNDTRIP_RTOL:g}")
     if changes is not None:
         say_changes(ui, changes, output)
-    ui.say(f"wrote {output}")
+    if written:
+        ui.say(f"wrote {output}")
 
 
 # --- mirror --------------------------------------------------------------------------------

@@ -56,7 +56,9 @@ class OutputError(PsdError):
 
 
 class StrictError(PsdError):
-    """``--strict``: some vertices missed tolerance; nothing was written."""
+    """The result missed its tolerance, so nothing was written: a degraded fit (the product does
+    not reproduce an example within the round-trip tolerance; ``--allow-degraded`` writes it
+    anyway), or ``--strict`` and some vertex missed the fit tolerance."""
 
     exit_code = 7
 

@@ -8,6 +8,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
+from . import tolerances as tol
 from .inverse import InverseResult
 from .normals import CorrectiveNormals
 from .settings import FitSettings, MirrorSettings
@@ -50,6 +51,23 @@ class MeshFit:
 
 
 @dataclass(frozen=True)
+class ExampleCheck:
+    """One example of one mesh after the fit, through the composition a client uses
+    (``fitcheck``): how far the product is from the sculpt."""
+
+    mesh: str
+    label: str
+    source: str
+    time: float
+    error: float  # largest distance of a product point to the sculpt, fraction of the sculpt's diagonal
+    worst_vertex: int
+
+    @property
+    def reproduced(self) -> bool:
+        return self.error <= tol.ROUNDTRIP_RTOL
+
+
+@dataclass(frozen=True)
 class FitResult:
     asset: str
     example_files: tuple[str, ...]
@@ -64,10 +82,20 @@ class FitResult:
     input_layers: tuple[object, ...] = field(default=(), repr=False, compare=False)
     #: the asset's rig as fitted on (``usd.provenance.rig_record``), stamped in CORRECTIVES
     rig: dict = field(default_factory=dict, repr=False, compare=False)
+    #: every fitted example through the client's composition (``fitcheck.check_product``)
+    checks: tuple[ExampleCheck, ...] = ()
 
     @property
     def missed(self) -> int:
         return int(sum(len(inv.missed) for m in self.meshes for inv in m.inverses))
+
+    @property
+    def degraded(self) -> tuple[ExampleCheck, ...]:
+        """The examples the product does not reproduce within ``tol.ROUNDTRIP_RTOL``. With RBF
+        smoothing the product approximates the examples by request, so none is degraded."""
+        if self.settings.smoothing > 0:
+            return ()
+        return tuple(c for c in self.checks if not c.reproduced)
 
 
 @dataclass(frozen=True)

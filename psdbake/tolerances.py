@@ -24,6 +24,12 @@ EPS32 = 2.0**-23
 #: tighter than the 1e-5 round-trip guarantee.
 INVERSE_RTOL = 1e-6
 
+#: The product's guarantee (fraction of the diagonal): UsdSkel evaluating ASSET + CORRECTIVES +
+#: ANIM + WEIGHTS at an example's pose reproduces its sculpt within this. Ten times the inverse
+#: tolerance, for the float32 round-off the offsets, blend shapes and skinning add in a client.
+#: A fit whose product misses an example by more is degraded (``fitcheck``): exit 7 by default.
+ROUNDTRIP_RTOL = 1e-5
+
 #: The inverse can never beat float32 round-off of the black box's output: the
 #: absolute floor is this many float32 ulps of the largest coordinate.
 FLOAT32_FLOOR_ULPS = 16.0

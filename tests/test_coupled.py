@@ -202,14 +202,16 @@ def test_a_coupled_chain_that_snaps_to_a_grid_stalls_cleanly(run, rig_folder, tm
     """A deformer that couples vertices and is not invertible (Delta Mush, then outputs snapped
     to a 1e-3 grid, 3.8e-4 of this rig's diagonal: far above the 7.6e-6 tolerance) cannot
     reach a sculpt that is off the grid. fit must say so per vertex and in its summary, in a
-    bounded number of calls, without a traceback; --strict refuses and writes nothing."""
+    bounded number of calls, without a traceback; the product misses the sculpts, so the fit
+    fails (exit 7) and writes only its report; --strict refuses and writes nothing either."""
     rig = _rig(rig_folder, "lbs+deltamush")
     deformer = tmp_path / "snapping.py"
     deformer.write_text(SNAPPING_DEFORMER)
     out, report = tmp_path / "c.usda", tmp_path / "r.json"
-    code, stdout, err = run("fit", rig.asset, rig.examples, "-o", out, "--deformer", f"{deformer}:snap",
+    code, _, err = run("fit", rig.asset, rig.examples, "-o", out, "--deformer", f"{deformer}:snap",
                             "--report", report)
-    assert code == 0, err
+    assert code == 7 and not out.exists(), err
+    assert json.loads(report.read_text())["written"] is False
     examples = json.loads(report.read_text())["meshes"][0]["examples"]
     scene = rig.scene()
     why: dict[str, int] = {}
@@ -226,12 +228,13 @@ def test_a_coupled_chain_that_snaps_to_a_grid_stalls_cleanly(run, rig_folder, tm
             why[name] = why.get(name, 0) + count
     total = sum(ex["missed"] for ex in examples)
     detail = ", ".join(f"{name} {count}" for name, count in sorted(why.items()))
-    assert f"DEGRADED: {total} vertices missed the tolerance ({detail};" in stdout
-    assert "Traceback" not in err
+    assert f"{total} vertices missed the fit tolerance ({detail};" in err
+    assert "DEGRADED: the product misses example" in err and "Traceback" not in err
     strict = tmp_path / "strict.usda"
     code, _, err = run("fit", rig.asset, rig.examples, "-o", strict, "--deformer", f"{deformer}:snap", "--strict")
     assert code == 7 and not strict.exists()
-    assert len(err.strip().splitlines()) == 1 and "missed the tolerance" in err
+    last = err.strip().splitlines()[-1]
+    assert last.startswith("psdbake: error:") and "missed the tolerance (--strict)" in last
 
 
 def test_without_mesh_edges_the_per_vertex_solution_stands_in(tmp_path):

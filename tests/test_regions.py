@@ -258,10 +258,12 @@ def test_settings_default_is_local():
 
 def test_groups_that_will_not_combine_are_warned(rig, run, tmp_path):
     """Without the bind pose as a zero example, a joint's group is not off at the other
-    joints' examples: the fit says which group spills onto which example (item 4)."""
+    joints' examples: the fit says which group spills onto which example (item 4), and since
+    the product then misses that example, the fit is degraded: exit 7, nothing written."""
     _, asset, examples, _ = rig
     code, _, err = run("fit", asset, examples, "--no-rest-example", "-o", tmp_path / "c.usda")
-    assert code == 0
+    assert code == 7 and "DEGRADED: the product misses example examples.usda@3" in err, err
+    assert not (tmp_path / "c.usda").exists()
     assert re.search(r"psdbake: warning: .*group 'Elbow' moves points by .* at example examples\.usda@3 of group "
                      r"'Wrist' \(its own examples: examples\.usda@1, examples\.usda@2\)", err), err
 

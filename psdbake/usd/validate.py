@@ -139,6 +139,20 @@ def _row_sums(w: np.ndarray) -> np.ndarray:
     return sums
 
 
+def require_static_rest(scene: Scene, mesh: str) -> None:
+    """Refuse an asset whose skinned points are animated (a cached simulation over the rest):
+    UsdSkel skins the points at each time, so correctives fitted on one rest would not give
+    the sculpts in any client."""
+    attr = UsdGeom.PointBased(scene.prim(mesh)).GetPointsAttr()
+    count = attr.GetNumTimeSamples()
+    if count:
+        raise InputError(
+            f"{where(scene.label, mesh, 'points')}: the rest points are animated ({count} time sample(s)): UsdSkel "
+            "skins the points of each time, so correctives fitted on one rest would not reproduce the sculpts; give "
+            "the skinned mesh static points (a default value only) and put any simulation after skinning"
+        )
+
+
 def validate_skinning(scene: Scene, mesh: str) -> list[str]:
     """Refuse influences UsdSkel would mis-skin; return warnings (weights not summing to 1).
 
@@ -146,6 +160,7 @@ def validate_skinning(scene: Scene, mesh: str) -> list[str]:
     size, indices inside the joint list the mesh uses, weights finite, >= 0, not all zero."""
     query, skel_query = scene.query(mesh)
     label = where(scene.label, mesh)
+    require_static_rest(scene, mesh)
     binding = UsdSkel.BindingAPI(scene.prim(mesh))
     ind_pv, w_pv = binding.GetJointIndicesPrimvar(), binding.GetJointWeightsPrimvar()
     if not ind_pv or not ind_pv.HasAuthoredValue() or not w_pv or not w_pv.HasAuthoredValue():
