@@ -288,10 +288,6 @@ def _acquire(folder: str) -> int:
     return fd
 
 
-def _release(fd: int) -> None:
-    os.close(fd)  # closing releases the lock
-
-
 @contextlib.contextmanager
 def updating(*paths: str) -> Iterator[None]:
     """Serialise writers: an exclusive ``flock`` on the folder of each path, taken in sorted order
@@ -300,11 +296,11 @@ def updating(*paths: str) -> Iterator[None]:
     (``fit --group``, ``mirror`` in place, a chunked eval's manifest) holds them from before the
     read to after the rename, so concurrent updates all land, each on the other's result. The
     lock is on the folder because every output is replaced by a rename, which a lock on the file
-    would not survive. Re-entrant: a folder this process already holds is not locked again.
+    would not survive. Re-entrant: a folder this thread already holds is not locked again.
 
-    The folders are locked in one order (sorted real paths) by every psdbake process, so two
-    processes never wait for each other; a block that already holds a folder may not take one
-    that sorts before it (a programming error: RuntimeError)."""
+    The folders are locked in one order (sorted real paths) by every psdbake process, so no two
+    runs can each hold a folder the other waits for; a block that already holds a folder may not
+    take one that sorts before it (a programming error: RuntimeError)."""
     held = _HELD.folders
     folders = sorted({os.path.dirname(os.path.realpath(p)) or "." for p in paths})
     new = [f for f in folders if f not in held]
@@ -327,4 +323,4 @@ def updating(*paths: str) -> Iterator[None]:
                 held[folder] = (fd, holds - 1)
             else:
                 del held[folder]
-                _release(fd)
+                os.close(fd)  # closing releases the lock
