@@ -38,7 +38,8 @@ failure is: exit 1 or any other code, a traceback, more than one stderr line on 
 USD's C++ locations (``pxrInternal``, ``.cpp``) in stderr, a line other than a psdbake
 warning on a successful run, a non-finite number in an output, an output missing after
 exit 0, an input (or a layer an input composes) not byte-identical after the run, a
-temporary or output file left behind, a hang (> CASE_SECONDS) or a crash of the process.
+temporary or output file left behind, a hang (> CASE_SECONDS; a concurrency case, CONCURRENCY_CASE_SECONDS) or a
+crash of the process.
 
 Cases run in worker subprocesses (a hang or crash inside USD's C++ cannot be interrupted
 in-process; the parent kills the worker and starts another), one worker per core. Cases are
@@ -87,6 +88,9 @@ NUMBER = re.compile(r"(?<![\w.])-?\d+(?:\.\d+)?(?:e[-+]?\d+)?(?![\w.])")
 TYPES = ["float3[]", "point3f[]", "int[]", "float[]", "quatf[]", "half3[]", "token[]", "double[]", "matrix4d[]",
          "string", "bool", "vector3f[]"]
 CASE_SECONDS = float(os.environ.get("PSDBAKE_FUZZ_CASE_SECONDS", 60))
+#: A concurrency case runs two psdbake processes held at their commits and, the first time a
+#: pair is seen, the serial references (up to five more): it gets more time before it is a hang.
+CONCURRENCY_CASE_SECONDS = float(os.environ.get("PSDBAKE_FUZZ_CASE_SECONDS", 600))
 RECYCLE = 1000  # cases per worker process before a fresh one (bounds any slow growth)
 MEMORY_LIMIT = 4 << 30  # address space per worker: a runaway allocation fails instead of swamping the machine
 OUTPUTS = {"fit": "fit_out.usda", "weights": "weights.usda", "cache": "cache.usda"}
@@ -930,7 +934,7 @@ def run_case(case: int, seed: int, folder: str, mode: str = "text", *, capture: 
     if mode == "concurrency":
         from tests import fuzz_concurrency
 
-        root = os.path.join(folder, f"concurrency-{os.getpid()}")  # each worker's references and shared inputs
+        root = os.path.join(folder, "concurrency")  # the references and shared inputs, for every worker
         family, ok, what, described, command, err = fuzz_concurrency.run_case(case, rng, root, report)
         return Outcome(case, family, ok, what, mode, tuple(described), command, "" if ok else err[:2000],
                        time.perf_counter() - started)
@@ -1088,13 +1092,17 @@ class _Worker:
 
 def _dead(w: _Worker, mode: str, seed: int, hang: bool) -> Outcome:
     if hang:
-        what = f"hang: more than {CASE_SECONDS:g} s"
+        what = f"hang: more than {_case_seconds(mode):g} s"
     else:
         rc = w.proc.returncode
         what = f"crash: killed by {signal.Signals(-rc).name}" if rc is not None and rc < 0 else f"crash: exit {rc}"
     step = w.command.split(" ", 2)[1] if w.command else "prepare"
     return Outcome(w.case, w.target, False, f"{step} {what}", mode, tuple(w.mutations), w.command, w.stderr_tail(),
                    time.perf_counter() - w.started)
+
+
+def _case_seconds(mode: str) -> float:
+    return CONCURRENCY_CASE_SECONDS if mode == "concurrency" else CASE_SECONDS
 
 
 def _scratch() -> str | None:
@@ -1149,7 +1157,7 @@ def run(cases: int, seed: int = 0, only: int | None = None, progress: bool = Fal
                             print(f"{mode} case {case}", file=sys.stderr, flush=True)
                         w.send(case)
                 now = time.perf_counter()
-                deadlines = [w.started + CASE_SECONDS - now for w in pool if w.case is not None]
+                deadlines = [w.started + _case_seconds(mode) - now for w in pool if w.case is not None]
                 for key, _ in sel.select(timeout=max(0.0, min(deadlines)) if deadlines else 1.0):
                     w = key.data
                     msgs = w.messages()
@@ -1178,7 +1186,7 @@ def run(cases: int, seed: int = 0, only: int | None = None, progress: bool = Fal
                             w.done += 1
                 now = time.perf_counter()
                 for w in list(pool):
-                    if w.case is not None and now - w.started > CASE_SECONDS:
+                    if w.case is not None and now - w.started > _case_seconds(mode):
                         w.stop(kill=True)
                         finished(_dead(w, mode, seed, hang=True))
                         shutil.rmtree(os.path.join(folder, f"{mode}{w.case}"), ignore_errors=True)

@@ -90,14 +90,20 @@ FAMILY_NAMES = tuple(sorted(FAMILIES))
 
 
 def _shared(root: str) -> str:
-    """The eval family's two CORRECTIVES of the arm (shots a and b: two kernels), made once."""
+    """The eval family's two CORRECTIVES of the arm (shots a and b: two kernels), made once for
+    every worker (each makes them in a folder of its own at the same depth and renames it into
+    place; a worker that finds it there already drops its own)."""
     shared = os.path.join(root, "shared")
     if not os.path.isdir(shared):
-        os.makedirs(shared + ".tmp", exist_ok=True)
+        mine = f"{shared}.{os.getpid()}"
+        os.makedirs(mine, exist_ok=True)
         for shot, kernel in (("a", "gaussian"), ("b", "inverse_quadratic")):
-            subprocess.run([PSDBAKE, "fit", ARM, ARM_EXAMPLES, "--kernel", kernel, "-o",
-                            os.path.join(shared + ".tmp", f"{shot}.usda"), "-q"], check=True)
-        os.replace(shared + ".tmp", shared)
+            subprocess.run([PSDBAKE, "fit", ARM, ARM_EXAMPLES, "--kernel", kernel, "-o", os.path.join(mine, f"{shot}.usda"),
+                            "-q"], check=True)
+        try:
+            os.rename(mine, shared)
+        except OSError:  # another worker's is there
+            shutil.rmtree(mine, ignore_errors=True)
     return shared
 
 
@@ -122,24 +128,28 @@ def _fill(run: str, family: str, state: str, shared: str) -> None:
 
 def reference(root: str, family: str, state: str, order: tuple[str, str]) -> dict:
     """{"codes": [...], "files": {...}} of the writers in order, one after the other, from state;
-    computed once per worker (folders at the same depth as a case's, so every relative path a
-    layer records is the same)."""
+    computed once for every worker of a run (``root/refs/KEY/result.json``), each computing in a
+    folder of its own at the same depth as a case's, so every relative path a layer records is
+    the same."""
     key = "-".join((family, state, *order))
     path = os.path.join(root, "refs", key, "result.json")
     if os.path.isfile(path):
         with open(path, encoding="utf-8") as fh:
             return json.load(fh)
     shared = _shared(root)
-    run = os.path.join(root, "refs", key, "run")
-    shutil.rmtree(os.path.dirname(run), ignore_errors=True)
+    mine = os.path.join(root, "refs", f"{key}.{os.getpid()}")
+    run = os.path.join(mine, "run")
+    shutil.rmtree(mine, ignore_errors=True)
     _fill(run, family, state, shared)
     writers = FAMILIES[family][0]
     codes = [subprocess.run([PSDBAKE, *writers[w](run, shared)], stdout=subprocess.DEVNULL,
                             stderr=subprocess.DEVNULL).returncode for w in order]
     result = {"codes": codes, "files": files(run)}
-    with open(path + ".tmp", "w", encoding="utf-8") as fh:
+    os.makedirs(os.path.dirname(path), exist_ok=True)
+    with open(f"{path}.{os.getpid()}", "w", encoding="utf-8") as fh:
         json.dump(result, fh)
-    os.replace(path + ".tmp", path)
+    os.replace(f"{path}.{os.getpid()}", path)
+    shutil.rmtree(mine, ignore_errors=True)
     return result
 
 
