@@ -26,7 +26,7 @@ from . import __version__, atomic, outputs
 from .deformers import deformer_files, load_deformers
 from .errors import InputError, OutputError, PsdWarning, where
 from .evaluation import animation_weights, correctives_by_animation, posed_points
-from .frames import frames_of
+from .frames import check_authored, frames_of
 from .groups import (
     GroupChanges,
     Groups,
@@ -41,6 +41,8 @@ from .groups import (
     names_of,
     origin_text,
     read_correctives,
+    renamed_group,
+    without_groups,
 )
 from .results import FitResult, GltfResult, MirrorResult, PoseResult, Progress, SculptsResult, WeightsResult
 from .settings import FitSettings, MirrorSettings, SettingError
@@ -338,9 +340,14 @@ def evaluate(
     frames: tuple[float, float] | None = None,
     progress: Progress | None = None,
     strict: bool = False,
+    hold: bool = False,
+    shot: tuple[float, float] | None = None,
 ) -> WeightsResult:
     """RBF weights of every corrective at every frame of ANIM. Warns when ASSET's rig is not
-    the one CORRECTIVES were fitted on (strict: refuses, exit 3)."""
+    the one CORRECTIVES were fitted on (strict: refuses, exit 3).
+
+    frames: whole frames A..B, within ANIM's authored samples unless ``hold``; ``shot``: the
+    range to check instead (a farm chunk checks the whole shot's, so every chunk agrees)."""
     started = _time.perf_counter()
     asset_scene = open_asset(asset)
     check_fitted_on(asset, asset_scene, correctives, strict=strict)
@@ -350,7 +357,11 @@ def evaluate(
     per_anim = correctives_by_animation(scene, Scene([anim, asset], label=anim), correctives, anim)
     if not per_anim:
         raise InputError(f"{correctives}: no psd: driver data on any skinned mesh of {asset}")
-    planned = {a: frames_of(scene, per_anim[a][0][0].path, frames, label=anim) for a in sorted(per_anim)}
+    if frames is not None and shot is not None:
+        for a in sorted(per_anim):
+            check_authored(scene, per_anim[a][0][0].path, shot, anim, hold=hold)
+        hold = True  # checked on the shot's range: a chunk's own frames lie inside it
+    planned = {a: frames_of(scene, per_anim[a][0][0].path, frames, label=anim, hold=hold) for a in sorted(per_anim)}
     total, done = sum(len(planned[a]) * len(per_anim[a]) for a in planned), 0
 
     def tick(mesh: str) -> None:
@@ -436,7 +447,8 @@ def write_points_cache(result: WeightsResult, path: str, deformers: Sequence[str
 # --- export-gltf: ASSET + CORRECTIVES + ANIM + eval's weights -> one .glb for game engines ---
 
 def export_gltf(asset: str, correctives: str, anim: str, output: str, *, frames: tuple[float, float] | None = None,
-                progress: Progress | None = None, strict: bool = False, force: bool = False) -> GltfResult:
+                progress: Progress | None = None, strict: bool = False, force: bool = False, hold: bool = False
+                ) -> GltfResult:
     """Write the shot as a skinned glTF 2.0 binary: meshes, skins, joint animation (one
     key per time code), every BlendShape channel of the composed stack as a morph target
     and eval's weights animating them. Skinned in glTF (linear blend), it gives
@@ -447,7 +459,7 @@ def export_gltf(asset: str, correctives: str, anim: str, output: str, *, frames:
     inputs = files_read([asset, correctives, anim])
     with _forced(force):
         atomic.check_output(output, inputs, kind=outputs.GLTF)  # before the work, so a bad output fails at once
-    weights = evaluate(asset, correctives, anim, frames=frames, progress=progress, strict=strict)
+    weights = evaluate(asset, correctives, anim, frames=frames, progress=progress, strict=strict, hold=hold)
     scene = Scene([anim, correctives, asset], label=correctives)
     source = read_gltf_source(scene, asset, {a.animation: (a.channels, a.times, a.weights) for a in weights.animations})
     for msg in gltf.differences(source, asset):
@@ -616,6 +628,68 @@ def write_mirror(result: MirrorResult, path: str, *, force: bool = False, replac
                     groups={**{g: r for g, r in records.items() if g in names_of(groups)}, **entries})
             usdwrite.export_all([(path, layer)], inputs)
     return dataclasses.replace(changes_between(before, groups, written, records), protected=tuple(protected))
+
+
+# --- groups: list, remove, rename the groups of a CORRECTIVES layer -------------------------------
+
+def recorded_asset(correctives: str) -> str | None:
+    """The asset a CORRECTIVES layer records it was fitted on (its provenance), as a path from
+    here, or None."""
+    rel = provenance.plain(provenance.read_stamp(correctives).get("inputs", {})).get("asset", {}).get("path")
+    return os.path.normpath(os.path.join(os.path.dirname(correctives), rel)) if rel else None
+
+
+def list_groups(correctives: str) -> list[dict[str, Any]]:
+    """Every group of a CORRECTIVES layer, per mesh (``psdbake groups``): drivers, RBF settings,
+    channels, examples, gates, and where it came from (its provenance record)."""
+    from .usd.describe import describe as describe_file
+
+    open_layer(correctives)
+    if provenance.existing_kind(correctives) != "correctives" and not describe_file(correctives)["correctives"]:
+        raise InputError(f"{correctives}: not a CORRECTIVES layer (it holds no psd: correctives groups)")
+    records = provenance.plain(provenance.read_stamp(correctives).get("groups", {}))
+    out = []
+    for c in describe_file(correctives)["correctives"]:
+        record = records.get(c["group"]) if isinstance(records, dict) else None
+        out.append({**c, "origin": origin_text(record), "record": record or {}})
+    return sorted(out, key=lambda c: (c["group"], c["mesh"]))
+
+
+def edit_groups(correctives: str, *, remove: Sequence[str] = (), rename: Mapping[str, str] | None = None,
+                output: str | None = None, asset: str | None = None, force: bool = False) -> GroupChanges:
+    """CORRECTIVES without the groups in ``remove`` and with those in ``rename`` (old -> new)
+    renamed, written to output (default: in place, re-read and replaced under the update lock).
+    ASSET defaults to the one the layer records it was fitted on. Renaming changes the groups'
+    channel names, so WEIGHTS evaluated before must be evaluated again."""
+    if asset is None:
+        asset = recorded_asset(correctives)
+        if asset is None:
+            raise InputError(f"{correctives}: records no asset it was fitted on (older psdbake): give --asset")
+        if not os.path.isfile(asset):
+            raise InputError(f"{correctives}: records it was fitted on {asset}, which is not there (the layer was moved "
+                             "without it?): give --asset")
+    output = output or correctives
+    in_place = os.path.realpath(output) == os.path.realpath(correctives)
+    inputs = [f for f in files_read([asset, correctives]) if not in_place or os.path.realpath(f) != os.path.realpath(correctives)]
+    with _forced(force):
+        atomic.check_output(output, inputs, kind=outputs.CORRECTIVES)
+        with atomic.updating(output) if in_place else contextlib.nullcontext():
+            before = read_correctives(asset, correctives)
+            records = provenance.plain(provenance.read_stamp(correctives).get("groups", {}))
+            groups = without_groups(before, list(remove), correctives)
+            for old, new in (rename or {}).items():
+                groups = renamed_group(groups, old, new, correctives)
+                if old in records:
+                    records[new] = {**records.pop(old), "renamed_from": old}
+            layer = groups_layer(asset, groups, f"psdbake {__version__} groups: rest-space correctives (inverse PSD)")
+            stamped(layer, "correctives", output, {"asset": asset}, rig=provenance.plain(
+                provenance.read_stamp(correctives).get("rig", {})), command=False,
+                groups={g: r for g, r in records.items() if g in names_of(groups)})
+            usdwrite.export_all([(output, layer)], inputs)
+    rename = dict(rename or {})
+    return GroupChanges(removed=tuple(sorted(remove)), renamed=tuple(f"{a} -> {b}" for a, b in sorted(rename.items())),
+                        kept=tuple(sorted(names_of(groups) - set(rename.values()))),
+                        origins={g: origin_text(r) for g, r in records.items()})
 
 
 # --- views and descriptions --------------------------------------------------------------

@@ -68,10 +68,14 @@ strict_provenance_option = click.option(
          "method, weights, rest points or skeleton), instead of warning.",
 )
 
-frames_option = click.option(
-    "--frames", metavar="START:END",
-    help="Whole frames START..END (inclusive). Default: the animation's authored samples.",
-)
+_FRAMES = [
+    click.option("--frames", metavar="START:END",
+                 help="Whole frames START..END (inclusive), within the animation's authored samples. "
+                      "Default: the animation's authored samples."),
+    click.option("--hold", is_flag=True,
+                 help="Accept --frames outside the authored samples, where the animation holds its first or last "
+                      "pose (warned); without it such a range is refused."),
+]
 
 
 _RBF_OPTIONS = [
@@ -106,6 +110,8 @@ def _stacked(options: Sequence[Callable]) -> Callable[[Callable], Callable]:
 
 #: The pose-space and RBF options, shared by ``fit`` and ``compare`` (which fits too).
 rbf_options = _stacked(_RBF_OPTIONS)
+#: --frames and --hold, shared by every command that evaluates a shot.
+frame_options = _stacked(_FRAMES)
 _common = _stacked(_COMMON)
 
 
@@ -322,7 +328,7 @@ def fit_cmd(asset, examples, output, drivers, kernel, sigma, degree, smoothing, 
 @click.argument("correctives", type=str)
 @click.option("--anim", required=True, type=str, help="ANIM layer to drive the correctives over.")
 @click.option("-o", "--output", required=True, type=str, help="WEIGHTS layer to write.")
-@frames_option
+@frame_options
 @click.option("--points-cache", type=str,
               help="Also write final posed points per frame (no UsdSkel needed).")
 @click.option("--chunk-size", type=int, default=None, metavar="N",
@@ -334,8 +340,8 @@ def fit_cmd(asset, examples, output, drivers, kernel, sigma, degree, smoothing, 
 @deformer_option
 @force_option
 @_common
-def eval_cmd(asset, correctives, anim, output, frames, points_cache, chunk_size, chunk, strict, deformers, force, quiet,
-             verbose, as_json) -> None:
+def eval_cmd(asset, correctives, anim, output, frames, hold, points_cache, chunk_size, chunk, strict, deformers, force,
+             quiet, verbose, as_json) -> None:
     """Compute the correctives' weights over ANIM and write them as a WEIGHTS layer."""
     from . import api, atomic
     from .deformers import load_deformers
@@ -345,7 +351,7 @@ def eval_cmd(asset, correctives, anim, output, frames, points_cache, chunk_size,
     if chunk_size is not None or chunk is not None:
         with atomic.forcing(force):
             _eval_chunked(ui, asset, correctives, anim, output, frames, points_cache, chunk_size, chunk, deformers,
-                          strict)
+                          strict, hold)
         return
     with ui.warnings():
         reads = api.files_read([asset, correctives, anim], deformers)
@@ -355,7 +361,7 @@ def eval_cmd(asset, correctives, anim, output, frames, points_cache, chunk_size,
         span = parse_frames(frames)
         load_deformers(deformers)
         with ui.progress("weights") as progress:
-            result = api.evaluate(asset, correctives, anim, frames=span, progress=progress, strict=strict)
+            result = api.evaluate(asset, correctives, anim, frames=span, progress=progress, strict=strict, hold=hold)
         cache = None
         if points_cache:
             with ui.progress("points cache") as progress:
@@ -408,11 +414,11 @@ def mirror_cmd(asset, correctives, output, joint_rules, group, as_name, plane, r
 @click.argument("correctives", type=str)
 @click.option("--anim", required=True, type=str, help="ANIM layer: the shot to animate.")
 @click.option("-o", "--output", required=True, type=str, help="SHOT.glb to write (glTF 2.0 binary).")
-@frames_option
+@frame_options
 @strict_provenance_option
 @force_option
 @_common
-def export_gltf_cmd(asset, correctives, anim, output, frames, strict, force, quiet, verbose, as_json) -> None:
+def export_gltf_cmd(asset, correctives, anim, output, frames, hold, strict, force, quiet, verbose, as_json) -> None:
     """Write a skinned glTF 2.0 binary for game engines: meshes, skin, joint animation, the correctives
     as morph targets and eval's weights animating them."""
     from . import api
@@ -421,7 +427,7 @@ def export_gltf_cmd(asset, correctives, anim, output, frames, strict, force, qui
     ui = Ui(quiet, verbose, as_json)
     with ui.warnings(), ui.progress("weights") as progress:  # the output is checked before any work
         result = api.export_gltf(asset, correctives, anim, output, frames=parse_frames(frames), progress=progress,
-                                 strict=strict, force=force)
+                                 strict=strict, force=force, hold=hold)
     ui.payload({"output": output, "meshes": list(result.meshes), "morph_targets": result.morph_targets,
                 "sparse_targets": result.sparse_targets, "frames": result.frames, "bytes": result.size})
     ui.say(f"psdbake export-gltf: {len(result.meshes)} mesh(es), {result.morph_targets} morph target(s) "
@@ -430,7 +436,7 @@ def export_gltf_cmd(asset, correctives, anim, output, frames, strict, force, qui
 
 
 def _eval_chunked(ui: Ui, asset, correctives, anim, output, frames, points_cache, chunk_size, chunk,
-                  deformers, strict) -> None:
+                  deformers, strict, hold) -> None:
     """eval --chunk-size N [--chunk K]: chunk layers plus the value-clip manifest(s) (psdbake.farm.chunked)."""
     from . import api, atomic
     from .deformers import load_deformers
@@ -449,7 +455,7 @@ def _eval_chunked(ui: Ui, asset, correctives, anim, output, frames, points_cache
         load_deformers(deformers)
         with ui.progress("weights") as progress:
             ev = chunked.evaluate_chunks(asset, correctives, anim, chunk_size, frames=parse_frames(frames),
-                                         chunk=chunk, progress=progress, strict=strict)
+                                         chunk=chunk, progress=progress, strict=strict, hold=hold)
         with ui.progress("points cache") as progress:
             written = chunked.write_chunks(ev, output, points_cache=points_cache, deformers=deformers, progress=progress)
     console.say_chunks(ui, ev, written)
@@ -466,12 +472,12 @@ def _eval_chunked(ui: Ui, asset, correctives, anim, output, frames, points_cache
               help="Vertex for the correction-angle figure. Default: the most corrected one (and the one where "
                    "forward and inverse disagree most).")
 @click.option("--mesh", default=None, metavar="PATH", help="Only fit and report this mesh.")
-@frames_option
+@frame_options
 @click.option("--views", metavar="F1,F2,...", help="Frames to draw the mesh at. Default: three chosen frames.")
 @rbf_options
 @deformer_option
 @_common
-def compare_cmd(asset, examples, anim, report_dir, vertex, mesh, frames, views, drivers, kernel, sigma, degree,
+def compare_cmd(asset, examples, anim, report_dir, vertex, mesh, frames, hold, views, drivers, kernel, sigma, degree,
                 smoothing, no_rest_example, pose_space, twist_axis, clamp_weights, normalize_weights,
                 deformers, quiet, verbose, as_json) -> None:
     """Fit EXAMPLES, then compare plain skinning, forward PSD and inverse PSD (same RBF weights)
@@ -487,8 +493,7 @@ def compare_cmd(asset, examples, anim, report_dir, vertex, mesh, frames, views, 
     span, view_frames = parse_frames(frames), report.parse_views(views)
     report.check_report_dir(report_dir, api.files_read([asset, *examples, anim], deformers))  # before the fit
     with ui.warnings(), ui.progress("fitting examples") as progress:
-        result = compare_meshes(asset, examples, anim, settings, frames=span,
-                                fit_result=api.fit(asset, examples, settings, progress=progress))
+        result = compare_meshes(asset, examples, anim, settings, frames=span, hold=hold, progress=progress)
         prepared = report.prepare(result, asset_label=asset, mesh=mesh, vertex=vertex, views=view_frames)
         report.write_prepared(prepared, report_dir)
     if as_json:
@@ -536,6 +541,44 @@ def stack_cmd(layers, output, strict, force, quiet, verbose, as_json) -> None:
     ui.say(f"psdbake stack: {len(result.layers)} layer(s), strongest first: {shown}"
            + ("  (reordered by role)" if result.reordered else ""))
     ui.say(f"wrote {output}")
+
+
+@cli.command("groups")
+@click.argument("file", type=str)
+@click.option("--remove", multiple=True, metavar="NAME", help="Remove this group from every mesh (repeatable).")
+@click.option("--rename", multiple=True, metavar="OLD=NEW",
+              help="Rename a group, its BlendShapes and channels (repeatable): evaluate WEIGHTS again afterwards.")
+@click.option("--asset", default=None, metavar="ASSET",
+              help="The asset FILE's correctives belong to. Default: the one FILE records it was fitted on.")
+@click.option("-o", "--output", default=None, type=str,
+              help="Write the edited CORRECTIVES here. Default: FILE itself, updated in place.")
+@force_option
+@_common
+def groups_cmd(file, remove, rename, asset, output, force, quiet, verbose, as_json) -> None:
+    """List the correctives groups of FILE (a CORRECTIVES layer), or remove or rename some."""
+    from . import api
+
+    ui = Ui(quiet, verbose, as_json)
+    if not remove and not rename:
+        if output:
+            raise click.UsageError("-o needs --remove or --rename (listing writes nothing)")
+        groups = api.list_groups(file)
+        ui.payload({"file": file, "groups": groups})
+        console.say_groups(ui, file, groups)
+        return
+    pairs = {}
+    for rule in rename:
+        old, eq, new = rule.partition("=")
+        if not eq or not old or not new:
+            raise click.BadParameter(f"{rule!r}: expected OLD=NEW", param_hint="'--rename'")
+        pairs[old] = new
+    with ui.warnings():
+        changes = api.edit_groups(file, remove=remove, rename=pairs, output=output, asset=asset, force=force)
+    ui.payload({"file": file, "output": output or file, "changes": console.changes_payload(changes)})
+    console.say_changes(ui, changes, output or file)
+    if changes.renamed:
+        ui.warn(f"{output or file}: renamed groups have new channel names: evaluate WEIGHTS again (psdbake eval)")
+    ui.say(f"wrote {output or file}")
 
 
 @cli.command("batch")

@@ -151,7 +151,7 @@ def fit_failure(result: FitResult, output: str, *, strict: bool, allow_degraded:
 def changes_payload(changes: GroupChanges) -> dict:
     """What a write did to the groups already in its CORRECTIVES layer (--json, --report)."""
     return {"added": list(changes.added), "replaced": list(changes.replaced), "kept": list(changes.kept),
-            "removed": list(changes.removed), "protected": list(changes.protected),
+            "removed": list(changes.removed), "protected": list(changes.protected), "renamed": list(changes.renamed),
             "origins": {g: changes.origins[g] for g in (*changes.replaced, *changes.removed, *changes.protected)
                         if g in changes.origins}}
 
@@ -161,6 +161,7 @@ def say_changes(ui: Ui, changes: GroupChanges, output: str) -> None:
     parts = [f"added {', '.join(changes.added)}"] if changes.added else []
     parts += [f"{what} {changes.shown(names)}" for what, names in (("replaced", changes.replaced),
                                                                   ("removed", changes.removed)) if names]
+    parts += [f"renamed {', '.join(changes.renamed)}"] if changes.renamed else []
     if changes.kept:
         parts.append(f"kept {len(changes.kept)}" + (f" ({', '.join(changes.kept)})" if ui.verbose else ""))
     if parts:
@@ -288,6 +289,19 @@ def say_chunks(ui: Ui, ev: ChunkedWeights, written: WrittenChunks) -> None:
     ui.say(f"wrote the manifest {written.manifest} (+ {written.clip_manifest})"
            + (f" and {written.points_cache} (+ {written.points_clip_manifest})" if written.points_cache else "")
            + f": it stitches {len(written.stitched)} of the shot's {written.chunk_count} chunk(s) so far")
+
+
+# --- groups ------------------------------------------------------------------------------
+
+def say_groups(ui: Ui, file: str, groups: list[dict]) -> None:
+    meshes = sorted({g["mesh"] for g in groups})
+    ui.say(f"{file}: {len({g['group'] for g in groups})} group(s) on {len(meshes)} mesh(es)")
+    width = max((len(g["group"]) for g in groups), default=5)
+    for g in groups:
+        drivers = ", ".join(d.split("/")[-1] for d in g["drivers"])
+        gates = f"  gated by {', '.join(g['gate_groups'])}" if g.get("gate_groups") else ""
+        ui.say(f"  {g['group']:<{width}}  <{g['mesh']}>  drivers {drivers}  {len(g['channels'])} channel(s), "
+               f"{g['examples']} example(s), {g['kernel']} sigma {g['sigma']:.4g}{gates}  [{g['origin']}]")
 
 
 # --- inspect and batch -----------------------------------------------------------------------

@@ -4,12 +4,13 @@ the animation's own time samples."""
 from __future__ import annotations
 
 import re
+import warnings
 
 import numpy as np
 from numpy.typing import NDArray
 
 from . import tolerances as tol
-from .errors import InputError, where
+from .errors import InputError, PsdWarning, where
 from .usd.read import Scene
 
 
@@ -44,11 +45,33 @@ def frame_count(frames: tuple[float, float], text: str | None = None) -> int:
     return count
 
 
-def frames_of(scene: Scene, mesh: str, frames: tuple[float, float] | None, label: str | None = None
-              ) -> NDArray[np.float64]:
-    """Whole frames A..B when given, else the animation's authored time samples."""
+def check_authored(scene: Scene, mesh: str, frames: tuple[float, float], label: str | None = None, *,
+                   hold: bool = False) -> None:
+    """Refuse ``--frames`` reaching outside the animation's authored time samples: USD holds the
+    first and last pose there, so a shot numbered from 1001 evaluated at 1..100 (or the other
+    way round) would quietly write the held pose. ``hold`` accepts it knowingly, with a warning."""
+    times = scene.animation_times(mesh)
+    anim = scene.animation_prim(mesh) or mesh
+    shown = f"--frames {float(frames[0]):g}:{float(frames[1]):g}"
+    if times and times[0] <= float(frames[0]) and float(frames[1]) <= times[-1]:
+        return
+    authored = f"authored over {times[0]:g}..{times[-1]:g}" if times else "a static pose (no time samples)"
+    what = f"{where(label or scene.label, anim)}: the animation is {authored}"
+    if not hold:
+        raise InputError(f"{shown}: {what}: frames outside it would all show the held first or last pose; "
+                         + (f"give --frames within {times[0]:g}:{times[-1]:g}, or " if times else "give ")
+                         + "--hold to evaluate the held pose there")
+    warnings.warn(f"{shown} (--hold): {what}: the frames outside it hold its first or last pose", PsdWarning,
+                  stacklevel=3)
+
+
+def frames_of(scene: Scene, mesh: str, frames: tuple[float, float] | None, label: str | None = None, *,
+              hold: bool = False) -> NDArray[np.float64]:
+    """Whole frames A..B when given (within the animation's authored samples, unless hold), else
+    the animation's authored time samples."""
     if frames is not None:
         count = frame_count(frames)  # refuses a huge range before allocating it
+        check_authored(scene, mesh, frames, label, hold=hold)
         return np.ceil(float(frames[0])) + np.arange(count, dtype=np.float64)
     times = scene.animation_times(mesh)
     if not times:

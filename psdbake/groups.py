@@ -6,6 +6,7 @@ at eval, so a group must be (nearly) off at the other groups' examples (``cross_
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -116,6 +117,7 @@ class GroupChanges:
     kept: tuple[str, ...] = ()
     removed: tuple[str, ...] = ()
     protected: tuple[str, ...] = ()  # mirror: fitted from sculpts, so left alone
+    renamed: tuple[str, ...] = ()  # "old -> new"
     origins: Mapping[str, str] = field(default_factory=dict)  # replaced and protected groups: where they came from
 
     def shown(self, names: Sequence[str]) -> str:
@@ -206,6 +208,64 @@ def check_name_case(existing: Groups, written: Groups, label: str) -> None:
         twins = sorted(g for g in old if g != name and g.lower() == name.lower())
         if twins:
             raise SettingError("group", name, f"{label} already has group {twins[0]!r}: did you mean {twins[0]}?")
+
+
+def did_you_mean(name: str, names: Sequence[str]) -> str:
+    """", did you mean X?" for the closest of names (case-insensitive first), or ""."""
+    import difflib
+
+    lowered = {n.lower(): n for n in names}
+    close = difflib.get_close_matches(name.lower(), list(lowered), n=1, cutoff=0.6)
+    return f"; did you mean {lowered[close[0]]}?" if close else ""
+
+
+def without_groups(groups: Groups, names: Sequence[str], label: str) -> Groups:
+    """groups without the named ones, on every mesh; refuses a name the layer lacks and a group
+    that a remaining combination is gated by (the combination would lose its gate)."""
+    have = sorted(names_of(groups))
+    for name in names:
+        if name not in have:
+            raise SettingError("remove", name, f"{label} has no such group (groups: {', '.join(have)})"
+                               f"{did_you_mean(name, have)}")
+    out: Groups = {mesh: {g: v for g, v in per.items() if g not in names} for mesh, per in groups.items()}
+    for mesh, per in out.items():
+        for group, (data, _) in sorted(per.items()):
+            lost = sorted(set(data.gate_groups) & set(names))
+            if lost:
+                raise SettingError("remove", lost[0], f"{where(label, mesh)}: combination {group!r} is gated by it: "
+                                   f"remove {group!r} too, or keep {lost[0]!r}")
+    return {mesh: per for mesh, per in out.items() if per}
+
+
+def renamed_group(groups: Groups, old: str, new: str, label: str) -> Groups:
+    """groups with group old named new on every mesh: its psd: namespace, its BlendShapes and
+    channels (``psd_<group>_...``, so the names keep saying whose they are) and the gates of
+    combinations that sit on it."""
+    from .settings import is_group_name
+
+    have = sorted(names_of(groups))
+    if old not in have:
+        raise SettingError("rename", old, f"{label} has no such group (groups: {', '.join(have)}){did_you_mean(old, have)}")
+    if not is_group_name(new):
+        raise SettingError("rename", new, "must be an identifier (letters, digits, _)")
+    if any(g != old and g.lower() == new.lower() for g in have):
+        raise SettingError("rename", new, f"{label} already has a group of that name")
+    before, after = f"psd_{old}_", f"psd_{new}_"
+
+    def swap(name: str) -> str:
+        return after + name[len(before):] if name.startswith(before) else name
+
+    out: Groups = {}
+    for mesh, per in groups.items():
+        out[mesh] = {}
+        for group, (data, shapes) in per.items():
+            if group == old:
+                data = dataclasses.replace(data, shapes=[swap(n) for n in data.shapes],
+                                           channels=[swap(n) for n in data.channels])
+                shapes = [dataclasses.replace(b, name=swap(b.name), channel=swap(b.channel)) for b in shapes]
+            data = dataclasses.replace(data, gate_groups=[new if g == old else g for g in data.gate_groups])
+            out[mesh][new if group == old else group] = (data, shapes)
+    return out
 
 
 def groups_layer(asset: str, groups: Groups, doc: str) -> Layer:

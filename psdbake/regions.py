@@ -18,7 +18,9 @@ example's corrective is driven only by the joints it moves (turned more than
   every example goes into one global group, ``main``, as psdbake 0.1 did.
 
 ``--group`` (one named group) and ``--driver`` (chosen drivers) override this; with
-explicit drivers, the group uses exactly the examples that move only those drivers.
+explicit drivers, the group uses exactly the examples that move only those drivers, and
+without ``--group`` it is named as the default fit names a group of those joints, so a later
+``--group`` fit of the same joint replaces it instead of doubling it.
 """
 
 from __future__ import annotations
@@ -78,7 +80,8 @@ def plan_regions(poses: NDArray[np.float64], labels: Sequence[str], joints: Sequ
     if drivers:  # explicit drivers: the examples that move only those joints (and move one of them)
         chosen = set(drivers)
         used = tuple(i for i, a in enumerate(active) if a and a <= chosen)
-        return [Region(group or DEFAULT_GROUP, tuple(sorted(chosen)), used)], [i for i in everything if i not in used], ""
+        name = group or group_name(joints, sorted(chosen), set())  # the name the default fit gives these drivers
+        return [Region(name, tuple(sorted(chosen)), used)], [i for i in everything if i not in used], ""
     if group is not None:
         return [Region(group, (), everything)], [], ""
     singles: dict[int, list[int]] = {}

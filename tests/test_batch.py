@@ -30,7 +30,7 @@ HUMANOID, HUMANOID_EXAMPLES = fixture("humanoid", "humanoid.usda"), fixture("hum
 HUMANOID_ANIM = fixture("humanoid", "humanoid_anim.usda")
 
 # pose (independent) | two correctives groups fitted into one layer (read-modify-write, in file order)
-# -> eval cut into 3 chunk tasks (600 frames and a points cache: the slowest tasks) -> stack
+# -> eval cut into 3 chunk tasks (the shot's 100 frames and a points cache: the slowest tasks) -> stack
 PIPELINE = f"""
 [defaults]
 asset = "{HUMANOID}"
@@ -54,8 +54,8 @@ output = "out/correctives.usda"
 [[eval]]
 correctives = "out/correctives.usda"
 anim = "{HUMANOID_ANIM}"
-frames = "1:600"
-chunk_size = 200
+frames = "1:100"
+chunk_size = 34
 output = "out/weights.usda"
 points_cache = "out/cache.usda"
 
@@ -66,7 +66,7 @@ layers = ["{HUMANOID}", "out/correctives.usda", "{HUMANOID_ANIM}", "out/weights.
 OUTPUTS = (
     "to_sculpt.usda", "correctives.usda", "shot.usda",
     *(f"{name}{part}.usda" for name in ("weights", "cache")
-      for part in ("", ".clipmanifest", ".f0001-0200", ".f0201-0400", ".f0401-0600")),
+      for part in ("", ".clipmanifest", ".f0001-0034", ".f0035-0068", ".f0069-0100")),
 )
 TASKS = 7  # pose, 2 fits, 3 eval chunks, stack
 COMMANDS = {name: cli.commands[name] for name in farm.COMMANDS}  # what psdbake batch passes: the CLI is the schema

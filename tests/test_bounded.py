@@ -139,7 +139,7 @@ def test_chunked_eval_allocates_its_chunk_only(cli, tmp_path):
     tracemalloc.start()
     try:
         code, _, err = cli("eval", ASSET, CORRECTIVES, "--anim", ANIM, "-o", out, "--frames", f"1:{tol.MAX_FRAMES}",
-                           "--chunk-size", "100", "--chunk", "5000", "-q")
+                           "--chunk-size", "100", "--chunk", "5000", "--hold", "-q")
         peak = tracemalloc.get_traced_memory()[1]
     finally:
         tracemalloc.stop()

@@ -87,6 +87,7 @@ def evaluate_chunks(
     chunk: int | None = None,
     progress: Progress | None = None,
     strict: bool = False,
+    hold: bool = False,
 ) -> ChunkedWeights:
     """Weights of every chunk, or of chunk number ``chunk`` (1-based) only.
 
@@ -100,7 +101,8 @@ def evaluate_chunks(
         wanted = [plan.chunk(chunk)] if chunk is not None else list(plan.chunks)
         results = []
         for c in wanted:
-            r = api.evaluate(asset, correctives, anim, frames=(c.first, c.last), progress=progress, strict=strict)
+            r = api.evaluate(asset, correctives, anim, frames=(c.first, c.last), progress=progress, strict=strict,
+                             hold=hold, shot=(plan.first, plan.last))
             for a in r.animations:
                 if not np.array_equal(a.times, c.times):
                     raise RuntimeError(f"chunk {c.index}: api.evaluate's frames differ from the plan's")

@@ -119,6 +119,6 @@ def _correctives(prim: Usd.Prim, label: str) -> list[dict]:
             "mesh": str(prim.GetPath()), "group": group, "version": version, "drivers": list(data.drivers),
             "pose_space": data.pose_space, "kernel": data.kernel, "sigma": data.sigma, "degree": data.degree,
             "shapes": list(data.shapes), "channels": written, "examples": len(data.example_times),
-            "offsets": offsets,
+            "offsets": offsets, "gate_groups": list(data.gate_groups),
         })
     return out
