@@ -673,7 +673,7 @@ def edit_groups(correctives: str, *, remove: Sequence[str] = (), rename: Mapping
     inputs = [f for f in files_read([asset, correctives]) if not in_place or os.path.realpath(f) != os.path.realpath(correctives)]
     with _forced(force):
         atomic.check_output(output, inputs, kind=outputs.CORRECTIVES)
-        with atomic.updating(output) if in_place else contextlib.nullcontext():
+        with updating(output) if in_place else contextlib.nullcontext():
             before = read_correctives(asset, correctives)
             records = provenance.plain(provenance.read_stamp(correctives).get("groups", {}))
             groups = without_groups(before, list(remove), correctives)

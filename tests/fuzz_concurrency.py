@@ -9,8 +9,8 @@ both have ended: a run is released only when the other is held, waiting for a lo
 (``/proc/locks``) or done, so every case is a real interleaving of the two commits.
 
 - ``correctives`` (the humanoid; ``c.usda``): ``fit --group Neck``, ``fit --group L_Knee``, a
-  plain ``fit --driver L_Elbow --driver L_Knee`` and ``mirror`` in place, over a layer holding a
-  ``--group`` fit's group or a plain fit's;
+  plain ``fit --driver L_Elbow --driver L_Knee``, ``mirror`` in place and ``groups --remove
+  L_Elbow`` in place, over a layer holding a ``--group`` fit's group or a plain fit's;
 - ``eval`` (the arm; ``w.usda``, ``c.usda`` and chunk files): ``eval --points-cache`` of two
   shots (the same animation through two CORRECTIVES), ``eval`` without a cache, and the two
   chunks of each shot (``--chunk-size 6`` over frames 1..12), over nothing, shot A complete, or
@@ -64,6 +64,10 @@ def _mirror(d: str, s: str) -> list[str]:
     return ["mirror", HUMANOID, f"{d}/c.usda", "--joints", "L_=R_", "-o", f"{d}/c.usda", "-q"]
 
 
+def _remove(group: str) -> Command:
+    return lambda d, s: ["groups", f"{d}/c.usda", "--remove", group, "--asset", HUMANOID, "-q"]
+
+
 def _eval(shot: str, *extra: str) -> Command:
     return lambda d, s: ["eval", ARM, f"{s}/{shot}.usda", "--anim", ARM_ANIM, "-o", f"{d}/w.usda", "--frames", "1:12",
                          "-q", *[f"{d}/c.usda" if e == "CACHE" else e for e in extra]]
@@ -73,7 +77,7 @@ def _eval(shot: str, *extra: str) -> Command:
 FAMILIES: dict[str, tuple[dict[str, Command], dict[str, list[Command]]]] = {
     "correctives": (
         {"fit_neck": _fit_group("Neck", "Neck"), "fit_knee": _fit_group("L_Knee", "L_Knee"),
-         "plain": _plain("gaussian"), "mirror": _mirror},
+         "plain": _plain("gaussian"), "mirror": _mirror, "remove_elbow": _remove("L_Elbow")},
         {"group": [_fit_group("L_Elbow", "L_Elbow")], "plain": [_plain("inverse_quadratic")]},
     ),
     "eval": (

@@ -139,6 +139,23 @@ def test_a_group_fit_waiting_for_mirror_in_place_keeps_the_mirrored_groups(base,
     assert _files(race) == expected
 
 
+def _remove_group(group: str):
+    return lambda d: ("groups", d / "c.usda", "--remove", group, "--asset", HUMANOID, "-q")
+
+
+def test_groups_remove_in_place_waiting_for_a_group_fit(base, tmp_path):
+    """``psdbake groups --remove`` in place is a read-modify-write too: waiting while a group fit
+    commits, it removes its group from the fit's layer, not from its own stale copy."""
+    race = _start(tmp_path / "a" / "race", base)
+    fit = Held(race, "fit", ("commit",), *_fit_group("Neck", "Neck")(race)).at("commit")
+    remove = Held(race, "remove", (), *_remove_group("L_Elbow")(race)).blocked()
+    fit.go("commit")
+    assert fit.done()[0] == 0 and remove.done()[0] == 0
+    codes, expected = _serial(tmp_path / "b" / "race", base, _fit_group("Neck", "Neck"), _remove_group("L_Elbow"))
+    assert codes == [0, 0]
+    assert _files(race) == expected
+
+
 def test_two_group_fits_both_land(base, tmp_path):
     """Group updates: the second fit waits at its commit and merges into the first's layer."""
     race = _start(tmp_path / "a" / "race", base)
