@@ -26,7 +26,7 @@ DEMO_ANIM     := fixtures/humanoid/humanoid_anim.usda
 demo: $(STAMP)
 	@mkdir -p $(OUT)
 	$(BIN)/psdbake inspect $(DEMO_ASSET)
-	$(BIN)/psdbake pose $(DEMO_ASSET) --anim $(DEMO_EXAMPLES) -o $(OUT)/to_sculpt.usda
+	$(BIN)/psdbake pose $(DEMO_ASSET) --poses $(DEMO_EXAMPLES) -o $(OUT)/to_sculpt.usda
 	$(BIN)/psdbake fit $(DEMO_ASSET) $(DEMO_EXAMPLES) -o $(OUT)/correctives.usda --report $(OUT)/fit_report.json
 	$(BIN)/psdbake eval $(DEMO_ASSET) $(OUT)/correctives.usda --anim $(DEMO_ANIM) -o $(OUT)/weights.usda --points-cache $(OUT)/points_cache.usdc
 	$(BIN)/psdbake stack $(DEMO_ASSET) $(OUT)/correctives.usda $(DEMO_ANIM) $(OUT)/weights.usda -o $(OUT)/shot.usda

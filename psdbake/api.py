@@ -22,9 +22,11 @@ import warnings
 from collections.abc import Iterator, Mapping, Sequence
 from typing import Any
 
+import numpy as np
+
 from . import __version__, atomic, outputs
 from .deformers import deformer_files, load_deformers
-from .errors import InputError, OutputError, PsdWarning, where
+from .errors import FitError, InputError, OutputError, PsdWarning, where
 from .evaluation import animation_weights, correctives_by_animation, posed_points
 from .frames import check_authored, frames_of
 from .groups import (
@@ -44,6 +46,8 @@ from .groups import (
     renamed_group,
     without_groups,
 )
+from .lookup import did_you_mean, matches
+from .regions import active_joints
 from .results import FitResult, GltfResult, MirrorResult, PoseResult, Progress, SculptsResult, WeightsResult
 from .settings import FitSettings, MirrorSettings, SettingError
 from .usd import provenance
@@ -164,14 +168,21 @@ def fit(
     load_deformers(settings.deformers)  # fail fast on a bad spec; each solve loads its own chain
     asset_scene = open_asset(asset, notes)
     infos = asset_scene.skinned_meshes()
-    meshes = _meshes_to_fit(asset, [m.path for m in infos], settings.meshes)
+    meshes = _meshes_to_fit(asset, infos, settings, notes)
     skipped: list[str] = []
     layout: list[str] = []  # why a mesh's correctives are one global group, when they are
+    left_out: list[str] = []  # groups with no edited example
     try:
         share_scene(asset_scene)  # the solves' rest points and shading come from this stage, not a second one
         per_mesh, tasks = gather_examples(asset, asset_scene, infos, meshes, example_files, settings)  # checked
         plans, systems = {}, {}
         for info in [i for i in infos if i.path in per_mesh]:
+            if not settings.drivers and not any(active_joints(np.array([e.pose for e in per_mesh[info.path]]))):
+                left_out.append(f"<{info.path}>: its skeleton <{info.skeleton}> never leaves its bind pose")
+                _skip(notes, f"{where(asset, info.path)}: every example is at the bind pose of its skeleton "
+                             f"<{info.skeleton}>, so no joint can drive a corrective for it: skipped (an edit at the bind "
+                             "pose belongs in the asset itself)")
+                continue
             regions, unused, why = plan_mesh(asset, info, per_mesh[info.path], settings)  # who drives what
             plans[info.path] = regions
             systems[info.path] = plan_systems(asset, info, per_mesh[info.path], regions, settings, notes)
@@ -189,8 +200,10 @@ def fit(
             mine = {i: solved[(info.path, e.source, e.time)] for i, e in enumerate(examples)
                     if (info.path, e.source, e.time) in solved}
             fits += fit_regions(asset, asset_scene, info, examples, mine, plans[info.path], settings, notes,
-                                systems[info.path])
+                                systems[info.path], left_out)
             _note_normals(asset, info.path, notes)
+        if not fits:
+            raise FitError(f"{', '.join(example_files)}: nothing to correct: {'; '.join(left_out)}")
         # for write_correctives: the asset's layers and the EXAMPLES files still open, so no input is parsed twice
         held = {layer.identifier: layer for layer in [*asset_scene.file_layers(), *open_layers(example_files)]}
     finally:
@@ -205,11 +218,48 @@ def fit(
     return dataclasses.replace(result, checks=checks, warnings=tuple(notes), seconds=_time.perf_counter() - started)
 
 
-def _meshes_to_fit(asset: str, skinned: list[str], wanted: Sequence[str]) -> list[str]:
+def _skip(notes: list[str], msg: str) -> None:
+    notes.append(msg)
+    warnings.warn(msg, PsdWarning, stacklevel=3)
+
+
+def resolve_meshes(asset: str, skinned: Sequence[str], wanted: Sequence[str]) -> list[str]:
+    """The skinned meshes ``--mesh`` names (full paths or unambiguous leaf names), in the asset's order."""
+    chosen = set()
     for mesh in wanted:
-        if mesh not in skinned:
-            raise SettingError("meshes", mesh, "is not a skinned mesh of the asset", location=asset)
-    return [m for m in skinned if not wanted or m in wanted]
+        hits = matches(mesh, skinned)
+        if len(hits) != 1:
+            problem = (f"is not a skinned mesh of the asset (skinned: {', '.join(skinned)}){did_you_mean(mesh, skinned)}"
+                       if not hits else f"is ambiguous ({', '.join(hits)}): give its full path")
+            raise SettingError("meshes", mesh, problem, location=asset)
+        chosen.add(hits[0])
+    return [m for m in skinned if not wanted or m in chosen]
+
+
+def _meshes_to_fit(asset: str, infos: Sequence[Any], settings: FitSettings, notes: list[str]) -> list[str]:
+    """The meshes to fit: ``--mesh`` (resolved), and with ``--driver`` only those whose skeleton
+    has the drivers: a file with several skeletons (a head's, each hand's) skins each mesh by one,
+    and a driver of one cannot drive another's meshes. A driver no skeleton has, or one the
+    chosen meshes' skeletons lack, is refused naming the skeletons that have it (--mesh)."""
+    meshes = resolve_meshes(asset, [m.path for m in infos], settings.meshes)
+    if not settings.drivers:
+        return meshes
+    by_path = {m.path: m for m in infos}
+    lacking = {m: [d for d in settings.drivers if not matches(d, by_path[m].joints)] for m in meshes}
+    usable = [m for m in meshes if not lacking[m]]
+    if usable and not settings.meshes:
+        for m in sorted(set(meshes) - set(usable)):
+            _skip(notes, f"{where(asset, m)}: skipped: its skeleton <{by_path[m].skeleton}> has no joint "
+                         f"{lacking[m][0]!r} (--driver)")
+        return usable
+    bad = next(m for m in meshes if lacking[m])
+    name = lacking[bad][0]
+    owners = sorted({i.skeleton for i in infos if matches(name, i.joints)})
+    hint = (f"; it is a joint of <{owners[0]}>, which skins "
+            f"{', '.join(i.path.rsplit('/', 1)[-1] for i in infos if i.skeleton == owners[0])}: choose those with --mesh"
+            if owners else did_you_mean(name, [j for i in infos for j in i.joints]))
+    raise SettingError("drivers", name, f"is not a joint of skeleton <{by_path[bad].skeleton}>, which skins "
+                       f"<{bad}>{hint}", location=asset)
 
 
 def _note_normals(asset: str, mesh: str, notes: list[str]) -> None:
@@ -342,12 +392,14 @@ def evaluate(
     strict: bool = False,
     hold: bool = False,
     shot: tuple[float, float] | None = None,
+    meshes: Sequence[str] = (),
 ) -> WeightsResult:
     """RBF weights of every corrective at every frame of ANIM. Warns when ASSET's rig is not
     the one CORRECTIVES were fitted on (strict: refuses, exit 3).
 
     frames: whole frames A..B, within ANIM's authored samples unless ``hold``; ``shot``: the
-    range to check instead (a farm chunk checks the whole shot's, so every chunk agrees)."""
+    range to check instead (a farm chunk checks the whole shot's, so every chunk agrees);
+    meshes: only these meshes' correctives (full paths or leaf names)."""
     started = _time.perf_counter()
     asset_scene = open_asset(asset)
     check_fitted_on(asset, asset_scene, correctives, strict=strict)
@@ -355,6 +407,9 @@ def evaluate(
     scene.require_skinned()
     require_psd_prims_skinned(scene, correctives, asset)
     per_anim = correctives_by_animation(scene, Scene([anim, asset], label=anim), correctives, anim)
+    if meshes:
+        chosen = set(resolve_meshes(asset, sorted({i.path for e in per_anim.values() for i, _ in e}), meshes))
+        per_anim = {a: kept for a, e in per_anim.items() if (kept := [x for x in e if x[0].path in chosen])}
     if not per_anim:
         raise InputError(f"{correctives}: no psd: driver data on any skinned mesh of {asset}")
     if frames is not None and shot is not None:
@@ -390,8 +445,10 @@ def weights_layer(result: WeightsResult) -> Layer:
 def stamp_weights(layer: Layer, kind: str, result: WeightsResult, path: str, deformers: Sequence[str] = (), *,
                   command: bool = True) -> Layer:
     """A WEIGHTS layer or points cache of ``eval`` stamped for path (``provenance``)."""
+    contained = bool(provenance.stamp_of(layer).get("selfContained"))
     return stamped(layer, kind, path, {"asset": result.asset, "correctives": result.correctives, "anim": result.anim},
-                   rig=result.rig, deformers=deformers if kind == "points_cache" else (), command=command)
+                   rig=result.rig, deformers=deformers if kind == "points_cache" else (), command=command,
+                   selfContained=contained or None)
 
 
 def write_weights(result: WeightsResult, path: str, *, points_cache: tuple[str, Layer] | None = None,
@@ -407,8 +464,8 @@ def write_weights(result: WeightsResult, path: str, *, points_cache: tuple[str, 
     return path
 
 
-def points_cache_layer(result: WeightsResult, deformers: Sequence[str] = (), *, progress: Progress | None = None
-                       ) -> Layer:
+def points_cache_layer(result: WeightsResult, deformers: Sequence[str] = (), *, progress: Progress | None = None,
+                       self_contained: bool = False) -> Layer:
     """Final posed points per frame (correctives, existing shapes, skinning, deformers),
     as a layer that needs no UsdSkel: the SkelRoots become Xforms, like BakeSkinning.
     The asset's authored shading normals are blocked (they are rest normals), so renderers
@@ -416,6 +473,10 @@ def points_cache_layer(result: WeightsResult, deformers: Sequence[str] = (), *, 
 
     The points come from UsdSkel evaluating the stack ASSET + CORRECTIVES + ANIM + WEIGHTS
     (the correctives are ordinary blend shapes there), then the deformer chain.
+
+    The layer holds overrides only (points, extents, the retyping), to be stacked over the asset;
+    ``self_contained``: the cache over the asset flattened into one layer (topology, transforms,
+    materials and all), which opens on its own.
     """
     chain = load_deformers(deformers)
     # WEIGHTS only drives UsdSkel here: without the asset's metadata, which would open the
@@ -427,13 +488,17 @@ def points_cache_layer(result: WeightsResult, deformers: Sequence[str] = (), *, 
                   checked=Checked.SHAPE_VALUES)
     times = sorted({float(t) for a in result.animations for t in a.times})
     meshes = scene.skinned_meshes()
-    return provenance.stamp(usdwrite.points_layer(
-        f"psdbake {__version__} eval: points cache (no UsdSkel needed)",
+    layer = usdwrite.points_layer(
+        f"psdbake {__version__} eval: points cache ("
+        + ("self-contained, no UsdSkel needed)" if self_contained else "no UsdSkel needed; overrides to stack over ASSET)"),
         scene.skel_roots, posed_points(scene, scene, meshes, times, chain, progress), times, result.fps,
         usdwrite.asset_metadata(result.asset),
         blocked=[(m.path, name) for m in meshes for name in ("normals", "primvars:normals")
                  if scene.prim(m.path).GetAttribute(name).HasAuthoredValue()],
-    ), "points_cache")
+    )
+    if self_contained:
+        layer = usdwrite.flattened(layer, result.asset)
+    return provenance.stamp(layer, "points_cache", {"selfContained": True} if self_contained else {})
 
 
 def write_points_cache(result: WeightsResult, path: str, deformers: Sequence[str] = (), *,
@@ -474,24 +539,33 @@ def export_gltf(asset: str, correctives: str, anim: str, output: str, *, frames:
 
 # --- pose: ASSET + POSES -> plain UsdSkel skinning per time code -> EXAMPLES to sculpt on -------
 
-def pose(asset: str, poses: str, deformers: Sequence[str] = (), *, progress: Progress | None = None) -> PoseResult:
-    """EXAMPLES to sculpt on: skinned points per time code of POSES, with the pose itself."""
+def pose(asset: str, poses: str, deformers: Sequence[str] = (), *, progress: Progress | None = None,
+         frames: tuple[float, float] | None = None, hold: bool = False, meshes: Sequence[str] = ()) -> PoseResult:
+    """EXAMPLES to sculpt on: skinned points per time code of POSES, with the pose itself.
+
+    frames: whole frames A..B of POSES instead of its time codes (the frames of a shot to fix),
+    within its authored samples unless ``hold``; meshes: only these (full paths or leaf names)."""
     chain = load_deformers(deformers)
     asset_scene = open_asset(asset)
     scene = Scene([poses, asset], label=poses)
-    meshes = scene.skinned_meshes()
-    for info in meshes:
+    wanted = set(resolve_meshes(asset, [m.path for m in scene.skinned_meshes()], meshes))
+    posed = [m for m in scene.skinned_meshes() if m.path in wanted]
+    for info in posed:
         validate_animation(scene, info.path)
         if (anim_path := scene.animation_prim(info.path)) is not None:
             require_finite_time_samples(scene, anim_path, poses)
-    anims = sorted({a for m in meshes if (a := scene.animation_prim(m.path))})
+    anims = sorted({a for m in posed if (a := scene.animation_prim(m.path))})
     if not anims:
         raise InputError(f"{poses}: no SkelAnimation is bound to the skeleton (skel:animationSource)")
-    times = sorted({t for m in meshes for t in scene.animation_times(m.path)})
+    times = sorted({t for m in posed for t in scene.animation_times(m.path)})
+    if frames is not None:
+        animated = [m for m in posed if scene.animation_prim(m.path) is not None]
+        times = sorted({float(t) for m in animated for t in frames_of(scene, m.path, frames, poses, hold=hold)})
     if not times:
-        raise InputError(f"{where(poses, anims[0])}: the animation has no time samples: nothing to pose")
+        raise InputError(f"{where(poses, anims[0])}: the animation has no time samples: nothing to pose (give --frames "
+                         "to pose its static pose)")
     animations, seen = [], set()
-    for info in meshes:
+    for info in posed:
         if scene.animation_prim(info.path) is None or info.skeleton in seen:
             continue
         seen.add(info.skeleton)
@@ -499,10 +573,10 @@ def pose(asset: str, poses: str, deformers: Sequence[str] = (), *, progress: Pro
         animations.append((info.skeleton, path, joints, channels, anim_samples))
     layer = provenance.stamp(usdwrite.examples_layer(
         f"psdbake {__version__} pose: skinned examples to sculpt on", animations,
-        posed_points(asset_scene, scene, meshes, times, chain, progress), times, scene.stage.GetTimeCodesPerSecond(),
+        posed_points(asset_scene, scene, posed, times, chain, progress), times, scene.stage.GetTimeCodesPerSecond(),
         usdwrite.asset_metadata(asset),
     ), "examples")
-    return PoseResult(asset, poses, tuple(times), tuple(m.path for m in meshes), layer, tuple(deformers),
+    return PoseResult(asset, poses, tuple(times), tuple(m.path for m in posed), layer, tuple(deformers),
                       rig=provenance.rig_record(asset_scene))
 
 
@@ -538,13 +612,14 @@ def obj_files(result: PoseResult) -> list[str]:
 
 
 def sculpts(asset: str, examples: str, obj_dir: str, *, scale: float | None = None,
-            up_axis: str | None = None) -> SculptsResult:
+            up_axis: str | None = None, fixes: Mapping[str, Mapping[str, Any]] | None = None) -> SculptsResult:
     """Read back the sculpted OBJs of obj_dir (listed in its manifest) over EXAMPLES, the layer
     ``pose`` wrote with them: each file checked (vertex count, faces, finite, near its posed
-    mesh), ``scale`` and ``up_axis`` applied first."""
+    mesh), ``scale`` and ``up_axis`` applied first, or per file (``fixes``: OBJ file name ->
+    {"scale": S, "up_axis": "Z"}). Every bad file is named in one refusal."""
     from . import objloop
 
-    return objloop.read_sculpts(asset, examples, obj_dir, scale=scale, up_axis=up_axis)
+    return objloop.read_sculpts(asset, examples, obj_dir, scale=scale, up_axis=up_axis, fixes=fixes)
 
 
 def write_sculpts(result: SculptsResult, path: str, *, force: bool = False) -> str:
@@ -562,7 +637,8 @@ def write_sculpts(result: SculptsResult, path: str, *, force: bool = False) -> s
 
 # --- mirror: one side's correctives groups -> the other side's, in CORRECTIVES ------------------
 
-def mirror(asset: str, correctives: str, settings: MirrorSettings, *, strict: bool = False) -> MirrorResult:
+def mirror(asset: str, correctives: str, settings: MirrorSettings, *, strict: bool = False,
+           meshes: Sequence[str] = ()) -> MirrorResult:
     """The other side's correctives groups, made from CORRECTIVES's groups (``settings.group``,
     or every group whose drivers all have partners) by reflecting the rig's bind space
     (``psdbake/mirroring.py``); refuses a rig or mesh that is not mirror-symmetric. Warns (or,
@@ -573,9 +649,12 @@ def mirror(asset: str, correctives: str, settings: MirrorSettings, *, strict: bo
     scene = open_asset(asset)
     check_fitted_on(asset, scene, correctives, strict=strict)
     groups = read_correctives(asset, correctives)
-    meshes = {m.path: m for m in scene.skinned_meshes() if m.path in groups}
-    binds = {path: read_bind_space(scene, info) for path, info in meshes.items()}
-    made, skipped = mirror_groups(asset, correctives, groups, binds, meshes, settings)
+    if meshes:
+        chosen = set(resolve_meshes(asset, sorted(groups), meshes))
+        groups = {m: g for m, g in groups.items() if m in chosen}
+    infos = {m.path: m for m in scene.skinned_meshes() if m.path in groups}
+    binds = {path: read_bind_space(scene, info) for path, info in infos.items()}
+    made, skipped = mirror_groups(asset, correctives, groups, binds, infos, settings)
     return MirrorResult(asset, correctives, settings, tuple(made), tuple(skipped), _time.perf_counter() - started,
                         rig=provenance.rig_record(scene))
 
@@ -769,6 +848,16 @@ def write_stack(path: str, layers: Sequence[str], *, strict: bool = False, force
     return plan
 
 
-def describe(path: str) -> dict:
-    """What a USD file holds (``psdbake inspect``): JSON-ready, sorted."""
-    return describe_file(path)
+def describe(path: str, asset: str | None = None) -> dict:
+    """What a USD file holds (``psdbake inspect``): JSON-ready, sorted. With the asset (given, or
+    the one the file records it was made from), the example poses are spelled out: per time code,
+    the joints turned from bind and by how many degrees."""
+    from .usd.describe import spelled_poses
+
+    info = describe_file(path)
+    asset = asset or recorded_asset(path)
+    times = sorted({t for e in info["examples"] for t in e["time_codes"]})
+    if asset and os.path.isfile(asset) and times and os.path.realpath(asset) != os.path.realpath(path):
+        info["asset"] = asset
+        info["poses"] = spelled_poses(Scene([path, asset], label=path), times)
+    return info

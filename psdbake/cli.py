@@ -25,7 +25,7 @@ import signal
 import sys
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import click
 
@@ -200,8 +200,14 @@ def _settings(drivers, kernel, sigma, degree, smoothing, no_rest_example, pose_s
 
 @cli.command("pose")
 @click.argument("asset", type=str)
-@click.option("--anim", "poses", required=True, type=str, help="POSES layer: one pose per time code.")
+@click.option("--poses", "poses", type=str,
+              help="POSES layer (required): one pose per time code (any animation: a shot whose frames need fixing will "
+                   "do).")
+@click.option("--anim", "poses", hidden=True, type=str, help="Older name of --poses.")
 @click.option("-o", "--output", required=True, type=str, help="EXAMPLES layer to write.")
+@frame_options
+@click.option("--mesh", "meshes", multiple=True, metavar="PATH",
+              help="Only pose this mesh (path or unique name; repeatable). Default: every skinned mesh.")
 @click.option("--obj-dir", metavar="DIR", default=None,
               help="Also write one OBJ per skinned mesh and time code into DIR, plus DIR/manifest.json, for sculpting "
                    "applications (read back with psdbake sculpts). Created if missing; a non-empty DIR must hold an "
@@ -209,10 +215,14 @@ def _settings(drivers, kernel, sigma, degree, smoothing, no_rest_example, pose_s
 @deformer_option
 @force_option
 @_common
-def pose_cmd(asset, poses, output, obj_dir, deformers, force, quiet, verbose, as_json) -> None:
-    """Write the skinned character at every time code of POSES, for artists to sculpt."""
+def pose_cmd(asset, poses, output, frames, hold, meshes, obj_dir, deformers, force, quiet, verbose, as_json) -> None:
+    """Write the skinned character at every time code of POSES (or every frame of --frames), for
+    artists to sculpt."""
     from . import api, atomic
+    from .frames import parse_frames
 
+    if poses is None:
+        raise click.UsageError("Missing option '--poses' (the POSES layer: one pose per time code).")
     ui = Ui(quiet, verbose, as_json)
     reads = api.files_read([asset, poses], deformers)
     with atomic.forcing(force):
@@ -220,7 +230,8 @@ def pose_cmd(asset, poses, output, obj_dir, deformers, force, quiet, verbose, as
     if obj_dir is not None:
         api.check_obj_dir(obj_dir, reads)
     with ui.warnings(), ui.progress("posing") as progress:
-        result = api.pose(asset, poses, deformers, progress=progress)
+        result = api.pose(asset, poses, deformers, progress=progress, frames=parse_frames(frames), hold=hold,
+                          meshes=meshes)
         api.write_pose(result, output, obj_dir=obj_dir, force=force)
     summary = {"output": output, "times": list(result.times), "meshes": list(result.meshes)}
     if obj_dir is not None:
@@ -241,27 +252,56 @@ def pose_cmd(asset, poses, output, obj_dir, deformers, force, quiet, verbose, as
 @click.option("--obj-dir", required=True, metavar="DIR",
               help="The folder psdbake pose --obj-dir wrote, its OBJs sculpted (DIR/manifest.json lists them).")
 @click.option("-o", "--output", required=True, type=str, help="SCULPTED_EXAMPLES layer to write (what fit reads).")
-@click.option("--scale", type=float, default=None, metavar="S",
-              help="Multiply the OBJs' coordinates by S first (e.g. 0.01: the sculpts were exported in centimetres, "
-                   "the asset is in metres).")
-@click.option("--up-axis", type=click.Choice(["Y", "Z"], case_sensitive=False), default=None, metavar="Y|Z",
+@click.option("--scale", "scales", multiple=True, metavar="[FILE=]S",
+              help="Multiply the OBJs' coordinates by S first (e.g. 0.01: exported in centimetres, the asset is in "
+                   "metres); FILE=S for one OBJ file only (repeatable).")
+@click.option("--up-axis", "up_axes", multiple=True, metavar="[FILE=]Y|Z",
               help="The OBJs' up axis, when the sculpting application exported them with another one than the asset's; "
-                   "they are turned to the asset's first.")
+                   "they are turned to the asset's first. FILE=Z for one OBJ file only (repeatable).")
 @force_option
 @_common
-def sculpts_cmd(asset, examples, obj_dir, output, scale, up_axis, force, quiet, verbose, as_json) -> None:
+def sculpts_cmd(asset, examples, obj_dir, output, scales, up_axes, force, quiet, verbose, as_json) -> None:
     """Read the sculpted OBJs of DIR back into EXAMPLES (the layer psdbake pose wrote with them):
-    each OBJ checked against the asset's mesh and its posed points, written as SCULPTED_EXAMPLES for fit."""
+    each OBJ checked against the asset's mesh and its posed points, written as SCULPTED_EXAMPLES for fit.
+    Every file is checked before anything is refused: the refusal names each bad file."""
     from . import api, atomic
 
     ui = Ui(quiet, verbose, as_json)
+    scale, per_scale = _per_file("--scale", scales, _positive_number)
+    up_axis, per_up = _per_file("--up-axis", up_axes, lambda flag, v: v.upper())
+    fixes: dict[str, dict] = {}
+    for name, value in per_scale.items():
+        fixes.setdefault(name, {})["scale"] = value
+    for name, value in per_up.items():
+        fixes.setdefault(name, {})["up_axis"] = value
     with atomic.forcing(force):
         atomic.check_outputs([(output, outputs.SCULPTED_EXAMPLES)], api.files_read([asset, examples]))
     with ui.warnings():
-        result = api.sculpts(asset, examples, obj_dir, scale=scale, up_axis=up_axis.upper() if up_axis else None)
+        result = api.sculpts(asset, examples, obj_dir, scale=scale, up_axis=up_axis, fixes=fixes)
         api.write_sculpts(result, output, force=force)
     ui.payload(console.sculpts_payload(result, output))
     console.say_sculpts(ui, result, output)
+
+
+def _positive_number(flag: str, text: str) -> float:
+    try:
+        return float(text)
+    except ValueError:
+        raise click.BadParameter(f"{text!r} is not a number", param_hint=f"'{flag}'") from None
+
+
+def _per_file(flag: str, values: Sequence[str], convert: Callable[[str, str], Any]) -> tuple[Any, dict[str, Any]]:
+    """(the value for every file, {file name: its own value}) from VALUE and FILE=VALUE items."""
+    every, per = None, {}
+    for item in values:
+        name, eq, value = item.rpartition("=")
+        if eq:
+            per[name] = convert(flag, value)
+        elif every is None:
+            every = convert(flag, value)
+        else:
+            raise click.BadParameter(f"given twice for every file ({every!r} and {item!r})", param_hint=f"'{flag}'")
+    return every, per
 
 
 @cli.command("fit")
@@ -330,28 +370,38 @@ def fit_cmd(asset, examples, output, drivers, kernel, sigma, degree, smoothing, 
 @click.option("-o", "--output", required=True, type=str, help="WEIGHTS layer to write.")
 @frame_options
 @click.option("--points-cache", type=str,
-              help="Also write final posed points per frame (no UsdSkel needed).")
+              help="Also write final posed points per frame (no UsdSkel needed), as overrides to stack over ASSET.")
+@click.option("--self-contained", is_flag=True,
+              help="With --points-cache: write the asset's geometry into the cache too (flattened), so it opens on its "
+                   "own in any USD application.")
 @click.option("--chunk-size", type=int, default=None, metavar="N",
               help="Farm: one layer per N frames beside -o (and --points-cache), and -o a manifest stitching "
                    "them with USD value clips.")
 @click.option("--chunk", type=int, default=None, metavar="K",
               help="Farm: with --chunk-size, write only chunk K (1-based) and the manifest.")
+@click.option("--mesh", "meshes", multiple=True, metavar="PATH",
+              help="Only this mesh's correctives (path or unique name; repeatable). Default: every corrected mesh.")
 @strict_provenance_option
 @deformer_option
 @force_option
 @_common
-def eval_cmd(asset, correctives, anim, output, frames, hold, points_cache, chunk_size, chunk, strict, deformers, force,
-             quiet, verbose, as_json) -> None:
+def eval_cmd(asset, correctives, anim, output, frames, hold, points_cache, self_contained, chunk_size, chunk, meshes,
+             strict, deformers, force, quiet, verbose, as_json) -> None:
     """Compute the correctives' weights over ANIM and write them as a WEIGHTS layer."""
     from . import api, atomic
     from .deformers import load_deformers
     from .frames import parse_frames
 
     ui = Ui(quiet, verbose, as_json)
+    if self_contained and not points_cache:
+        raise click.UsageError("--self-contained applies to --points-cache: give --points-cache CACHE")
+    if self_contained and (chunk_size is not None or chunk is not None):
+        raise click.UsageError("--self-contained is for one points cache: a chunked cache is stitched over ASSET "
+                               "(stack ASSET CACHE -o VIEW)")
     if chunk_size is not None or chunk is not None:
         with atomic.forcing(force):
             _eval_chunked(ui, asset, correctives, anim, output, frames, points_cache, chunk_size, chunk, deformers,
-                          strict, hold)
+                          strict, hold, meshes)
         return
     with ui.warnings():
         reads = api.files_read([asset, correctives, anim], deformers)
@@ -361,11 +411,13 @@ def eval_cmd(asset, correctives, anim, output, frames, hold, points_cache, chunk
         span = parse_frames(frames)
         load_deformers(deformers)
         with ui.progress("weights") as progress:
-            result = api.evaluate(asset, correctives, anim, frames=span, progress=progress, strict=strict, hold=hold)
+            result = api.evaluate(asset, correctives, anim, frames=span, progress=progress, strict=strict, hold=hold,
+                                  meshes=meshes)
         cache = None
         if points_cache:
             with ui.progress("points cache") as progress:
-                cache = (points_cache, api.points_cache_layer(result, deformers, progress=progress))
+                cache = (points_cache, api.points_cache_layer(result, deformers, progress=progress,
+                                                              self_contained=self_contained))
         api.write_weights(result, output, points_cache=cache, deformers=deformers, force=force)
     console.say_eval(ui, result, output, points_cache)
 
@@ -385,14 +437,16 @@ def eval_cmd(asset, correctives, anim, output, frames, hold, points_cache, chunk
               help="With --group: the mirrored group's name (default: the joint map applied to NAME).")
 @click.option("--plane", type=click.Choice(["x", "y", "z"]), default="x", show_default=True,
               help="Mirror plane: the skeleton-space plane through the origin normal to this axis.")
+@click.option("--mesh", "meshes", multiple=True, metavar="PATH",
+              help="Only mirror groups on this mesh (path or unique name; repeatable). Default: every mesh.")
 @click.option("--replace-sculpted", is_flag=True,
               help="Replace groups on the other side that were fitted from sculpts (by default they are kept, and "
                    "only groups made by an earlier mirror are replaced).")
 @strict_provenance_option
 @force_option
 @_common
-def mirror_cmd(asset, correctives, output, joint_rules, group, as_name, plane, replace_sculpted, strict, force, quiet,
-               verbose, as_json) -> None:
+def mirror_cmd(asset, correctives, output, joint_rules, group, as_name, plane, meshes, replace_sculpted, strict, force,
+               quiet, verbose, as_json) -> None:
     """Make the other side's correctives groups from one side's (a symmetric rig and mesh) and write them
     into CORRECTIVES's groups."""
     from . import api, atomic
@@ -403,7 +457,7 @@ def mirror_cmd(asset, correctives, output, joint_rules, group, as_name, plane, r
     with atomic.forcing(force):
         atomic.check_outputs([(output, outputs.CORRECTIVES)], api.mirror_reads(asset, correctives, output))
     with ui.warnings(), api.mirror_lock(correctives, output):
-        result = api.mirror(asset, correctives, settings, strict=strict)
+        result = api.mirror(asset, correctives, settings, strict=strict, meshes=meshes)
         changes = api.write_mirror(result, output, force=force, replace_sculpted=replace_sculpted)
     ui.payload({**console.mirror_report(result, output), "changes": console.changes_payload(changes)})
     console.say_mirror(ui, result, output, changes)
@@ -436,7 +490,7 @@ def export_gltf_cmd(asset, correctives, anim, output, frames, hold, strict, forc
 
 
 def _eval_chunked(ui: Ui, asset, correctives, anim, output, frames, points_cache, chunk_size, chunk,
-                  deformers, strict, hold) -> None:
+                  deformers, strict, hold, meshes) -> None:
     """eval --chunk-size N [--chunk K]: chunk layers plus the value-clip manifest(s) (psdbake.farm.chunked)."""
     from . import api, atomic
     from .deformers import load_deformers
@@ -455,7 +509,7 @@ def _eval_chunked(ui: Ui, asset, correctives, anim, output, frames, points_cache
         load_deformers(deformers)
         with ui.progress("weights") as progress:
             ev = chunked.evaluate_chunks(asset, correctives, anim, chunk_size, frames=parse_frames(frames),
-                                         chunk=chunk, progress=progress, strict=strict, hold=hold)
+                                         chunk=chunk, progress=progress, strict=strict, hold=hold, meshes=meshes)
         with ui.progress("points cache") as progress:
             written = chunked.write_chunks(ev, output, points_cache=points_cache, deformers=deformers, progress=progress)
     console.say_chunks(ui, ev, written)
@@ -504,16 +558,23 @@ def compare_cmd(asset, examples, anim, report_dir, vertex, mesh, frames, hold, v
 
 @cli.command("inspect")
 @click.argument("file", type=str)
-@click.option("--json", "as_json", is_flag=True, help="Print the summary as JSON.")
-def inspect_cmd(file, as_json) -> None:
-    """What FILE holds: skeletons, skinned meshes, animations, examples and psd: correctives."""
+@click.option("--asset", default=None, metavar="ASSET",
+              help="The asset FILE is layered over (EXAMPLES, POSES): spell out each example's pose, the joints turned "
+                   "from bind and by how much. Default: the asset FILE records, if any.")
+@_common
+def inspect_cmd(file, asset, quiet, verbose, as_json) -> None:
+    """What FILE holds: skeletons (joint hierarchy), skinned meshes, animations, example poses and psd:
+    correctives."""
     from . import api
 
-    info = api.describe(file)
+    info = api.describe(file, asset=asset)
     if as_json:
         click.echo(json.dumps(info, indent=2, sort_keys=True))
+    elif not quiet:
+        console.say_inspect(file, info, verbose)
     else:
-        console.say_inspect(file, info)
+        for warning in info.get("warnings", []):
+            click.echo(f"psdbake: warning: {warning}", err=True)
 
 
 @cli.command("stack")

@@ -26,6 +26,10 @@ if TYPE_CHECKING:  # the results are only read here: importing them would load n
     from .results import FitResult, MirrorResult, Progress, SculptsResult, WeightsResult
 
 
+#: eval -v counts a channel as on in a frame above this weight (a display threshold, not a tolerance).
+_SHOWN_ON = 1e-3
+
+
 class Ui:
     """Where the CLI talks: summaries to stdout, progress and warnings to stderr."""
 
@@ -267,6 +271,13 @@ def say_eval(ui: Ui, result: WeightsResult, output: str, points_cache: str | Non
     ui.say(f"psdbake eval: {frames_n} frame(s) on {len(result.animations)} animation(s) in {result.seconds:.2f} s")
     for a in result.animations:
         ui.say(f"  <{a.animation}>  {a.psd_channels} corrective channel(s), frames {a.times[0]:g}..{a.times[-1]:g}")
+        if ui.verbose:  # which correctives fire, how strongly and where
+            first = len(a.channels) - a.psd_channels
+            for c in range(first, len(a.channels)):
+                peak = int(a.weights[:, c].argmax())
+                active = int((a.weights[:, c] > _SHOWN_ON).sum())
+                ui.say(f"    {a.channels[c]:<48} max {a.weights[peak, c]:.3f} at frame {a.times[peak]:g}, "
+                       f"on in {active} of {len(a.times)} frame(s)")
     ui.say(f"wrote {output}" + (f" and {points_cache}" if points_cache else ""))
 
 
@@ -306,7 +317,12 @@ def say_groups(ui: Ui, file: str, groups: list[dict]) -> None:
 
 # --- inspect and batch -----------------------------------------------------------------------
 
-def say_inspect(file: str, info: dict) -> None:
+def _joint_tree(paths: list[str]) -> list[str]:
+    """Joint paths as an indented tree of leaf names, in the skeleton's order."""
+    return [f"{'  ' * p.count('/')}{p.split('/')[-1]}" for p in paths]
+
+
+def say_inspect(file: str, info: dict, verbose: int = 0) -> None:
     for warning in info.get("warnings", []):
         click.echo(f"psdbake: warning: {warning}", err=True)
     click.echo(f"{file}")
@@ -314,21 +330,32 @@ def say_inspect(file: str, info: dict) -> None:
         click.echo(f"  SkelRoot <{root}>")
     for skel in info["skeletons"]:
         click.echo(f"  Skeleton <{skel['path']}>: {skel['joints']} joints, animation {skel['animation'] or '-'}")
+        for line in _joint_tree(skel.get("joint_paths", [])):
+            click.echo(f"      {line}")
     for m in info["meshes"]:
         shapes = f", blend shapes: {', '.join(m['blend_shapes'])}" if m["blend_shapes"] else ""
         click.echo(f"  skinned <{m['path']}>: {m['points']} points, {m['influences']} influences, "
                    f"{m['skinning_method'] or 'classicLinear'}{shapes}")
     for a in info["animations"]:
         span = f"{a['first']:g}..{a['last']:g}" if a["samples"] else "static"
-        click.echo(f"  SkelAnimation <{a['path']}>: {a['joints']} joints, {a['samples']} samples ({span})")
+        parts = [f"{a['joints']} joints ({a.get('joint_samples', a['samples'])} samples)"]
+        if a["blend_shapes"]:
+            parts.append(f"{len(a['blend_shapes'])} blend shapes ({a.get('blend_shape_samples', 0)} weight samples)")
+        click.echo(f"  SkelAnimation <{a['path']}>: {', '.join(parts)}, {span}")
     for e in info["examples"]:
         click.echo(f"  examples of <{e['mesh']}> at time codes {', '.join(f'{t:g}' for t in e['time_codes'])}")
+    for pose in info.get("poses", []):
+        turned = ", ".join(f"{j['joint'].split('/')[-1]} {j['degrees']:g}°" for j in pose["joints"]) or "bind pose"
+        click.echo(f"    t={pose['time']:g}: {turned}")
+    if info["examples"] and "poses" not in info:
+        click.echo("    (give --asset ASSET to spell out each example's pose)")
     for c in info["correctives"]:
         click.echo(f"  correctives on <{c['mesh']}> group {c['group']} (psd: v{c['version']}): {len(c['shapes'])} shapes from "
                    f"{c['examples']} examples; drivers {', '.join(d.split('/')[-1] for d in c['drivers'])}; "
                    f"{c['pose_space']}, {c['kernel']}, sigma {c['sigma']:.4g}, degree {c['degree']}")
-        for name, count in sorted(c["offsets"].items()):
-            click.echo(f"    BlendShape {name}: {count} points")
+        if verbose:
+            for name, count in sorted(c["offsets"].items()):
+                click.echo(f"    BlendShape {name}: {count} points")
 
 
 def batch_lines(jobs_file: str, quiet: bool, verbose: int) -> Callable[[JobResult, int, int], None]:

@@ -66,12 +66,25 @@ def plan_systems(asset: str, info: SkinnedMesh, examples: Sequence[Example], reg
 
 def fit_regions(asset: str, asset_scene: Scene, info: SkinnedMesh, examples: Sequence[Example],
                 solved: dict[int, Solved], regions: Sequence[Region], settings: FitSettings,
-                notes: list[str], systems: dict[str, RbfPlan | None] | None = None) -> list[MeshFit]:
-    """Every region of one mesh fitted; combinations (gated) after the groups they sit on."""
+                notes: list[str], systems: dict[str, RbfPlan | None] | None = None,
+                left_out: list[str] | None = None) -> list[MeshFit]:
+    """Every region of one mesh fitted; combinations (gated) after the groups they sit on. A
+    region none of whose examples differs from plain skinning (a side left for ``mirror``) has
+    no corrective: it is left out with a warning naming it, as is a combination whose joints'
+    groups are left out."""
     bind_local = asset_scene.bind_local_transforms(info.path)
     fits: list[MeshFit] = []
     for region in sorted(regions, key=lambda r: r.gated):
         mine = [solved[i] for i in region.examples]
+        why = _unedited(region, [examples[i] for i in region.examples], mine, fits, info)
+        if why:
+            _left_out(notes, f"{where(asset, info.path)} group {region.group!r}: {why}: no corrective written for it")
+            if left_out is not None:
+                joints = sorted({info.joints[j].split("/")[-1] for j in region.joints}
+                                or {info.joints[j].split("/")[-1] for i in region.examples for j in _moved(examples[i])})
+                left_out.append(f"group {region.group!r} ({', '.join(joints) or 'no joint moved'}) on <{info.path}>: no "
+                                "example differs from plain skinning")
+            continue
         fitted = fit_drivers(asset, asset_scene, info, [examples[i] for i in region.examples], [s[0] for s in mine],
                              bind_local, settings, region, notes, (systems or {}).get(region.group))
         fitted = dataclasses.replace(fitted, normals=tuple(s[1] for s in mine))
@@ -80,10 +93,38 @@ def fit_regions(asset: str, asset_scene: Scene, info: SkinnedMesh, examples: Seq
             fitted = _gated_by(fitted, below, asset)
             fitted = dataclasses.replace(fitted, shapes=tuple(_combination_shapes(fitted, below)))
         fits.append(fitted)
+    if not fits:
+        return []
     safe = client_safe({f.group: f.driver_data for f in fits}, {f.group: shapes_of(f) for f in fits},
                        _anchors(info, examples))
     return sorted((dataclasses.replace(f, driver_data=safe[f.group][0], shapes=tuple(safe[f.group][1])) for f in fits),
                   key=lambda f: f.group)
+
+
+def _unedited(region: Region, examples: Sequence[Example], solved: Sequence[Solved], fits: Sequence[MeshFit],
+              info: SkinnedMesh) -> str:
+    """Why a region gets no corrective ("" when it gets one)."""
+    if not any(len(inverse.indices) for inverse, _ in solved):
+        labels = ", ".join(e.label for e in examples)
+        return (f"none of its {len(examples)} example(s) ({labels}) differs from plain skinning (sculpt them, or "
+                "mirror the other side's)")
+    if region.gated:
+        have = {j for f in fits for j in f.drivers}
+        missing = [info.joints[j].split("/")[-1] for j in region.joints if info.joints[j] not in have]
+        if missing:
+            return f"it sits on the groups of its joints, and {', '.join(missing)} has none (its examples are unedited)"
+    return ""
+
+
+def _moved(example: Example) -> list[int]:
+    from .regions import active_joints
+
+    return sorted(active_joints(example.pose.reshape(1, -1, 4))[0])
+
+
+def _left_out(notes: list[str], msg: str) -> None:
+    notes.append(msg)
+    warnings.warn(msg, PsdWarning, stacklevel=3)
 
 
 def _anchors(info: SkinnedMesh, examples: Sequence[Example]) -> dict[str, NDArray[np.float64]]:

@@ -20,6 +20,7 @@ from . import posespace, rbf
 from . import tolerances as tol
 from .errors import FitError, PsdWarning, SettingError, where
 from .inverse import InverseResult
+from .lookup import did_you_mean, matches
 from .regions import Region
 from .results import Example, MeshFit
 from .settings import FitSettings
@@ -35,13 +36,12 @@ def resolve_drivers(requested: Sequence[str], joints: Sequence[str], label: str)
     """Joint indices for requested driver names: a full joint path or an unambiguous leaf name."""
     out = []
     for name in requested:
-        hits = [i for i, j in enumerate(joints) if j == name]
-        if not hits:
-            hits = [i for i, j in enumerate(joints) if j.split("/")[-1] == name]
+        hits = matches(name, joints)
         if len(hits) != 1:
-            raise SettingError("drivers", name, f"{'is not a joint of' if not hits else 'is ambiguous in'} the "
-                               "skeleton", location=label)
-        out.append(hits[0])
+            problem = (f"is not a joint of the skeleton{did_you_mean(name, joints)}" if not hits else
+                       f"is ambiguous in the skeleton ({', '.join(hits)}): give its full path")
+            raise SettingError("drivers", name, problem, location=label)
+        out.append(joints.index(hits[0]))
     return sorted(set(out))
 
 

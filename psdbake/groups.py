@@ -15,6 +15,7 @@ import numpy as np
 
 from .channels import channel_names
 from .errors import FitError, InputError, SettingError, where
+from .lookup import did_you_mean
 from .results import FitResult, MeshFit
 from .usd import write as usdwrite
 from .usd.author import Layer
@@ -208,15 +209,6 @@ def check_name_case(existing: Groups, written: Groups, label: str) -> None:
         twins = sorted(g for g in old if g != name and g.lower() == name.lower())
         if twins:
             raise SettingError("group", name, f"{label} already has group {twins[0]!r}: did you mean {twins[0]}?")
-
-
-def did_you_mean(name: str, names: Sequence[str]) -> str:
-    """", did you mean X?" for the closest of names (case-insensitive first), or ""."""
-    import difflib
-
-    lowered = {n.lower(): n for n in names}
-    close = difflib.get_close_matches(name.lower(), list(lowered), n=1, cutoff=0.6)
-    return f"; did you mean {lowered[close[0]]}?" if close else ""
 
 
 def without_groups(groups: Groups, names: Sequence[str], label: str) -> Groups:

@@ -129,8 +129,9 @@ def _every_group(label: str, groups: Groups, binds: Mapping[str, BindSpace], jma
         if mine:
             jobs[mesh] = mine
     if not jobs:
-        raise InputError(f"{label}: no group has drivers that all map to other joints under --joints {jmap.shown()}: "
-                         "nothing to mirror")
+        raise InputError(f"{label}: nothing to mirror: no group has drivers that all map to other joints under --joints "
+                         f"{jmap.shown()}: " + "; ".join(s.removeprefix(f"{label} ") for s in skipped[:4])
+                         + (f"; and {len(skipped) - 4} more" if len(skipped) > 4 else ""))
     return jobs, skipped
 
 

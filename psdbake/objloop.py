@@ -13,14 +13,18 @@ from __future__ import annotations
 
 import math
 import os
+import re
 import time as _time
 import warnings
+from collections.abc import Mapping, Sequence
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from . import __version__
 from .errors import InputError, PsdWarning, SettingError, where
+from .lookup import did_you_mean
 from .obj.check import check_placement, check_topology, displacement, up_rotation
 from .obj.faces import MeshFaces
 from .obj.folder import (
@@ -95,14 +99,20 @@ def write_pose_objs(result: PoseResult, examples: str, obj_dir: str, inputs: lis
 # --- sculpts: DIR's OBJs -> EXAMPLES with the sculpted points ------------------------------
 
 def read_sculpts(asset: str, examples: str, obj_dir: str, *, scale: float | None = None,
-                 up_axis: str | None = None) -> SculptsResult:
+                 up_axis: str | None = None, fixes: Mapping[str, Mapping[str, Any]] | None = None) -> SculptsResult:
     """Every OBJ the manifest of obj_dir lists, read and checked against the asset's mesh and
-    its posed points in EXAMPLES (``pose``'s layer); --scale and --up-axis applied first."""
+    its posed points in EXAMPLES (``pose``'s layer); --scale and --up-axis applied first, for every
+    file or, in ``fixes`` (OBJ file name -> {"scale": S, "up_axis": "Z"}), for one file (an export
+    made with other settings than the rest). Every file is checked before any refusal, which
+    names each bad file and what is wrong with it."""
     started = _time.perf_counter()
-    if scale is not None and not (math.isfinite(scale) and scale > 0):
-        raise SettingError("scale", scale, "must be a positive, finite number")
-    if up_axis is not None and up_axis not in UP_AXES:
-        raise SettingError("up_axis", up_axis, "must be Y or Z")
+    fixes = dict(fixes or {})
+    for value in (scale, *(f.get("scale") for f in fixes.values())):
+        if value is not None and not (math.isfinite(value) and value > 0):
+            raise SettingError("scale", value, "must be a positive, finite number")
+    for value in (up_axis, *(f.get("up_axis") for f in fixes.values())):
+        if value is not None and value not in UP_AXES:
+            raise SettingError("up_axis", value, "must be Y or Z")
     notes: list[str] = []
     scene = Scene([asset])
     scene.require_skinned()
@@ -110,35 +120,67 @@ def read_sculpts(asset: str, examples: str, obj_dir: str, *, scale: float | None
     asset_up = str(usdwrite.asset_metadata(asset)["upAxis"])
     posed = layer_points(examples)
     manifest = read_manifest(obj_dir)
+    listed = [e.file for e in manifest.entries]
+    unknown = sorted(set(fixes) - set(listed))
+    if unknown:
+        raise SettingError("scale" if "scale" in fixes[unknown[0]] else "up_axis", unknown[0],
+                           f"names no OBJ file of {obj_dir}/manifest.json{did_you_mean(unknown[0], listed)}")
     _check_sources(asset, examples, obj_dir, manifest, notes)
     _check_unlisted(obj_dir, manifest, examples, {t for _, t in posed}, notes)
     faces: dict[str, MeshFaces] = {}
-    files = []
-    for entry in sorted(manifest.entries, key=lambda e: (e.mesh, e.time)):
-        path = os.path.join(obj_dir, entry.file)
-        label = f"{where(path, entry.mesh)} at time code {entry.time:g}"
-        if entry.mesh not in skinned:
-            raise InputError(f"{label}: not a skinned mesh of {asset}")
-        if (entry.mesh, entry.time) not in posed:
-            raise InputError(f"{label}: {examples} has no pose at time code {entry.time:g} (no points sample of the "
-                             "mesh there)")
-        obj = read_obj(path, label)
-        if entry.mesh not in faces:
-            faces[entry.mesh] = read_mesh_faces(scene.prim(entry.mesh), asset)[0]
-        check_topology(obj, faces[entry.mesh], label)
-        target = posed[(entry.mesh, entry.time)].astype(np.float64)
-        if target.shape != obj.points.shape:
-            raise InputError(f"{where(examples, entry.mesh, 'points')}: time {entry.time:g} has {len(target)} points, "
-                             f"the asset's mesh has {faces[entry.mesh].point_count}")
-        sculpt = _fixed(obj.points, scale, up_axis, asset_up, label)
-        check_placement(sculpt.astype(np.float64), obj.points.astype(np.float64), target, asset_up, label,
-                        flags_given=scale is not None or up_axis is not None)
-        moved, largest, mean, diag = displacement(sculpt.astype(np.float64), target)
-        files.append(SculptFile(path, entry.mesh, entry.time, sculpt, moved, largest, mean, diag,
-                                edited=sha256_file(path) != entry.sha256))
+    files, refused = [], []
+    entries = sorted(manifest.entries, key=lambda e: (e.mesh, e.time))
+    for entry in entries:
+        fix = fixes.get(entry.file, {})
+        try:
+            files.append(_read_one(entry, obj_dir, asset, examples, scene, skinned, posed, faces, asset_up,
+                                   fix.get("scale", scale), fix.get("up_axis", up_axis)))
+        except InputError as exc:
+            refused.append((entry, str(exc)))
+    if refused:
+        raise InputError(_refusal(obj_dir, refused, len(entries)))
     return SculptsResult(asset, examples, obj_dir, tuple(files),
                          tuple([*(f.file for f in files), os.path.join(obj_dir, "manifest.json")]),
                          scale, up_axis, tuple(notes), _time.perf_counter() - started)
+
+
+def _refusal(obj_dir: str, refused: Sequence[tuple[ObjEntry, str]], total: int) -> str:
+    """One line for every refused OBJ: alone, its own message; when every file fails for the
+    same reason (an export setting), that reason once, with the flag for all of them."""
+    if len(refused) == 1:
+        return refused[0][1]
+    alone = re.compile(r" \(for this file alone: [^)]*\)$")
+    kinds = {re.sub(r"\d[\d.e+-]*", "#", alone.sub("", msg.split(" at time code ", 1)[-1])) for _, msg in refused}
+    if len(refused) == total and len(kinds) == 1:  # an export setting of every file: its flag for all of them
+        return f"{obj_dir}: all {total} sculpts refused alike, e.g. {alone.sub('', refused[0][1])}"
+    return f"{obj_dir}: {len(refused)} of {total} sculpts refused: " + " | ".join(msg for _, msg in refused)
+
+
+def _read_one(entry: ObjEntry, obj_dir: str, asset: str, examples: str, scene: Scene, skinned: set[str],
+              posed: Mapping[tuple[str, float], NDArray[np.float32]], faces: dict[str, MeshFaces], asset_up: str,
+              scale: float | None, up_axis: str | None) -> SculptFile:
+    """One listed OBJ read back, checked and brought to the asset's units and up axis."""
+    path = os.path.join(obj_dir, entry.file)
+    label = f"{where(path, entry.mesh)} at time code {entry.time:g}"
+    if entry.mesh not in skinned:
+        raise InputError(f"{label}: not a skinned mesh of {asset}")
+    if (entry.mesh, entry.time) not in posed:
+        raise InputError(f"{label}: {examples} has no pose at time code {entry.time:g} (no points sample of the "
+                         "mesh there)")
+    obj = read_obj(path, label)
+    if entry.mesh not in faces:
+        faces[entry.mesh] = read_mesh_faces(scene.prim(entry.mesh), asset)[0]
+    check_topology(obj, faces[entry.mesh], label)
+    target = posed[(entry.mesh, entry.time)].astype(np.float64)
+    if target.shape != obj.points.shape:
+        raise InputError(f"{where(examples, entry.mesh, 'points')}: time {entry.time:g} has {len(target)} points, "
+                         f"the asset's mesh has {faces[entry.mesh].point_count}")
+    sculpt = _fixed(obj.points, scale, up_axis, asset_up, label)
+    check_placement(sculpt.astype(np.float64), obj.points.astype(np.float64), target, asset_up, label,
+                    flags_given=scale is not None or up_axis is not None, file_name=entry.file)
+    moved, largest, mean, diag = displacement(sculpt.astype(np.float64), target)
+    return SculptFile(path, entry.mesh, entry.time, sculpt, moved, largest, mean, diag,
+                      edited=sha256_file(path) != entry.sha256)
 
 
 def _fixed(points: NDArray[np.float32], scale: float | None, up_axis: str | None, asset_up: str,

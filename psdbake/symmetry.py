@@ -20,6 +20,7 @@ from scipy.spatial import cKDTree
 
 from . import tolerances as tol
 from .errors import InputError, SettingError
+from .lookup import did_you_mean
 from .usd.bindspace import BindSpace
 
 #: Index of each mirror plane's normal axis.
@@ -76,9 +77,12 @@ def partner_problem(joint: str, joints: Sequence[str], jmap: JointMap) -> str:
     """Why a driver joint has no partner under the map ("" when it has one)."""
     partner = jmap(joint)
     if partner == joint:
-        return f"driver {joint!r} has no partner under --joints {jmap.shown()} (the map leaves it unchanged)"
+        folded = [rule for pattern, _, rule in jmap.rules if re.search(pattern.pattern, joint, re.IGNORECASE)]
+        hint = f": {folded[0]!r} matches it only ignoring case (rules are case-sensitive)" if folded else ""
+        return f"driver {joint!r} has no partner under --joints {jmap.shown()} (the map leaves it unchanged{hint})"
     if partner not in set(joints):
-        return f"driver {joint!r} maps to {partner!r} under --joints {jmap.shown()}, which is not a joint of the skeleton"
+        return (f"driver {joint!r} maps to {partner!r} under --joints {jmap.shown()}, which is not a joint of the "
+                f"skeleton{did_you_mean(partner, [j for j in joints if j != joint])}")
     return ""
 
 

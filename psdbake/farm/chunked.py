@@ -88,6 +88,7 @@ def evaluate_chunks(
     progress: Progress | None = None,
     strict: bool = False,
     hold: bool = False,
+    meshes: Sequence[str] = (),
 ) -> ChunkedWeights:
     """Weights of every chunk, or of chunk number ``chunk`` (1-based) only.
 
@@ -102,13 +103,13 @@ def evaluate_chunks(
         results = []
         for c in wanted:
             r = api.evaluate(asset, correctives, anim, frames=(c.first, c.last), progress=progress, strict=strict,
-                             hold=hold, shot=(plan.first, plan.last))
+                             hold=hold, shot=(plan.first, plan.last), meshes=meshes)
             for a in r.animations:
                 if not np.array_equal(a.times, c.times):
                     raise RuntimeError(f"chunk {c.index}: api.evaluate's frames differ from the plan's")
             results.append((c, r))
     else:
-        full = api.evaluate(asset, correctives, anim, progress=progress, strict=strict)
+        full = api.evaluate(asset, correctives, anim, progress=progress, strict=strict, meshes=meshes)
         plan = plan_chunks(_shared_times(full, anim), size)
         wanted = [plan.chunk(chunk)] if chunk is not None else list(plan.chunks)
         results = [(c, _slice(full, c)) for c in wanted]

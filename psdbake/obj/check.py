@@ -94,9 +94,10 @@ def _median_distance(a: NDArray[np.float64], b: NDArray[np.float64]) -> float:
 
 
 def check_placement(sculpt: NDArray[np.float64], raw: NDArray[np.float64], posed: NDArray[np.float64], asset_up: str,
-                    label: str, flags_given: bool = False) -> None:
+                    label: str, flags_given: bool = False, file_name: str = "") -> None:
     """Refuse a sculpt (after --scale/--up-axis) that is not near its posed mesh, naming the
-    unit or up-axis conversion the raw OBJ points show when one explains them."""
+    unit or up-axis conversion the raw OBJ points show when one explains them (and how to give
+    it for this file alone, when ``file_name`` says which)."""
     diag = tol.bbox_diagonal(posed)
     far = _median_distance(sculpt, posed)
     if far <= FAR_RTOL * diag:
@@ -107,7 +108,7 @@ def check_placement(sculpt: NDArray[np.float64], raw: NDArray[np.float64], posed
     if found == (1.0, "") and flags_given:
         raise InputError(f"{where}: the OBJ as written is near it: drop --scale and --up-axis")
     if found is not None and found != (1.0, ""):
-        raise InputError(f"{where}: {_conversion(*found, asset_up)}")
+        raise InputError(f"{where}: {_conversion(*found, asset_up, file_name)}")
     raise InputError(f"{where}; a sculpt moves a region, not the whole mesh: is it the right mesh and time code, or "
                      "was it moved, turned or scaled as a whole on export?")
 
@@ -128,8 +129,17 @@ def explain(raw: NDArray[np.float64], posed: NDArray[np.float64], asset_up: str)
     return found
 
 
-def _conversion(factor: float, turn: str, asset_up: str) -> str:
+def _conversion(factor: float, turn: str, asset_up: str, file_name: str = "") -> str:
     """What the raw OBJ looks like and the flags that undo it."""
+    text = _conversion_flags(factor, turn, asset_up)
+    if file_name and "use --" in text:
+        alone = " ".join(f"{flag} {file_name}={value}" for flag, value in
+                         zip(text.split("use ", 1)[1].split()[::2], text.split("use ", 1)[1].split()[1::2], strict=False))
+        text += f" (for this file alone: {alone})"
+    return text
+
+
+def _conversion_flags(factor: float, turn: str, asset_up: str) -> str:
     units = next((name for k, name in UNITS if k == factor), "")
     scale = f"--scale {1 / factor:.4g}"
     if turn == "other":

@@ -201,6 +201,24 @@ def author_blend_shapes(
 
 
 
+def flattened(layer: Sdf.Layer, asset: str) -> Sdf.Layer:
+    """layer over the asset, flattened into one layer with the layer's metadata (a points cache
+    that opens on its own: the asset's topology, transforms and materials, the cache's points)."""
+    from .compose import compose
+
+    stage = compose([layer, asset])
+    flat = stage.Flatten(addSourceFileComment=False)
+    out = Sdf.Layer.CreateAnonymous("psdbake.usda")
+    out.TransferContent(flat)
+    for key in ("documentation", "startTimeCode", "endTimeCode", "timeCodesPerSecond", "framesPerSecond", "defaultPrim"):
+        if layer.pseudoRoot.HasInfo(key) or key == "documentation":
+            setattr(out, key, getattr(layer, key))
+    for key in ("upAxis", "metersPerUnit"):
+        if layer.pseudoRoot.HasInfo(key):
+            out.pseudoRoot.SetInfo(key, layer.pseudoRoot.GetInfo(key))
+    return out
+
+
 def weights_layer(doc: str, animations, fps: float | None, metadata: dict | None = None) -> Sdf.Layer:
     """WEIGHTS: blendShapes + blendShapeWeights samples on each SkelAnimation.
 
