@@ -301,3 +301,24 @@ def test_two_poses_into_one_obj_folder_are_one_after_the_other(tmp_path):
     assert codes == [0, 0]
     assert _files(race) == expected
     assert sum(name.startswith("objs/") for name in expected) == 4  # the second run's three OBJs and manifest
+
+
+def test_chunks_evaluating_other_meshes_are_another_shot(tmp_path):
+    """``eval --mesh`` chooses the channels a chunk holds: chunks of one shot evaluated for other
+    meshes are another shot, refused while the first is incomplete, never stitched with it."""
+    character, folder = fixture("character", "character.usda"), tmp_path / "shot"
+    folder.mkdir()
+    corr = folder / "corr.usda"
+    examples = [fixture("character", f"character_{name}_examples.usda") for name in ("l_elbow", "sleeve")]
+    assert _run("fit", character, *examples, "--group", "l_elbow", "-o", corr, "-q")[0] == 0
+
+    def chunk(k: int, mesh: str):
+        return ("eval", character, corr, "--anim", fixture("character", "character_anim.usda"), "-o",
+                folder / "w.usda", "--frames", "1:24", "--chunk-size", "12", "--chunk", str(k), "--mesh", mesh, "-q")
+
+    assert _run(*chunk(1, "Body"))[0] == 0
+    code, err = _run(*chunk(2, "Sleeve"))
+    assert code == EXIT_OUTPUT and "the manifest of another shot, 1 of its 2 chunk(s) written so far" in err
+    assert stitched_chunks(folder / "w.usda") == ["./w.f0001-0012.usda"]
+    assert _run(*chunk(2, "Body"))[0] == 0
+    assert stitched_chunks(folder / "w.usda") == ["./w.f0001-0012.usda", "./w.f0013-0024.usda"]

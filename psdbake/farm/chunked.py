@@ -141,14 +141,16 @@ def manifest_layers(template: Any, plan: ChunkPlan, output: str, what: str,
 
 def shot_id(ev: ChunkedWeights, points_cache: str | None, output: str, deformers: Sequence[str]) -> str:
     """What makes two chunk tasks parts of one shot: the bytes of the asset, CORRECTIVES and ANIM,
-    the plan (chunk size, frames), the points cache beside the manifest and the deformer chain.
-    Every task of one farm job gives the same id; another shot, or the same files edited, another."""
+    the plan (chunk size, frames), the animations and channels evaluated (``--mesh`` changes
+    them), the points cache beside the manifest and the deformer chain. Every task of one farm job
+    gives the same id; another shot, the same files edited, or another choice of meshes, another."""
     plan = ev.plan
     samples = hashlib.sha256(np.ascontiguousarray(plan.samples).tobytes()).hexdigest() if plan.samples is not None \
         else None
     record = {
         "inputs": [provenance.file_sha256(p) for p in (ev.asset, ev.correctives, ev.anim)],
         "plan": [plan.size, plan.count, plan.first, plan.last, samples],
+        "animations": [[path, list(channels)] for path, channels in ev.animations],
         "points_cache": provenance.relative(points_cache, output) if points_cache else None,
         "deformers": list(deformers), "version": __version__,
     }
