@@ -19,8 +19,8 @@ __version__ = "0.1.0"
 #: view below are derived from it; tests/test_layering.py checks they agree).
 _EXPORTS = {
     "api": (
-        "correctives_layer", "describe", "evaluate", "export_gltf", "files_read", "fit", "mirror", "mirror_reads",
-        "points_cache_layer", "pose", "weights_layer", "write_correctives", "write_mirror", "write_points_cache",
+        "correctives_layer", "describe", "evaluate", "export_blender", "export_gltf", "files_read", "fit", "mirror",
+        "mirror_reads", "points_cache_layer", "pose", "weights_layer", "write_correctives", "write_mirror", "write_points_cache",
         "write_pose", "write_stack", "write_weights",
     ),
     "settings": ("FitSettings", "MirrorSettings"),
@@ -39,6 +39,7 @@ _EXPORTS = {
     "rbf": ("KERNELS", "CardinalRbf", "fit_cardinal"),
     "posespace": ("POSE_SPACES",),
     "usd.schema": ("DriverData", "PSD_VERSION"),
+    "blender.export": ("BlenderRigResult",),
 }
 _WHERE = {name: module for module, names in _EXPORTS.items() for name in names}
 
@@ -63,6 +64,7 @@ if TYPE_CHECKING:  # for type checkers and IDEs: the same names, eagerly
         correctives_layer,
         describe,
         evaluate,
+        export_blender,
         export_gltf,
         files_read,
         fit,
@@ -78,6 +80,7 @@ if TYPE_CHECKING:  # for type checkers and IDEs: the same names, eagerly
         write_stack,
         write_weights,
     )
+    from .blender.export import BlenderRigResult  # noqa: F401
     from .errors import (  # noqa: F401
         DeformerError,
         FitError,

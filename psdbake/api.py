@@ -20,7 +20,7 @@ import os
 import time as _time
 import warnings
 from collections.abc import Iterator, Mapping, Sequence
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -62,10 +62,13 @@ from .usd.schema import psd_prims
 from .usd.validate import require_finite_time_samples, require_psd_prims_skinned, validate_animation, validate_skinning
 from .usd.valuetypes import Checked
 
+if TYPE_CHECKING:
+    from .blender.export import BlenderRigResult
+
 __all__ = [  # noqa: RUF022 - in pipeline order; the public surface is psdbake/__init__.py
     "fit", "write_correctives", "evaluate", "weights_layer", "write_weights", "points_cache_layer",
     "write_points_cache", "pose", "write_pose", "write_stack", "describe", "open_asset", "files_read",
-    "correctives_layer", "export_gltf",
+    "correctives_layer", "export_gltf", "export_blender",
     "mirror", "mirror_reads", "write_mirror",
 ]
 
@@ -361,7 +364,7 @@ def write_correctives(result: FitResult, path: str, *, update: bool = False,
             stamped(layer, "correctives", path, {"asset": result.asset}, rig=result.rig, command=False,
                     groups={**kept, **{g: entry for g in names_of(written)}})
             usdwrite.export_all([(path, layer), *side_files], inputs)
-    return changes_between(before, groups, written, records)
+    return changes_between(before, groups, written, records, routine="fit --group of" if update else "fit of")
 
 
 def write_fit_report(result: FitResult, path: str, text: str, *, force: bool = False) -> str:
@@ -537,6 +540,20 @@ def export_gltf(asset: str, correctives: str, anim: str, output: str, *, frames:
                       max((len(s.times) for s in source.skeletons), default=0), len(glb.data))
 
 
+def export_blender(asset: str, correctives: str, output: str, *, anim: str | None = None, blender: str | None = None,
+                   strict: bool = False, force: bool = False) -> BlenderRigResult:
+    """Write a .blend with the correctives driven live by the armature's pose: Blender's USD
+    import of ASSET + CORRECTIVES (+ ANIM), one shape key per channel, drivers computing the
+    ``psd:`` formula in simple expressions (``psdbake.blender``). ``blender``: a Blender
+    executable or a Python with the bpy module (default: $PSDBAKE_BLENDER, else ``blender``)."""
+    from .blender.export import export_blender as build  # the compiler loads only for this command
+
+    inputs = files_read([asset, correctives, *([anim] if anim else [])])
+    check_fitted_on(asset, open_asset(asset), correctives, strict=strict)
+    with _forced(force):
+        return build(asset, correctives, output, anim=anim, blender=blender, inputs=inputs)
+
+
 # --- pose: ASSET + POSES -> plain UsdSkel skinning per time code -> EXAMPLES to sculpt on -------
 
 def pose(asset: str, poses: str, deformers: Sequence[str] = (), *, progress: Progress | None = None,
@@ -706,7 +723,8 @@ def write_mirror(result: MirrorResult, path: str, *, force: bool = False, replac
             stamped(layer, "correctives", path, {"asset": result.asset}, rig=result.rig, command=False,
                     groups={**{g: r for g, r in records.items() if g in names_of(groups)}, **entries})
             usdwrite.export_all([(path, layer)], inputs)
-    return dataclasses.replace(changes_between(before, groups, written, records), protected=tuple(protected))
+    return dataclasses.replace(changes_between(before, groups, written, records, routine="mirrored from"),
+                               protected=tuple(protected))
 
 
 # --- groups: list, remove, rename the groups of a CORRECTIVES layer -------------------------------

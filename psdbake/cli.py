@@ -489,6 +489,40 @@ def export_gltf_cmd(asset, correctives, anim, output, frames, hold, strict, forc
     ui.say(f"wrote {output} ({result.size} bytes)")
 
 
+@cli.command("export-blender")
+@click.argument("asset", type=str)
+@click.argument("correctives", type=str)
+@click.option("-o", "--output", required=True, type=str, help="RIG.blend to write.")
+@click.option("--anim", default=None, type=str,
+              help="ANIM layer: the shot as the armature's action, to play with live correctives (optional).")
+@click.option("--blender", default=None, metavar="PATH",
+              help="A Blender executable, or a Python with the bpy module. Default: $PSDBAKE_BLENDER, else blender.")
+@strict_provenance_option
+@force_option
+@_common
+def export_blender_cmd(asset, correctives, output, anim, blender, strict, force, quiet, verbose, as_json) -> None:
+    """Write a .blend whose correctives follow the armature live: Blender's USD import of the character,
+    one shape key per channel, and drivers computing the psd: weights from the pose in simple expressions
+    (they run with Python auto-run off)."""
+    from . import api
+
+    ui = Ui(quiet, verbose, as_json)
+    with ui.warnings():
+        result = api.export_blender(asset, correctives, output, anim=anim, blender=blender, strict=strict, force=force)
+    ui.payload({"output": output, "blender": result.blender, "anim": anim, "drivers": result.drivers,
+                "meshes": [{"mesh": m.path, "object": m.object, "armature": m.armature, "groups": list(m.groups),
+                            "channels": m.channels, "nodes": m.nodes, "joints": list(m.graph.joints)}
+                           for m in result.meshes]})
+    ui.say(f"psdbake export-blender: {len(result.meshes)} mesh(es), "
+           f"{sum(m.channels for m in result.meshes)} channel(s) driven live by {result.drivers} simple-expression "
+           f"driver(s) (Blender {result.blender}, {result.seconds:.1f} s)")
+    for m in result.meshes:
+        ui.say(f"  <{m.path}> -> object {m.object!r}, armature {m.armature!r}: {m.channels} channel(s), "
+               f"{m.nodes} driven propert{'y' if m.nodes == 1 else 'ies'} on its shape keys, "
+               f"{len(m.graph.joints)} driver joint(s)")
+    ui.say(f"wrote {output}")
+
+
 def _eval_chunked(ui: Ui, asset, correctives, anim, output, frames, points_cache, chunk_size, chunk,
                   deformers, strict, hold, meshes) -> None:
     """eval --chunk-size N [--chunk K]: chunk layers plus the value-clip manifest(s) (psdbake.farm.chunked)."""

@@ -171,8 +171,9 @@ def say_changes(ui: Ui, changes: GroupChanges, output: str) -> None:
     if parts:
         ui.say(f"  groups: {'; '.join(parts)}")
     if changes.protected:
-        ui.warn(f"{output}: kept {len(changes.protected)} group(s) fitted from sculpts instead of their mirror: "
-                f"{changes.shown(changes.protected)} (--replace-sculpted replaces them)")
+        kept = ", ".join(f"{g} ({changes.origins.get(g, 'origin not recorded')})" for g in changes.protected)
+        ui.warn(f"{output}: kept {len(changes.protected)} group(s) fitted from sculpts instead of their mirror: {kept} "
+                "(--replace-sculpted replaces them)")
 
 
 def say_fit(ui: Ui, result: FitResult, output: str, changes: GroupChanges | None = None, *, written: bool = True

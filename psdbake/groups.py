@@ -120,12 +120,13 @@ class GroupChanges:
     protected: tuple[str, ...] = ()  # mirror: fitted from sculpts, so left alone
     renamed: tuple[str, ...] = ()  # "old -> new"
     origins: Mapping[str, str] = field(default_factory=dict)  # replaced and protected groups: where they came from
+    routine: str = ""  # the origin text a group replaced by this kind of write has routinely ("fit of", ...)
 
     def shown(self, names: Sequence[str]) -> str:
-        """Group names, each with its origin when it was not a plain fit's (a TD wants to see those)."""
-        return ", ".join(n if self.origins.get(n, "").startswith(("fit of", "fit ")) and "--group" not in
-                         self.origins.get(n, "") else f"{n} ({self.origins.get(n, 'origin not recorded')})"
-                         for n in names)
+        """Group names, each with where it came from unless that is routine for this write (a fit
+        replacing an earlier fit's group): a TD wants to see the others."""
+        return ", ".join(n if self.routine and self.origins.get(n, "").startswith(self.routine)
+                         else f"{n} ({self.origins.get(n, 'origin not recorded')})" for n in names)
 
 
 def names_of(groups: Groups) -> set[str]:
@@ -163,7 +164,7 @@ def merged_groups(existing: Groups, new: Groups, meshes: Sequence[str] = ()) -> 
 
 
 def changes_between(before: Groups, after: Groups, written: Groups,
-                    records: Mapping[str, Mapping[str, Any]]) -> GroupChanges:
+                    records: Mapping[str, Mapping[str, Any]], routine: str = "") -> GroupChanges:
     """Which groups a write added, replaced (and where those came from), kept and removed."""
     old, new, mine = names_of(before), names_of(after), names_of(written)
     return GroupChanges(
@@ -172,6 +173,7 @@ def changes_between(before: Groups, after: Groups, written: Groups,
         kept=tuple(sorted((old & new) - mine)),
         removed=tuple(sorted(old - new)),
         origins={g: origin_text(records.get(g)) for g in old},
+        routine=routine,
     )
 
 

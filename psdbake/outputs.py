@@ -88,6 +88,27 @@ def _glb_kind(path: str) -> str | None:
     return "gltf" if isinstance(generator, str) and generator.startswith("psdbake") else None
 
 
+#: The scene property a rig written by ``export-blender`` carries (``psdbake VERSION export-blender``),
+#: uncompressed, so its bytes are in the file.
+BLEND_MARKER = b"export-blender"
+
+
+def _blend_kind(path: str) -> str | None:
+    """A .blend psdbake wrote: Blender's header, and the scene's psdbake property in its bytes."""
+    try:
+        with open(path, "rb") as fh:
+            if fh.read(7) != b"BLENDER":
+                return None
+            tail = b""
+            for block in iter(lambda: fh.read(1 << 20), b""):
+                if b"psdbake" in tail + block and BLEND_MARKER in tail + block:
+                    return "blend"
+                tail = block[-64:]
+    except OSError:
+        return None
+    return None
+
+
 #: Layer kinds: the name stamped in ``customLayerData["psdbake"]["kind"]`` -> what users call it.
 LABELS = {
     "examples": "EXAMPLES layer (psdbake pose)",
@@ -99,6 +120,7 @@ LABELS = {
     "stack": "stack",
     "fit_report": "fit report",
     "gltf": "glTF binary (psdbake export-gltf)",
+    "blend": "live Blender rig (psdbake export-blender)",
 }
 
 EXAMPLES = OutputKind("examples", LABELS["examples"], LAYER_FORMATS, _layer_kind)
@@ -110,10 +132,11 @@ CLIP_MANIFEST = OutputKind("clip_manifest", LABELS["clip_manifest"], LAYER_FORMA
 STACK = OutputKind("stack", LABELS["stack"], LAYER_FORMATS, _layer_kind)
 FIT_REPORT = OutputKind("fit_report", LABELS["fit_report"], (".json",), _json_kind)
 GLTF = OutputKind("gltf", LABELS["gltf"], (".glb",), _glb_kind)
+BLEND = OutputKind("blend", LABELS["blend"], (".blend",), _blend_kind)
 
 #: Every kind by name: a layer's stamped kind finds its rule here (``usd.write.export_all``).
 KINDS = {k.name: k for k in (EXAMPLES, SCULPTED_EXAMPLES, CORRECTIVES, WEIGHTS, POINTS_CACHE, CLIP_MANIFEST, STACK,
-                             FIT_REPORT, GLTF)}
+                             FIT_REPORT, GLTF, BLEND)}
 
 
 #: The command line of the running ``psdbake`` command and which of its values are file or

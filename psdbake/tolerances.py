@@ -165,6 +165,13 @@ MIRROR_JOINT_RTOL = 1e-4
 #: thousands of times below any mesh's edge length, so the nearest vertex is never a neighbour.
 MIRROR_VERTEX_RTOL = 1e-5
 
+#: ``export-blender``: a driver's stored bind rotation and the joint's bind rotation in the
+#: asset (where Blender's bones rest) are the same rotation when the vector part of
+#: q_stored^-1 q_rest is below this (an angle of 2e-12 rad): psdbake writes both from the same
+#: bindTransforms, equal to float64 round-off; the driver then reads the bone's rotation as is.
+#: Anything larger is composed into the driver (a layer fitted against other bind transforms).
+BLENDER_REST_MATCH = 1e-12
+
 #: Most whole frames one ``--frames START:END`` may name (eval, compare, batch chunk plans).
 #: 1,000,000 frames is 11.5 hours at 24 fps, 4.6 at 60: longer than any shot or film, so a
 #: larger range is a typo (``1:1000000000``). ``eval`` holds every frame's joint transforms
