@@ -25,11 +25,10 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from . import __version__, atomic, outputs
+from .arrays import Progress
 from .deformers import deformer_files, load_deformers
 from .errors import FitError, InputError, OutputError, PsdWarning, where
-from .evaluation import animation_weights, correctives_by_animation, posed_points
-from .frames import check_authored, frames_of
-from .groups import (
+from .fitting.groups import (
     GroupChanges,
     Groups,
     changes_between,
@@ -47,9 +46,11 @@ from .groups import (
     without_groups,
 )
 from .lookup import did_you_mean, matches
-from .regions import active_joints
-from .results import FitResult, GltfResult, MirrorResult, PoseResult, Progress, SculptsResult, WeightsResult
+from .model.posespace import active_joints
+from .results import FitResult, GltfResult, MirrorResult, PoseResult, SculptsResult, WeightsResult
 from .settings import FitSettings, MirrorSettings, SettingError
+from .shot.evaluation import animation_weights, correctives_by_animation, posed_points
+from .shot.frames import check_authored, frames_of
 from .usd import provenance
 from .usd import write as usdwrite
 from .usd.author import Layer
@@ -63,7 +64,7 @@ from .usd.validate import require_finite_time_samples, require_psd_prims_skinned
 from .usd.valuetypes import Checked
 
 if TYPE_CHECKING:
-    from .blender.export import BlenderRigResult
+    from .export.blender.export import BlenderRigResult
 
 __all__ = [  # noqa: RUF022 - in pipeline order; the public surface is psdbake/__init__.py
     "fit", "write_correctives", "evaluate", "weights_layer", "write_weights", "points_cache_layer",
@@ -159,10 +160,10 @@ def fit(
     jobs: worker processes for the per-example inverses (None: 1, see ``solve.auto_jobs``).
     The output does not depend on it.
     """
-    from .correctives import fit_regions, plan_mesh, plan_systems
-    from .examples import gather_examples
-    from .fitcheck import check_product
-    from .solve import clear_caches, share_scene, solve_all
+    from .fitting.correctives import fit_regions, plan_mesh, plan_systems
+    from .fitting.examples import gather_examples
+    from .fitting.fitcheck import check_product
+    from .solver.solve import clear_caches, share_scene, solve_all
 
     started = _time.perf_counter()
     if not example_files:
@@ -267,7 +268,7 @@ def _meshes_to_fit(asset: str, infos: Sequence[Any], settings: FitSettings, note
 
 def _note_normals(asset: str, mesh: str, notes: list[str]) -> None:
     """Warn when a mesh authors shading normals psdbake cannot give normalOffsets to."""
-    from .solve import cached_shading
+    from .solver.solve import cached_shading
 
     why_not = cached_shading(asset, mesh).why_not  # read once for the solves and this note
     if why_not and not why_not.startswith(("no authored normals", "not a Mesh")):
@@ -522,7 +523,7 @@ def export_gltf(asset: str, correctives: str, anim: str, output: str, *, frames:
     and eval's weights animating them. Skinned in glTF (linear blend), it gives
     ``UsdSkel.BakeSkinning``'s world-space points of ASSET + CORRECTIVES + ANIM + WEIGHTS,
     in glTF's Y-up meters."""
-    from . import gltf  # pygltflib loads only for this command
+    from .export import gltf  # pygltflib loads only for this command
 
     inputs = files_read([asset, correctives, anim])
     with _forced(force):
@@ -546,7 +547,7 @@ def export_blender(asset: str, correctives: str, output: str, *, anim: str | Non
     import of ASSET + CORRECTIVES (+ ANIM), one shape key per channel, drivers computing the
     ``psd:`` formula in simple expressions (``psdbake.blender``). ``blender``: a Blender
     executable or a Python with the bpy module (default: $PSDBAKE_BLENDER, else ``blender``)."""
-    from .blender.export import export_blender as build  # the compiler loads only for this command
+    from .export.blender.export import export_blender as build  # the compiler loads only for this command
 
     inputs = files_read([asset, correctives, *([anim] if anim else [])])
     check_fitted_on(asset, open_asset(asset), correctives, strict=strict)
@@ -600,7 +601,7 @@ def pose(asset: str, poses: str, deformers: Sequence[str] = (), *, progress: Pro
 def write_pose(result: PoseResult, path: str, obj_dir: str | None = None, *, force: bool = False) -> str:
     """Export EXAMPLES atomically; with obj_dir, also one OBJ per skinned mesh and time code
     plus ``manifest.json`` there, all in the same commit (``objloop``)."""
-    from . import objloop
+    from .sculpting import loop as objloop
 
     inputs = files_read([result.asset, result.poses], result.deformers)
     stamped(result.layer, "examples", path, {"asset": result.asset, "poses": result.poses}, rig=result.rig,
@@ -616,14 +617,14 @@ def write_pose(result: PoseResult, path: str, obj_dir: str | None = None, *, for
 
 def check_obj_dir(obj_dir: str, inputs: Sequence[str] = ()) -> None:
     """Refuse an OBJ folder pose cannot fill (before the work; exit 6)."""
-    from .obj.folder import check_obj_dir as check_obj_folder
+    from .sculpting.obj.folder import check_obj_dir as check_obj_folder
 
     check_obj_folder(obj_dir, inputs)
 
 
 def obj_files(result: PoseResult) -> list[str]:
     """The OBJ file names ``write_pose(..., obj_dir)`` writes for result."""
-    from . import objloop
+    from .sculpting import loop as objloop
 
     return objloop.obj_files(result)
 
@@ -634,7 +635,7 @@ def sculpts(asset: str, examples: str, obj_dir: str, *, scale: float | None = No
     ``pose`` wrote with them: each file checked (vertex count, faces, finite, near its posed
     mesh), ``scale`` and ``up_axis`` applied first, or per file (``fixes``: OBJ file name ->
     {"scale": S, "up_axis": "Z"}). Every bad file is named in one refusal."""
-    from . import objloop
+    from .sculpting import loop as objloop
 
     return objloop.read_sculpts(asset, examples, obj_dir, scale=scale, up_axis=up_axis, fixes=fixes)
 
@@ -642,7 +643,7 @@ def sculpts(asset: str, examples: str, obj_dir: str, *, scale: float | None = No
 def write_sculpts(result: SculptsResult, path: str, *, force: bool = False) -> str:
     """Export SCULPTED_EXAMPLES (EXAMPLES with the sculpted points) atomically; no input, OBJ
     or manifest may be the output."""
-    from . import objloop
+    from .sculpting import loop as objloop
 
     layer = stamped(objloop.sculpts_layer(result), "sculpted_examples", path,
                     {"asset": result.asset, "examples": result.examples, "sculpts": sorted(result.read)},
@@ -658,9 +659,9 @@ def mirror(asset: str, correctives: str, settings: MirrorSettings, *, strict: bo
            meshes: Sequence[str] = ()) -> MirrorResult:
     """The other side's correctives groups, made from CORRECTIVES's groups (``settings.group``,
     or every group whose drivers all have partners) by reflecting the rig's bind space
-    (``psdbake/mirroring.py``); refuses a rig or mesh that is not mirror-symmetric. Warns (or,
+    (``psdbake/mirroring/groups.py``); refuses a rig or mesh that is not mirror-symmetric. Warns (or,
     strict, refuses) when ASSET's rig is not the one CORRECTIVES were fitted on."""
-    from .mirroring import mirror_groups
+    from .mirroring.groups import mirror_groups
 
     started = _time.perf_counter()
     scene = open_asset(asset)

@@ -219,7 +219,7 @@ def pose_cmd(asset, poses, output, frames, hold, meshes, obj_dir, deformers, for
     """Write the skinned character at every time code of POSES (or every frame of --frames), for
     artists to sculpt."""
     from . import api, atomic
-    from .frames import parse_frames
+    from .shot.frames import parse_frames
 
     if poses is None:
         raise click.UsageError("Missing option '--poses' (the POSES layer: one pose per time code).")
@@ -332,7 +332,7 @@ def fit_cmd(asset, examples, output, drivers, kernel, sigma, degree, smoothing, 
             jobs, deformers, force, quiet, verbose, as_json) -> None:
     """Fit rest-space corrective BlendShapes and their RBF drivers from sculpted EXAMPLES."""
     from . import api, atomic
-    from .groups import read_correctives
+    from .fitting.groups import read_correctives
     from .usd.provenance import existing_kind
 
     ui = Ui(quiet, verbose, as_json)
@@ -390,7 +390,7 @@ def eval_cmd(asset, correctives, anim, output, frames, hold, points_cache, self_
     """Compute the correctives' weights over ANIM and write them as a WEIGHTS layer."""
     from . import api, atomic
     from .deformers import load_deformers
-    from .frames import parse_frames
+    from .shot.frames import parse_frames
 
     ui = Ui(quiet, verbose, as_json)
     if self_contained and not points_cache:
@@ -476,7 +476,7 @@ def export_gltf_cmd(asset, correctives, anim, output, frames, hold, strict, forc
     """Write a skinned glTF 2.0 binary for game engines: meshes, skin, joint animation, the correctives
     as morph targets and eval's weights animating them."""
     from . import api
-    from .frames import parse_frames
+    from .shot.frames import parse_frames
 
     ui = Ui(quiet, verbose, as_json)
     with ui.warnings(), ui.progress("weights") as progress:  # the output is checked before any work
@@ -528,9 +528,9 @@ def _eval_chunked(ui: Ui, asset, correctives, anim, output, frames, points_cache
     """eval --chunk-size N [--chunk K]: chunk layers plus the value-clip manifest(s) (psdbake.farm.chunked)."""
     from . import api, atomic
     from .deformers import load_deformers
+    from .errors import ChunkUsageError
     from .farm import chunked
-    from .farm.plan import ChunkUsageError
-    from .frames import parse_frames
+    from .shot.frames import parse_frames
 
     if chunk_size is None:
         raise ChunkUsageError("--chunk needs --chunk-size (every farm task must cut the shot the same way)")
@@ -571,8 +571,8 @@ def compare_cmd(asset, examples, anim, report_dir, vertex, mesh, frames, hold, v
     """Fit EXAMPLES, then compare plain skinning, forward PSD and inverse PSD (same RBF weights)
     at every frame of ANIM; write an HTML report with figures and per-frame statistics."""
     from . import api, report
-    from .frames import parse_frames
     from .report import compare as compare_meshes
+    from .shot.frames import parse_frames
 
     ui = Ui(quiet, verbose, as_json)
     settings = _settings(drivers, kernel, sigma, degree, smoothing, no_rest_example, pose_space, twist_axis,

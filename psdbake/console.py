@@ -20,10 +20,11 @@ from . import tolerances as tol
 from .errors import PsdWarning, StrictError
 
 if TYPE_CHECKING:  # the results are only read here: importing them would load numpy and USD with --help
+    from .arrays import Progress
     from .farm import JobResult
     from .farm.chunked import ChunkedWeights, WrittenChunks
-    from .groups import GroupChanges
-    from .results import FitResult, MirrorResult, Progress, SculptsResult, WeightsResult
+    from .fitting.groups import GroupChanges
+    from .results import FitResult, MirrorResult, SculptsResult, WeightsResult
 
 
 #: eval -v counts a channel as on in a frame above this weight (a display threshold, not a tolerance).

@@ -2,19 +2,16 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
 
 from . import tolerances as tol
-from .inverse import InverseResult
+from .model.data import DEFAULT_GROUP, BlendShapeData, DriverData
 from .normals import CorrectiveNormals
 from .settings import FitSettings, MirrorSettings
-from .usd.schema import DEFAULT_GROUP, BlendShapeData, DriverData
-
-Progress = Callable[[int, int, str], None]  # (done, total, what)
+from .solver.inverse import InverseResult
 
 
 @dataclass(frozen=True)

@@ -54,9 +54,16 @@ POWELL_MAX_CYCLES = 30
 #: bracket uses a grow limit of 110; 8 keeps a bad model from flinging a vertex).
 LINE_SEARCH_GROW_LIMIT = 8.0
 
-#: A Jacobian with |det J| below this fraction of |J|_F^3 is treated as singular (e.g. a
-#: zero-scale joint): Powell then starts from the identity directions instead of the
-#: linearised guess. (For a rotation the ratio is 3^-1.5 ~ 0.19.)
+#: A matrix M (n x n) is singular when |det M| <= rcond |M|_F^n (``arrays.is_singular``: scale-
+#: free, so a rig in millimetres and one in metres agree; for a rotation the ratio is n^(-n/2),
+#: 0.19 for n = 3). Inputs (bind and geomBind transforms, world transforms, joint frames) are
+#: refused below this: 1e-12 is a zero-scale axis or a frame collapsed to a plane, far below any
+#: real rig (a 1000:1 non-uniform scale is 1e-3 at n = 3).
+SINGULAR_RCOND = 1e-12
+
+#: The solver's own threshold, by the same measure: a per-vertex Jacobian with |det J| below
+#: this fraction of |J|_F^3 is treated as singular (e.g. a zero-scale joint): Powell then starts
+#: from the identity directions instead of the linearised guess.
 JACOBIAN_RCOND = 1e-6
 
 #: Two example poses closer than this (radians, Euclidean in pose coordinates)

@@ -1,5 +1,5 @@
-"""psdbake.blender.compiler, without Blender: the psd: formula compiled into driver
-expressions, held to the reference evaluator (psdbake/weights.py).
+"""psdbake.export.blender.compiler, without Blender: the psd: formula compiled into driver
+expressions, held to the reference evaluator (psdbake/model/weights.py).
 
 What Blender does with the drivers (make interop: bpy 5.0.1, Python auto-run off) is predicted
 here by graph.Evaluator: Blender's semantics, float32 between drivers. The shots of the
@@ -13,17 +13,17 @@ import numpy as np
 import pytest
 from conftest import CESIUM, CESIUM_EXAMPLES, fixture, run_cli
 
-from psdbake import posespace
-from psdbake.blender import compiler, graph
-from psdbake.blender.graph import BoneChannel, Evaluator, bone_inputs, check_graph, lay_out
-from psdbake.blender.simple import Named, Var
-from psdbake.channels import channel_weights
+from psdbake.export.blender import compiler, graph
+from psdbake.export.blender.graph import BoneChannel, Evaluator, bone_inputs, check_graph, lay_out
+from psdbake.export.blender.simple import Named, Var
+from psdbake.model import posespace
+from psdbake.model.channels import channel_weights
+from psdbake.model.data import DriverData
+from psdbake.model.quaternions import Rotations
+from psdbake.model.rbf import KERNELS, monomial_powers
+from psdbake.model.weights import column_weights_of_local, group_weights
 from psdbake.names import KERNEL_NAMES, POSE_SPACE_NAMES
-from psdbake.quaternions import Rotations
-from psdbake.rbf_model import KERNELS, monomial_powers
 from psdbake.usd.read import Scene
-from psdbake.usd.schema import DriverData
-from psdbake.weights import column_weights_of_local, group_weights
 
 #: Blender's drivers against ``eval``: the done-when criterion, per channel.
 WEIGHT_ATOL = 1e-6

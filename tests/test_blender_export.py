@@ -60,7 +60,7 @@ def test_correctives_without_psd_data_are_refused(tmp_path):
 
 def test_the_rig_script_is_standalone():
     """Blender runs it as a file: it imports bpy and the standard library, nothing of psdbake."""
-    path = os.path.join(ROOT, "psdbake", "blender", "rig_script.py")
+    path = os.path.join(ROOT, "psdbake", "export", "blender", "rig_script.py")
     with open(path, encoding="utf-8") as fh:
         tree = ast.parse(fh.read())
     imported = {a.name.split(".")[0] for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names}
@@ -70,5 +70,5 @@ def test_the_rig_script_is_standalone():
 
 
 def test_psdbake_never_loads_blender_itself():
-    code = "import sys, psdbake.blender.compiler, psdbake.blender.export; assert 'bpy' not in sys.modules"
+    code = "import sys, psdbake.export.blender.compiler, psdbake.export.blender.export; assert 'bpy' not in sys.modules"
     subprocess.run([sys.executable, "-c", code], check=True, cwd=ROOT)

@@ -1,4 +1,4 @@
-"""psdbake.blender.simple and .graph, without Blender: the simple-expression subset Blender
+"""psdbake.export.blender.simple and .graph, without Blender: the simple-expression subset Blender
 evaluates without Python, its text, and the layout of expressions into drivers that each fit
 Blender's 255 characters (graph.Evaluator predicts, with Blender's float32 between drivers,
 what Blender computes; make interop checks Blender itself).
@@ -14,9 +14,10 @@ import numpy as np
 import pytest
 from conftest import ROOT
 
-from psdbake.blender import graph, simple
-from psdbake.blender.graph import BoneChannel, Evaluator, check_graph, lay_out
-from psdbake.blender.simple import EXPRESSION_LIMIT, Named, SimpleExpressionError, Var, add, call, mul, num
+from psdbake.errors import SimpleExpressionError
+from psdbake.export.blender import graph, simple
+from psdbake.export.blender.graph import BoneChannel, Evaluator, check_graph, lay_out
+from psdbake.export.blender.simple import EXPRESSION_LIMIT, Named, Var, add, call, mul, num
 
 
 def identity(v: float) -> float:
@@ -175,7 +176,7 @@ def test_property_names_fit_blender():
 
 
 def test_the_pure_modules_load_neither_usd_nor_blender():
-    code = ("import sys, psdbake.blender.simple, psdbake.blender.graph; "
+    code = ("import sys, psdbake.export.blender.simple, psdbake.export.blender.graph; "
             "assert 'pxr' not in sys.modules and 'bpy' not in sys.modules, sorted(sys.modules)")
     subprocess.run([sys.executable, "-c", code], check=True, cwd=ROOT)
 

@@ -14,8 +14,8 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from benchmarks import rigs
-from psdbake import powell
-from psdbake.inverse import invert_example, invert_example_with
+from psdbake.solver import powell
+from psdbake.solver.inverse import invert_example, invert_example_with
 
 #: Calls per example: exact for the affine skinning methods, a ceiling for the non-linear chain.
 BUDGET = {"lbs": 5, "dqs": 5}

@@ -1,4 +1,4 @@
-"""Client-safe channels (psdbake/channels.py): written weights in [0, 1], names of at most 63
+"""Client-safe channels (psdbake/model/channels.py): written weights in [0, 1], names of at most 63
 bytes, and the same shape as the unclamped design."""
 
 from __future__ import annotations
@@ -11,10 +11,10 @@ from conftest import ROOT, bake, diagonal, fixture, generate, points, stage_of
 from scipy.spatial.transform import Rotation
 
 from psdbake import api
-from psdbake.channels import MAX_NAME_BYTES, short_name, weight_range
-from psdbake.rbf_model import MIN_DEGREE
+from psdbake.model.channels import MAX_NAME_BYTES, short_name, weight_range
+from psdbake.model.rbf import MIN_DEGREE
+from psdbake.model.weights import group_weights
 from psdbake.settings import FitSettings
-from psdbake.weights import group_weights
 
 ASSET, EXAMPLES = fixture("bad", "good_asset.usda"), fixture("bad", "good_examples.usda")
 ANIM = fixture("arm_anim.usda")
@@ -69,8 +69,8 @@ def test_scales_keep_sampled_poses_in_range_and_examples_well_above_zero(tmp_pat
     asset, examples = fixture("humanoid", "humanoid.usda"), fixture("humanoid", "humanoid_examples.usda")
     result = api.fit(asset, [examples])
     groups = [(m.group, m.driver_data) for m in result.meshes]
-    from psdbake.channels import channel_weights
-    from psdbake.weights import sampled_ranges
+    from psdbake.model.channels import channel_weights
+    from psdbake.model.weights import sampled_ranges
 
     joints = result.meshes[0].joints
     poses = np.array([e.pose for m in result.meshes for e in m.examples])

@@ -22,7 +22,8 @@ import pytest
 from conftest import ROOT, bake, diagonal, fixture, points, pose_only, run_cli, sculpt
 from pxr import Sdf, Usd
 
-ROUNDTRIP_RTOL = 1e-5
+from psdbake.tolerances import ROUNDTRIP_RTOL
+
 ASSET = fixture("character", "character.usda")
 ANIM = fixture("character", "character_anim.usda")
 
@@ -205,8 +206,8 @@ def test_psd_v1_layers_still_evaluate(run, tmp_path):
 
     w1 = api.evaluate(asset, v1, anim).animations[0]
     w2 = api.evaluate(asset, str(v2), anim).animations[0]
-    from psdbake.channels import column_weights
-    from psdbake.groups import read_correctives
+    from psdbake.fitting.groups import read_correctives
+    from psdbake.model.channels import column_weights
 
     ((data, _),) = next(iter(read_correctives(asset, str(v2)).values())).values()
     assert w1.channels == tuple(c.replace("psd_main_", "psd_") for c in data.shapes)

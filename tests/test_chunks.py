@@ -15,8 +15,8 @@ import pytest
 from conftest import ROOT, bake, fixture, generate, points, run_cli, stage_of, stitched_chunks
 from pxr import Sdf, Usd, UsdValidation
 
-from psdbake import rbf
 from psdbake.farm import plan as chunks
+from psdbake.fitting import rbf_fit as rbf
 
 ASSET, EXAMPLES = fixture("arm_lbs.usda"), fixture("arm_lbs_examples.usda")
 FRAMES, SIZE = 1000, 100

@@ -2,7 +2,7 @@
 byte-identical to what the two runs give one after the other, in the order the interleaving
 forces, or the later run is refused (exit 6) and the output is the earlier run's alone.
 
-The contract (docs/reference/concurrency.md): every commit renames its outputs under the lock
+The contract (docs/reference/failure.md, "Several runs writing one output"): every commit renames its outputs under the lock
 of their folders, so two commits never interleave; a read-modify-write (``fit``, ``fit
 --group``, ``mirror`` in place, a chunked eval's manifest) reads the file afresh under that
 lock and holds it until its rename. Which run comes first is decided by the lock, never by

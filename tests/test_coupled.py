@@ -1,5 +1,5 @@
 """Chains that couple vertices: the reference Delta Mush deformer, the coupling probe and the
-coupled inverse (``psdbake.coupled``), on a small bench rig (1.3k points)."""
+coupled inverse (``psdbake.solver.coupled``), on a small bench rig (1.3k points)."""
 
 from __future__ import annotations
 
@@ -12,12 +12,12 @@ import numpy as np
 import pytest
 from conftest import ROOT, sculpt
 
-from psdbake import coupled
 from psdbake import tolerances as tol
 from psdbake.delta_mush import DeltaMush, make
-from psdbake.inverse import invert_example, sculpted_vertices
 from psdbake.normals import Topology
-from psdbake.smoothbasis import edge_adjacency
+from psdbake.solver import coupled
+from psdbake.solver.inverse import invert_example, sculpted_vertices
+from psdbake.solver.smoothbasis import edge_adjacency
 
 sys.path.insert(0, ROOT)
 from benchmarks import rigs

@@ -1,4 +1,4 @@
-"""After every fit, the product through a client's composition at each example (psdbake/fitcheck.py):
+"""After every fit, the product through a client's composition at each example (psdbake/fitting/fitcheck.py):
 a fit whose product misses an example is degraded and exits 7, writing only its report, unless
 --allow-degraded; -q never hides why. Animated rest points are refused up front, and the check
 catches that class of input on its own too."""

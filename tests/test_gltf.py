@@ -90,7 +90,7 @@ def exported(request, tmp_path_factory):
     return request.param, asset, str(correctives), anim, str(weights), str(glb)
 
 
-# --- reading the glb back, independently of psdbake/gltf.py -------------------------------
+# --- reading the glb back, independently of psdbake/export/gltf.py -------------------------------
 
 class Glb:
     def __init__(self, path: str) -> None:

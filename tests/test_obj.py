@@ -42,16 +42,17 @@ from conftest import (
 )
 from pxr import Sdf, Usd, UsdGeom, Vt
 
-from psdbake.obj import check
-from psdbake.obj.faces import MeshFaces
-from psdbake.obj.read import read_obj
-from psdbake.obj.text import obj_text
+from psdbake.sculpting.obj import check
+from psdbake.sculpting.obj.faces import MeshFaces
+from psdbake.sculpting.obj.read import read_obj
+from psdbake.sculpting.obj.text import obj_text
 
 BAD = fixture("bad")
 sys.path.insert(0, BAD)
 import make_bad  # noqa: E402  (fixtures/bad/make_bad.py)
 
-ROUNDTRIP_RTOL = 1e-5
+from psdbake.tolerances import ROUNDTRIP_RTOL  # noqa: E402
+
 EXIT_INPUT, EXIT_OUTPUT = 3, 6
 ASSET, POSED = os.path.join(BAD, "good_asset.usda"), os.path.join(BAD, "good_posed.usda")
 GOOD_EXAMPLES = os.path.join(BAD, "good_examples.usda")
@@ -349,7 +350,7 @@ def test_every_unit_and_turn_is_named(factor, units, turn):
 
 def test_faces_changed_is_not_a_renumbering():
     faces = MeshFaces(4, np.array([3, 3]), np.array([0, 1, 2, 0, 2, 3]))
-    from psdbake.obj.read import ObjMesh
+    from psdbake.sculpting.obj.read import ObjMesh
 
     pts = np.zeros((4, 3), np.float32)
     with pytest.raises(Exception, match=r"faces changed: face 2 has other vertices.*vertex 2, the asset's 1"):

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from pxr import Gf
 
-from psdbake import posespace
+from psdbake.model import posespace
 
 
 def _gf(m: Gf.Matrix4d) -> np.ndarray:

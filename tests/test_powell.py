@@ -7,8 +7,8 @@ import pytest
 from scipy.optimize import minimize
 from scipy.spatial.transform import Rotation
 
-from psdbake import powell
 from psdbake import tolerances as tol
+from psdbake.solver import powell
 
 
 def _affine_problems(m: int, seed: int):

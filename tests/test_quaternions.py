@@ -1,4 +1,4 @@
-"""``psdbake.quaternions`` and ``rbf_model.distances`` against SciPy, to the last bits.
+"""``psdbake.model.quaternions`` and ``rbf_model.distances`` against SciPy, to the last bits.
 
 eval computes pose coordinates and RBF distances without SciPy (its import cost ~0.3 s of
 every start-up, issue 16), and its outputs must keep their bytes: so each operation is held
@@ -15,9 +15,9 @@ import pytest
 from scipy.spatial.distance import cdist
 from scipy.spatial.transform import Rotation
 
-from psdbake import posespace
-from psdbake.quaternions import Rotations
-from psdbake.rbf_model import distances
+from psdbake.model import posespace
+from psdbake.model.quaternions import Rotations
+from psdbake.model.rbf import distances
 
 #: SciPy is not pinned, and a later release may reorder a few floating-point operations: the
 #: comparison allows 4 ulps of values of order one (measured with SciPy 1.17: 0, every bit the

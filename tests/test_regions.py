@@ -1,4 +1,4 @@
-"""Local, additive correctives (psdbake/regions.py, correctives.py): properties on small rigs.
+"""Local, additive correctives (psdbake/fitting/regions.py, correctives.py): properties on small rigs.
 
 The four-joint arm of fixtures/generate.py is posed and sculpted here with known rest-space
 offsets (ground truth made by Pixar's BakeSkinning, as every fixture): single-joint sculpts
@@ -15,10 +15,11 @@ import pytest
 from conftest import ROOT, diagonal, fixture, generate, points, stage_of
 
 from psdbake import api
-from psdbake.channels import column_weights
-from psdbake.regions import active_joints, plan_regions
+from psdbake.fitting.regions import plan_regions
+from psdbake.model.channels import column_weights
+from psdbake.model.data import DEFAULT_GROUP
+from psdbake.model.posespace import active_joints
 from psdbake.settings import FitSettings
-from psdbake.usd.schema import DEFAULT_GROUP
 
 ELBOW, WRIST = "Shoulder/Elbow", "Shoulder/Elbow/Wrist"
 # time -> joint angles (degrees): elbow alone, wrist alone, both (the combination)
@@ -86,7 +87,7 @@ def test_combination_is_off_whenever_one_of_its_joints_is_at_bind(rig):
     joints = result.meshes[0].joints
     from scipy.spatial.transform import Rotation
 
-    from psdbake.weights import group_weights
+    from psdbake.model.weights import group_weights
 
     def weights(elbow: float, wrist: float) -> dict[str, np.ndarray]:
         pose = {ELBOW: Rotation.from_rotvec(np.radians(elbow) * np.array([0, 0, 1.0])).as_quat(),

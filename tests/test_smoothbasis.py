@@ -1,4 +1,4 @@
-"""The smooth fields the coupled inverse starts from (``psdbake.smoothbasis``): the low end of a
+"""The smooth fields the coupled inverse starts from (``psdbake.solver.smoothbasis``): the low end of a
 sculpted region's graph-Laplacian spectrum, from the mesh's edges only."""
 
 from __future__ import annotations
@@ -10,9 +10,9 @@ import pytest
 import scipy.sparse as sp
 from conftest import ROOT
 
-from psdbake import smoothbasis
 from psdbake.normals import Topology
-from psdbake.smoothbasis import edge_adjacency, smooth_basis
+from psdbake.solver import smoothbasis
+from psdbake.solver.smoothbasis import edge_adjacency, smooth_basis
 
 sys.path.insert(0, ROOT)
 from benchmarks import rigs

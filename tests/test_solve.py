@@ -1,4 +1,4 @@
-"""Per-fit reading (``psdbake.solve``, ``api.fit``): each input read once, nothing kept after.
+"""Per-fit reading (``psdbake.solver.solve``, ``api.fit``): each input read once, nothing kept after.
 
 A mesh's rest points and shading are read once per fit, not once per example (at 1M points
 the topology behind the shading took 0.13 s an example), and the fit's result keeps the input
@@ -14,7 +14,8 @@ import numpy as np
 from conftest import fixture
 from pxr import Sdf
 
-from psdbake import api, solve
+from psdbake import api
+from psdbake.solver import solve
 
 ASSET, EXAMPLES = fixture("arm_lbs.usda"), fixture("arm_lbs_examples.usda")
 

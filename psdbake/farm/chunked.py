@@ -32,9 +32,10 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .. import __version__, api, atomic
+from ..arrays import Progress
 from ..errors import InputError, OutputError, where
 from ..outputs import CLIP_MANIFEST, POINTS_CACHE, WEIGHTS
-from ..results import Progress, WeightsResult
+from ..results import WeightsResult
 from ..usd import clips, provenance
 from ..usd import write as usdwrite
 from .plan import Chunk, ChunkPlan, chunk_path, clip_manifest_path, plan_chunks, plan_frames

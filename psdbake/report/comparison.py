@@ -23,19 +23,20 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from .. import api, posespace
+from .. import api
 from .. import tolerances as tol
-from ..arrays import Points
+from ..arrays import Points, Progress
 from ..deformers import DeformerFactory, load_deformers
 from ..errors import InputError, where
-from ..frames import check_authored, frames_of
-from ..results import FitResult, MeshFit, Progress
+from ..model import posespace
+from ..model.data import DEFAULT_GROUP
+from ..model.weights import check_driver_transforms, driver_weights
+from ..results import FitResult, MeshFit
 from ..settings import FitSettings
+from ..shot.frames import check_authored, frames_of
 from ..usd.blackbox import SkinningBlackBox
 from ..usd.compose import open_layer
 from ..usd.read import Scene
-from ..usd.schema import DEFAULT_GROUP
-from ..weights import check_driver_transforms, driver_weights
 
 
 @dataclass(frozen=True)

@@ -78,8 +78,8 @@ def spelled_poses(scene: Scene, times: Sequence[float]) -> list[dict]:
     """Per time code, the joints turned from bind (beyond ``tol.ACTIVE_JOINT_ANGLE``) and by how
     much, largest first: what a TD means by "t=4: L_Elbow 90°". Per skeleton, over its first
     skinned mesh (every mesh it skins shares its pose)."""
-    from .. import posespace
-    from ..regions import active_joints
+    from ..model import posespace
+    from ..model.posespace import active_joints
 
     out = []
     seen: set[str] = set()

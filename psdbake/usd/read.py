@@ -12,33 +12,18 @@ Gf convention: matrices are row-vector (p' = p . M); they are converted to numpy
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
 from pxr import Sdf, Usd, UsdGeom, UsdSkel, Vt
 
 from ..errors import InputError, where
-from ..posespace import undefined_rotations
+from ..model.posespace import undefined_rotations
+from ..model.rig import SkinnedMesh
 from .compose import compose
 from .diagnostics import first_line
 from .schema import BlendShapeData, DriverData, read_blend_shape, read_groups
 from .valuetypes import Checked, check_value_types
-
-
-@dataclass(frozen=True)
-class SkinnedMesh:
-    """A skinned point-based prim and the skeleton that deforms it."""
-
-    path: str
-    skeleton: str
-    skel_root: str
-    joints: tuple[str, ...]  # skeleton joint order (full joint paths)
-    point_count: int
-
-
-
-
 
 
 def hidden_from_usdskel(stage: Usd.Stage) -> list[tuple[str, str]]:
@@ -94,12 +79,6 @@ def _invalid_skeleton(prim: Usd.Prim) -> str:
 def matrices(values) -> NDArray[np.float64]:
     """Vt.Matrix4dArray (or a list of Gf.Matrix4d) -> (n, 4, 4) float64, row-vector convention."""
     return np.array(values, dtype=np.float64).reshape(-1, 4, 4)
-
-
-
-
-
-
 
 
 #: The prim fields that author a composition arc: where an instance's prototype comes from.

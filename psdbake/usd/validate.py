@@ -14,6 +14,7 @@ from collections.abc import Sequence
 import numpy as np
 from pxr import Usd, UsdGeom, UsdSkel
 
+from ..arrays import is_singular
 from ..errors import InputError, where
 from .compose import open_layer
 from .inplace import numbers
@@ -224,9 +225,7 @@ def _check_skeleton_matrices(scene: Scene, skel_query: UsdSkel.SkeletonQuery) ->
         if value is None or len(value) != len(skel_joints):
             raise InputError(f"{where_attr}: {0 if value is None else len(value)} matrices for {len(skel_joints)} joints")
         mats = matrices(value)
-        finite = np.nan_to_num(mats)
-        singular = (np.abs(np.linalg.det(finite[:, :3, :3])) < 1e-12) | (np.abs(np.linalg.det(finite)) < 1e-12)
-        bad = ~np.all(np.isfinite(mats), axis=(1, 2)) | singular
+        bad = is_singular(mats[:, :3, :3]) | ~np.all(np.isfinite(mats), axis=(1, 2))
         if bad.any():
             raise InputError(f"{where_attr}: joint {str(skel_joints[int(np.argmax(bad))])!r} has a NaN, infinite, "
                              "zero-scale or singular matrix")

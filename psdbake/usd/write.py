@@ -17,7 +17,6 @@ from pxr import Sdf, Tf, Usd, UsdGeom, Vt
 
 from .. import atomic
 from ..errors import InputError, OutputError
-from ..names import LAYER_FORMATS
 from ..outputs import KINDS, OutputKind
 from . import provenance
 from .author import apply_binding_api, attribute, define, int_array, over, relationship, vec3f_array
@@ -25,9 +24,9 @@ from .dependencies import layer_files
 from .diagnostics import first_line
 from .schema import BlendShapeData
 
-#: Output layer formats by extension (``names.LAYER_FORMATS``, in order), with the arguments
+#: Output layer formats by extension (``names.LAYER_FORMATS``), with the arguments
 #: USD's ``Export`` needs for each (``.usd`` is written as a binary crate).
-FORMATS: dict[str, dict[str, str]] = dict(zip(LAYER_FORMATS, ({}, {}, {"format": "usdc"}), strict=True))
+FORMATS: dict[str, dict[str, str]] = {".usda": {}, ".usdc": {}, ".usd": {"format": "usdc"}}
 
 
 def files_read(inputs: Iterable[str | Sdf.Layer]) -> list[str]:
