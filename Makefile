@@ -80,6 +80,7 @@ fidelity: $(STAMP)
 bench: $(STAMP)
 	$(BIN)/python -m benchmarks.run
 	$(BIN)/python -m benchmarks.jobs
+	$(BIN)/python -m benchmarks.jobsfile
 	$(BIN)/python -m benchmarks.conditioning
 	$(BIN)/python -m benchmarks.coupled
 	$(BIN)/python -m benchmarks.evalspeed
@@ -88,7 +89,7 @@ bench: $(STAMP)
 	$(BIN)/python -m benchmarks.pages
 
 fuzz: $(STAMP)
-	$(BIN)/python -m tests.fuzz --mode $${MODE:-all} --cases $${CASES:-20000} --seed $${SEED:-0}
+	$(BIN)/python -m tests.fuzz --mode $${MODE:-all} $${CASES:+--cases $$CASES} --seed $${SEED:-0}
 
 fixtures: $(STAMP)
 	$(BIN)/python fixtures/generate.py

@@ -55,10 +55,10 @@ from .usd import provenance
 from .usd import write as usdwrite
 from .usd.author import Layer
 from .usd.bindspace import read_bind_space
-from .usd.compose import compose, open_layer
+from .usd.compose import compose, open_layer, reread
 from .usd.describe import describe as describe_file
 from .usd.gltf_source import read_gltf_source
-from .usd.read import Scene, animation_components, open_layers
+from .usd.read import Scene, animation_components, hidden_from_usdskel, open_layers, why_hidden
 from .usd.schema import psd_prims
 from .usd.validate import require_finite_time_samples, require_psd_prims_skinned, validate_animation, validate_skinning
 from .usd.valuetypes import Checked
@@ -125,11 +125,17 @@ def open_asset(asset: str, notes: list[str] | None = None) -> Scene:
     """The asset on its own, with every skinned mesh's influences and skeleton validated."""
     scene = Scene([asset])
     scene.require_skinned()
+    hidden = [f"{where(asset, mesh)}: left out: {why_hidden(scene.stage, blocker)}"
+              for mesh, blocker in hidden_from_usdskel(scene.stage)]
     for info in scene.skinned_meshes():
         for msg in validate_skinning(scene, info.path):
             if notes is not None:
                 notes.append(msg)
             warnings.warn(msg, PsdWarning, stacklevel=3)
+    for msg in hidden:
+        if notes is not None:
+            notes.append(msg)
+        warnings.warn(msg, PsdWarning, stacklevel=3)
     return scene
 
 
@@ -271,6 +277,29 @@ def files_read(paths: Sequence[str], deformers: Sequence[str] = ()) -> list[str]
     return sorted(set(usdwrite.files_read(paths)) | set(deformer_files(deformers)))
 
 
+@contextlib.contextmanager
+def updating(path: str, *also: str) -> Iterator[None]:
+    """A read-modify-write of the layer at path: the update lock on the folders of path and of
+    also (the other files written in the same commit), then path re-read from disk
+    (``compose.reread``), so the read inside the block is the last writer's result, never a
+    copy this process loaded before it waited."""
+    with atomic.updating(path, *also):
+        reread(path)
+        yield
+
+
+@contextlib.contextmanager
+def mirror_lock(correctives: str, output: str) -> Iterator[None]:
+    """``mirror`` in place (output is CORRECTIVES itself) reads, mirrors and writes under the
+    update lock, CORRECTIVES re-read inside it: one step between any two other writers of the
+    layer, as if run alone. Otherwise nothing: CORRECTIVES is then an input like any other."""
+    if os.path.realpath(output) != os.path.realpath(correctives):
+        yield
+        return
+    with updating(output):
+        yield
+
+
 def _existing_groups(asset: str, path: str) -> tuple[Groups, dict[str, dict]]:
     """The groups of the CORRECTIVES layer at path and their provenance records ({} when path
     holds no CORRECTIVES layer: nothing there is carried over)."""
@@ -301,7 +330,7 @@ def write_correctives(result: FitResult, path: str, *, update: bool = False,
     written = fitted_groups(result)
     with _forced(force):
         atomic.check_output(path, inputs, kind=outputs.CORRECTIVES)
-        with atomic.updating(path):
+        with updating(path, *(side for side, _ in side_files)):
             before, records = _existing_groups(result.asset, path)
             if update:
                 check_name_case(before, written, path)
@@ -664,7 +693,7 @@ def write_mirror(result: MirrorResult, path: str, *, force: bool = False, replac
     doc = f"psdbake {__version__} mirror: rest-space correctives (inverse PSD), groups mirrored"
     with _forced(force):
         atomic.check_output(path, inputs, kind=outputs.CORRECTIVES)
-        with atomic.updating(path) if in_place else contextlib.nullcontext():
+        with updating(path) if in_place else contextlib.nullcontext():
             base = path if in_place else result.correctives
             before = read_correctives(result.asset, base)
             records = provenance.plain(provenance.read_stamp(base).get("groups", {}))
@@ -734,7 +763,7 @@ def edit_groups(correctives: str, *, remove: Sequence[str] = (), rename: Mapping
     inputs = [f for f in files_read([asset, correctives]) if not in_place or os.path.realpath(f) != os.path.realpath(correctives)]
     with _forced(force):
         atomic.check_output(output, inputs, kind=outputs.CORRECTIVES)
-        with atomic.updating(output) if in_place else contextlib.nullcontext():
+        with updating(output) if in_place else contextlib.nullcontext():
             before = read_correctives(asset, correctives)
             records = provenance.plain(provenance.read_stamp(correctives).get("groups", {}))
             groups = without_groups(before, list(remove), correctives)

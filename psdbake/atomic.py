@@ -4,7 +4,8 @@ A failed or interrupted run leaves either every old file or every complete new o
 never a partial one and never a mix: a command with several outputs (``eval
 --points-cache``, a chunked eval, ``fit --report``) writes all of them to temporary
 files first and renames them only once all are written (``Transaction``). The renames
-run with SIGINT/SIGTERM held back, and a rename that fails puts the old files back.
+run with SIGINT/SIGTERM held back and under the lock of every output's folder (``updating``:
+two commits never interleave their renames), and a rename that fails puts the old files back.
 
 An output that is also an input is refused up front: ``inputs`` are compared by real
 path *and* by file identity (device, inode), so a symbolic or hard link to an input is
@@ -25,6 +26,7 @@ import os
 import signal
 import stat
 import tempfile
+import threading
 from collections.abc import Iterable, Iterator
 
 from .errors import OutputError
@@ -120,24 +122,6 @@ def check_outputs(outputs: Iterable[tuple[str, OutputKind]], inputs: Iterable[st
     return list(seen)
 
 
-def _pause_for_tests(moment: str) -> None:
-    """Fault tests (tests/test_faults.py) kill a run at an exact moment of the commit rather
-    than after a guessed delay: with ``PSDBAKE_PAUSE_AT=MOMENT:MARKER`` (MOMENT ``commit``:
-    every output written, none renamed; ``rename``: the first output renamed, signals held)
-    the run creates MARKER and waits up to 30 s. Unset (always, outside tests) it costs a lookup."""
-    wanted = os.environ.get("PSDBAKE_PAUSE_AT", "")
-    if not wanted.startswith(moment + ":"):
-        return
-    import time
-
-    marker = wanted.split(":", 1)[1]
-    with open(marker, "w", encoding="utf-8"):
-        pass
-    deadline = time.monotonic() + 30.0
-    while time.monotonic() < deadline and os.path.exists(marker):
-        time.sleep(0.01)
-
-
 def _umask() -> int:
     mask = os.umask(0)
     os.umask(mask)
@@ -203,8 +187,7 @@ class Transaction:
                     os.chmod(tmp, 0o666 & ~_umask())
                 except OSError as exc:
                     raise OutputError(f"{shown}: cannot write ({exc.strerror or exc})") from None
-            _pause_for_tests("commit")
-            with _signals_held():
+            with updating(*(real for _, real, _ in self._planned)), _signals_held():
                 self._rename_all()
         finally:
             self.abort()
@@ -224,8 +207,6 @@ class Transaction:
                         backup = None
                 os.replace(tmp, real)
                 backups.append((real, backup))
-                if len(backups) == 1:
-                    _pause_for_tests("rename")
         except OSError as exc:
             for real, backup in reversed(backups):  # put every old file back
                 with contextlib.suppress(OSError):
@@ -268,18 +249,71 @@ def replacing(path: str, inputs: Iterable[str] = (), extensions: Iterable[str] |
             raise OutputError(f"{path}: cannot write ({exc.strerror or exc})") from None
 
 
-@contextlib.contextmanager
-def updating(path: str) -> Iterator[None]:
-    """Serialise read-modify-write updates of path (``fit --group`` into one CORRECTIVES
-    layer from several processes): an exclusive ``flock`` on path's folder, held while
-    the old file is read and the new one renamed over it. Without it, two concurrent
-    updates would each keep only their own group."""
+class _Held(threading.local):
+    """Folder locks this thread holds: real folder -> (descriptor, holds). A thread takes each
+    folder's flock once; nested holds (a commit inside ``fit --group``'s update) count up. Per
+    thread: another thread's flock is on its own descriptor, so it waits like another process."""
+
+    def __init__(self) -> None:
+        self.folders: dict[str, tuple[int, int]] = {}
+
+
+_HELD = _Held()
+
+
+def _acquire(folder: str) -> int:
+    """An exclusive ``flock`` on folder, waited for; returns the descriptor holding it."""
     import fcntl
 
-    folder = os.path.dirname(os.path.realpath(path)) or "."
-    fd = os.open(folder, os.O_RDONLY)
+    try:
+        fd = os.open(folder, os.O_RDONLY)
+    except OSError as exc:
+        raise OutputError(f"{folder}: cannot lock the output folder ({exc.strerror or exc})") from None
     try:
         fcntl.flock(fd, fcntl.LOCK_EX)
+    except OSError as exc:
+        os.close(fd)
+        raise OutputError(f"{folder}: cannot lock the output folder ({exc.strerror or exc}): psdbake serialises "
+                          "writers of one folder with flock") from None
+    except BaseException:  # interrupted while waiting (SIGTERM unwinds as KeyboardInterrupt)
+        os.close(fd)
+        raise
+    return fd
+
+
+@contextlib.contextmanager
+def updating(*paths: str) -> Iterator[None]:
+    """Serialise writers: an exclusive ``flock`` on the folder of each path, taken in sorted order
+    and held for the block. Every commit holds its outputs' folders while it renames
+    (``Transaction.commit``), so two commits never interleave their renames; a read-modify-write
+    (``fit --group``, ``mirror`` in place, a chunked eval's manifest) holds them from before the
+    read to after the rename, so concurrent updates all land, each on the other's result. The
+    lock is on the folder because every output is replaced by a rename, which a lock on the file
+    would not survive. Re-entrant: a folder this thread already holds is not locked again.
+
+    The folders are locked in one order (sorted real paths) by every psdbake process, so no two
+    runs can each hold a folder the other waits for; a block that already holds a folder may not
+    take one that sorts before it (a programming error: RuntimeError)."""
+    held = _HELD.folders
+    folders = sorted({os.path.dirname(os.path.realpath(p)) or "." for p in paths})
+    new = [f for f in folders if f not in held]
+    if new and held and new[0] < max(held):
+        raise RuntimeError(f"lock order: {new[0]} taken while holding {max(held)}")
+    taken: list[str] = []
+    try:
+        for folder in folders:
+            if folder in held:
+                fd, holds = held[folder]
+                held[folder] = (fd, holds + 1)
+            else:
+                held[folder] = (_acquire(folder), 1)
+            taken.append(folder)
         yield
     finally:
-        os.close(fd)  # closing releases the lock
+        for folder in reversed(taken):
+            fd, holds = held[folder]
+            if holds > 1:
+                held[folder] = (fd, holds - 1)
+            else:
+                del held[folder]
+                os.close(fd)  # closing releases the lock

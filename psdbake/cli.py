@@ -146,6 +146,15 @@ _INPUT_PARAMS = ("asset", "examples", "correctives", "anim", "poses", "file", "l
 _OUTPUT_PARAMS = ("output", "report", "points_cache", "obj_dir", "report_dir")
 
 
+def _paths(ctx: click.Context, names: Sequence[str]) -> list[str]:
+    """The values of a command's path parameters among names, flattened."""
+    found: list[str] = []
+    for name in names:
+        value = ctx.params.get(name)
+        found += [str(v) for v in value] if isinstance(value, (list, tuple)) else [str(value)] if value else []
+    return found
+
+
 @dataclass
 class _Run:
     """What ``main`` hands its command (as click's ``ctx.obj``): the list that collects USD's
@@ -162,19 +171,17 @@ class _Command(click.Command):
     printed without loading USD)."""
 
     def invoke(self, ctx: click.Context):
+        from .paths import check_paths
+
+        files = _paths(ctx, _INPUT_PARAMS)
+        check_paths(files, _paths(ctx, _OUTPUT_PARAMS))  # before USD sees a path it cannot take
+
         from .usd.dependencies import layers_kept_open
         from .usd.diagnostics import usd_diagnostics, usd_errors
 
-        files: list[str] = []
-        for name in _INPUT_PARAMS:
-            value = ctx.params.get(name)
-            files += [str(v) for v in value] if isinstance(value, (list, tuple)) else [str(value)] if value else []
         run = ctx.find_object(_Run)  # None under click's CliRunner: USD's diagnostics go to stderr, as ever
         trap: contextlib.AbstractContextManager[list[str]] = usd_diagnostics() if run else contextlib.nullcontext([])
-        paths = list(files)
-        for name in _OUTPUT_PARAMS:
-            value = ctx.params.get(name)
-            paths += [str(value)] if value else []
+        paths = files + _paths(ctx, _OUTPUT_PARAMS)
         invoked = outputs.invoked_as(run.argv, paths) if run else contextlib.nullcontext()
         with trap as found, layers_kept_open(), invoked:
             try:
@@ -461,7 +468,7 @@ def mirror_cmd(asset, correctives, output, joint_rules, group, as_name, plane, m
     settings = MirrorSettings(joints=tuple(joint_rules), plane=plane, group=group, as_name=as_name)
     with atomic.forcing(force):
         atomic.check_outputs([(output, outputs.CORRECTIVES)], api.mirror_reads(asset, correctives, output))
-    with ui.warnings():
+    with ui.warnings(), api.mirror_lock(correctives, output):
         result = api.mirror(asset, correctives, settings, strict=strict, meshes=meshes)
         changes = api.write_mirror(result, output, force=force, replace_sculpted=replace_sculpted)
     ui.payload({**console.mirror_report(result, output), "changes": console.changes_payload(changes)})
@@ -688,8 +695,11 @@ def groups_cmd(file, remove, rename, asset, output, force, quiet, verbose, as_js
 @click.option("--retries", type=click.IntRange(min=0), default=2, show_default=True,
               help="Reruns of a job whose process is killed by a signal (a psdbake exit code is final).")
 @click.option("--dry-run", is_flag=True, help="Check the jobs file and print the commands in order; run nothing.")
+@click.option("--allow-deformers-from-jobs", "allow_deformers", is_flag=True,
+              help="Run the deformers the jobs file names (their code runs in every job). Without it, a jobs file "
+                   "naming a deformer is refused.")
 @_common
-def batch_cmd(jobs_file, workers, scheduler, retries, dry_run, quiet, verbose, as_json) -> None:
+def batch_cmd(jobs_file, workers, scheduler, retries, dry_run, allow_deformers, quiet, verbose, as_json) -> None:
     """Run the pose/fit/eval/stack jobs of JOBS.toml, in parallel where their files allow.
 
     A job reading a file other jobs write runs after them; jobs writing one file run in file
@@ -698,7 +708,8 @@ def batch_cmd(jobs_file, workers, scheduler, retries, dry_run, quiet, verbose, a
     from . import farm
 
     ui = Ui(quiet, verbose, as_json)
-    jobs = farm.load_jobs(jobs_file, {name: cli.commands[name] for name in farm.COMMANDS})  # the CLI is the job schema
+    jobs = farm.load_jobs(jobs_file, {name: cli.commands[name] for name in farm.COMMANDS},  # the CLI is the job schema
+                          allow_deformers=allow_deformers)
     if dry_run:
         if as_json:
             click.echo(json.dumps([{"job": t.label, "command": t.command_line, "needs": list(t.needs),

@@ -288,6 +288,7 @@ def say_chunks(ui: Ui, ev: ChunkedWeights, written: WrittenChunks) -> None:
         "output": written.manifest, "clip_manifest": written.clip_manifest, "points_cache": written.points_cache,
         "points_cache_clip_manifest": written.points_clip_manifest, "chunk_size": ev.plan.size,
         "chunk_count": written.chunk_count, "first": ev.plan.first, "last": ev.plan.last,
+        "stitched": list(written.stitched),
         "chunks": [{"chunk": f.chunk, "first": f.first, "last": f.last, "frames": f.frames, "weights": f.weights,
                     "points_cache": f.points_cache} for f in written.chunks],
         "animations": [{"animation": path, "channels": list(channels)} for path, channels in ev.animations],
@@ -300,7 +301,7 @@ def say_chunks(ui: Ui, ev: ChunkedWeights, written: WrittenChunks) -> None:
                + (f" and {f.points_cache}" if f.points_cache else ""))
     ui.say(f"wrote the manifest {written.manifest} (+ {written.clip_manifest})"
            + (f" and {written.points_cache} (+ {written.points_clip_manifest})" if written.points_cache else "")
-           + ": open it once every chunk is written")
+           + f": it stitches {len(written.stitched)} of the shot's {written.chunk_count} chunk(s) so far")
 
 
 # --- groups ------------------------------------------------------------------------------

@@ -54,6 +54,10 @@ def load_deformer(spec: str) -> DeformerFactory:
         ) from None
     except Exception as exc:
         first = (str(exc).strip().splitlines() or [""])[0]
+        if "pxrInternal" in str(exc):  # a USD error: its words, not its C++ location
+            from .usd.diagnostics import first_line
+
+            first = first_line(exc)
         raise DeformerError(f"deformer {spec!r}: cannot import {module_name}: {type(exc).__name__}: {first}") from None
     factory = getattr(module, attr, None)
     if not callable(factory):

@@ -185,6 +185,13 @@ BLENDER_REST_MATCH = 1e-12
 #: (frames x joints x 128 bytes), so a range near the limit is for ``--chunk-size`` farms.
 MAX_FRAMES = 1_000_000
 
+#: Deepest nesting of brackets, braces and parentheses a text layer (``.usda``) may hold, counted
+#: before USD parses it (``usd.nesting``): USD's text parser recurses per level and crashed
+#: (SIGSEGV) at 100,000 nested dictionaries or prims, and took 10 s for one value of 10,000
+#: nested parentheses (over 120 s at 100,000). Real layers nest a few dozen levels (prim
+#: hierarchy plus a matrix array's three).
+MAX_TEXT_NESTING = 1_000
+
 #: Largest magnitude of a ``--frames`` bound: beyond 2**53 consecutive whole frames are no
 #: longer distinct float64 time codes.
 MAX_FRAME_MAGNITUDE = 2.0**53

@@ -254,3 +254,19 @@ def without_provenance(path) -> str:
     custom.pop("psdbake", None)
     layer.customLayerData = custom
     return layer.ExportToString()
+
+
+def stitched_chunks(manifest) -> list[str]:
+    """The chunk files a chunked eval's manifest stitches (its clips' asset paths; every clipped
+    prim names the same)."""
+    layer = Sdf.Layer.OpenAsAnonymous(str(manifest))
+    found: list[list[str]] = []
+
+    def visit(path) -> None:
+        spec = layer.GetPrimAtPath(path) if path.IsPrimPath() else None
+        if spec is not None and spec.HasInfo("clips"):
+            found.append([a.path for a in spec.GetInfo("clips")["psdbake"]["assetPaths"]])
+
+    layer.Traverse(Sdf.Path.absoluteRootPath, visit)
+    assert found and all(f == found[0] for f in found), found
+    return found[0]

@@ -1,4 +1,4 @@
-"""Mutation fuzzer: psdbake fit and eval on mutated fixture layers, in three modes.
+"""Mutation fuzzer: psdbake fit and eval on mutated fixture layers, in three modes, and a concurrency mode.
 
 ``--mode text`` (the default; case numbers replay as before) takes the small good asset,
 examples and animation from ``fixtures/``, applies a few random mutations to one of them as
@@ -25,6 +25,12 @@ zeroed or set, 32-bit words overwritten (NaN, inf, huge counts), the file trunca
 duplicated or moved — at offsets biased to the value area and the crate sections, not only
 the header — and runs the same commands.
 
+``--mode concurrency`` (``tests/fuzz_concurrency.py``) races two writers of one output
+(``fit --group``, plain ``fit``, ``mirror`` in place; ``eval --points-cache`` of two shots,
+chunked evals of two shots), each held at random moments of its commit and released in a
+random order: the exit codes and every file must be those of the two runs one after the other,
+in one order or the other. It runs 2,000 cases by default, one worker per two cores.
+
 The only allowed outcomes of a command are success with finite output, or a clean psdbake
 refusal (exactly one ``psdbake: error:`` line on stderr, after any ``psdbake: warning:``
 lines, exit code 3-7, no output). A
@@ -32,12 +38,14 @@ failure is: exit 1 or any other code, a traceback, more than one stderr line on 
 USD's C++ locations (``pxrInternal``, ``.cpp``) in stderr, a line other than a psdbake
 warning on a successful run, a non-finite number in an output, an output missing after
 exit 0, an input (or a layer an input composes) not byte-identical after the run, a
-temporary or output file left behind, a hang (> CASE_SECONDS) or a crash of the process.
+temporary or output file left behind, a hang (> CASE_SECONDS; a concurrency case, CONCURRENCY_CASE_SECONDS) or a
+crash of the process.
 
 Cases run in worker subprocesses (a hang or crash inside USD's C++ cannot be interrupted
 in-process; the parent kills the worker and starts another), one worker per core. Cases are
 numbered and seeded per mode: ``python -m tests.fuzz --mode sdf --cases 20000 --seed 0``
-(``make fuzz`` runs every mode; ``MODE=sdf CASES=N SEED=S`` to change), ``--only N``
+(``make fuzz`` runs every mode, 20,000 cases of each mutation mode and 2,000 of concurrency;
+``MODE=sdf CASES=N SEED=S`` to change), ``--only N``
 replays case N and prints its mutations, commands and stderr (``--keep DIR`` keeps its
 files). ``tests/test_fuzz.py`` runs a bounded number of each mode in ``make test``.
 """
@@ -71,12 +79,18 @@ SOURCES = {
     "anim": os.path.join(ROOT, "fixtures", "arm_anim.usda"),
 }
 LAYERS = dict(SOURCES, correctives=os.path.join(BAD, "good_correctives.usda"))
-MODES = ("text", "sdf", "usdc")
+MODES = ("text", "sdf", "usdc", "concurrency")
+MUTATION_MODES = MODES[:3]  # the modes that mutate inputs; concurrency races two writers (tests/fuzz_concurrency.py)
+#: Cases per mode when --cases is not given (make fuzz): a concurrency case runs four psdbake processes.
+DEFAULT_CASES = {"text": 20_000, "sdf": 20_000, "usdc": 20_000, "concurrency": 2_000}
 CLEAN_EXITS = {3, 4, 5, 6, 7}  # 7: a fit whose product misses its examples (degraded): warned, then refused
 NUMBER = re.compile(r"(?<![\w.])-?\d+(?:\.\d+)?(?:e[-+]?\d+)?(?![\w.])")
 TYPES = ["float3[]", "point3f[]", "int[]", "float[]", "quatf[]", "half3[]", "token[]", "double[]", "matrix4d[]",
          "string", "bool", "vector3f[]"]
 CASE_SECONDS = float(os.environ.get("PSDBAKE_FUZZ_CASE_SECONDS", 60))
+#: A concurrency case runs two psdbake processes held at their commits and, the first time a
+#: pair is seen, the serial references (up to five more): it gets more time before it is a hang.
+CONCURRENCY_CASE_SECONDS = float(os.environ.get("PSDBAKE_FUZZ_CASE_SECONDS", 600))
 RECYCLE = 1000  # cases per worker process before a fresh one (bounds any slow growth)
 MEMORY_LIMIT = 4 << 30  # address space per worker: a runaway allocation fails instead of swamping the machine
 OUTPUTS = {"fit": "fit_out.usda", "weights": "weights.usda", "cache": "cache.usda"}
@@ -917,6 +931,13 @@ def run_case(case: int, seed: int, folder: str, mode: str = "text", *, capture: 
     report = report or (lambda kind, value: None)
     started = time.perf_counter()
     rng = _rng(mode, seed, case)
+    if mode == "concurrency":
+        from tests import fuzz_concurrency
+
+        root = os.path.join(folder, "concurrency")  # the references and shared inputs, for every worker
+        family, ok, what, described, command, err = fuzz_concurrency.run_case(case, rng, root, report)
+        return Outcome(case, family, ok, what, mode, tuple(described), command, "" if ok else err[:2000],
+                       time.perf_counter() - started)
     cdir = os.path.join(folder, f"{mode}{case}")
     shutil.rmtree(cdir, ignore_errors=True)
     os.makedirs(cdir)
@@ -1070,13 +1091,17 @@ class _Worker:
 
 def _dead(w: _Worker, mode: str, seed: int, hang: bool) -> Outcome:
     if hang:
-        what = f"hang: more than {CASE_SECONDS:g} s"
+        what = f"hang: more than {_case_seconds(mode):g} s"
     else:
         rc = w.proc.returncode
         what = f"crash: killed by {signal.Signals(-rc).name}" if rc is not None and rc < 0 else f"crash: exit {rc}"
     step = w.command.split(" ", 2)[1] if w.command else "prepare"
     return Outcome(w.case, w.target, False, f"{step} {what}", mode, tuple(w.mutations), w.command, w.stderr_tail(),
                    time.perf_counter() - w.started)
+
+
+def _case_seconds(mode: str) -> float:
+    return CONCURRENCY_CASE_SECONDS if mode == "concurrency" else CASE_SECONDS
 
 
 def _scratch() -> str | None:
@@ -1092,7 +1117,8 @@ def run(cases: int, seed: int = 0, only: int | None = None, progress: bool = Fal
         workers: int | None = None, first: int = 0) -> list[Outcome]:
     """Cases first..first+cases-1 (or only one) of a mode, in worker subprocesses."""
     todo = [only] if only is not None else list(range(first, first + cases))
-    workers = max(1, min(workers or os.cpu_count() or 1, len(todo)))
+    cores = os.cpu_count() or 1
+    workers = max(1, min(workers or (cores // 2 if mode == "concurrency" else cores), len(todo)))  # a race: 2 runs
     outcomes: list[Outcome] = []
     started = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="psdbake-fuzz-", dir=_scratch()) as folder:
@@ -1130,7 +1156,7 @@ def run(cases: int, seed: int = 0, only: int | None = None, progress: bool = Fal
                             print(f"{mode} case {case}", file=sys.stderr, flush=True)
                         w.send(case)
                 now = time.perf_counter()
-                deadlines = [w.started + CASE_SECONDS - now for w in pool if w.case is not None]
+                deadlines = [w.started + _case_seconds(mode) - now for w in pool if w.case is not None]
                 for key, _ in sel.select(timeout=max(0.0, min(deadlines)) if deadlines else 1.0):
                     w = key.data
                     msgs = w.messages()
@@ -1159,7 +1185,7 @@ def run(cases: int, seed: int = 0, only: int | None = None, progress: bool = Fal
                             w.done += 1
                 now = time.perf_counter()
                 for w in list(pool):
-                    if w.case is not None and now - w.started > CASE_SECONDS:
+                    if w.case is not None and now - w.started > _case_seconds(mode):
                         w.stop(kill=True)
                         finished(_dead(w, mode, seed, hang=True))
                         shutil.rmtree(os.path.join(folder, f"{mode}{w.case}"), ignore_errors=True)
@@ -1223,7 +1249,8 @@ def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--mode", default="text",
                         help="text (default), sdf, usdc, or several separated by commas, or all")
-    parser.add_argument("--cases", type=int, default=20000)
+    parser.add_argument("--cases", type=int, default=None,
+                        help="cases per mode (default: 20,000 of each mutation mode, 2,000 of concurrency)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--only", type=int, default=None, help="replay one case and show it in full")
     parser.add_argument("--first", type=int, default=0, help="number of the first case")
@@ -1264,7 +1291,8 @@ def main(argv: list[str] | None = None) -> None:
             outcomes = [outcome]
             print(f"case files copied to {args.keep}")
         else:
-            outcomes = run(args.cases, args.seed, args.only, progress=True, mode=mode, workers=args.workers,
+            cases = args.cases if args.cases is not None else DEFAULT_CASES[mode]
+            outcomes = run(cases, args.seed, args.only, progress=True, mode=mode, workers=args.workers,
                            first=args.first)
         seconds = time.perf_counter() - started
         if args.only is not None:

@@ -133,6 +133,17 @@ ASSET_DEFECTS = {
     "rest_points_nan": ("rest_points_nan.usda", f"<{MESH}", r"NaN"),
     "joint_weights_element_size_mismatch": ("joint_weights_element_size_mismatch.usda", f"<{MESH}",
                                             r"jointWeights has elementSize 2 .* jointIndices 4"),
+    # issue 24: each once named a symptom ("lacking bindings", "bound skeleton is invalid", a count
+    # mismatch, the in-memory layer @anon:0x...:psdbake.usda@) instead of the cause
+    "mesh_under_typeless_prim": ("mesh_under_typeless_prim.usda", f"<{MESH}>",
+                                 r"UsdSkel never skins it: its ancestor </Arm/Geo> has no type \(def \"Geo\"\)"),
+    "joints_out_of_order": ("joints_out_of_order.usda", f"<{SKEL}.joints>",
+                            r"joint 'Shoulder/Elbow/Wrist' \(index 1\) is listed before its parent 'Shoulder/Elbow' "
+                            r"\(index 2\).*cannot skin </Arm/Geo/Tube>"),
+    "joint_influences_uniform": ("joint_influences_uniform.usda", f"<{MESH}.primvars:skel:jointIndices>",
+                                 r"interpolation 'uniform': UsdSkel skins with 'vertex' .* or 'constant'"),
+    "mesh_in_internal_instance": ("mesh_in_internal_instance.usda", f"<{MESH}>",
+                                  r"inside instance </Arm/Geo> of @.*mesh_in_internal_instance\.usda@</GeoPrototype>"),
 }
 
 
@@ -142,7 +153,16 @@ ASSET_DEFECTS = {
 def test_bad_asset(defect, role, cli, tmp_path):
     name, prim, says = ASSET_DEFECTS[defect]
     argv, outputs = _asset_argv(role, bad(name), tmp_path)
-    refused(cli(*argv), EXIT_INPUT, names=[name] + ([prim] if prim else []), says=says, outputs=outputs)
+    line = refused(cli(*argv), EXIT_INPUT, names=[name] + ([prim] if prim else []), says=says, outputs=outputs)
+    assert "@anon:" not in line
+
+
+def test_a_mesh_usdskel_never_reaches_is_said_by_inspect(cli):
+    """inspect lists the typeless parent's mesh with its binding, and says why nothing skins it."""
+    code, out, err = cli("inspect", bad("mesh_under_typeless_prim.usda"))
+    assert code == 0 and f"skinned <{MESH}>" in out
+    assert f"psdbake: warning: {bad('mesh_under_typeless_prim.usda')} <{MESH}>: bound to a skeleton, but UsdSkel " \
+           "never skins it: its ancestor </Arm/Geo> has no type" in err
 
 
 @pytest.mark.parametrize("role", ASSET_ROLES)
@@ -282,6 +302,9 @@ DEFORMER_CASES = {
     "missing_file": (_deformer("no_such_file.py"), ["no_such_file.py"], r"not found"),
     "missing_module": ("psdbake_no_such_module.deform:make", ["psdbake_no_such_module"], r"cannot import"),
     "no_factory_in_spec": ("just_a_module", ["just_a_module"], r"expected .*:factory"),
+    # USD's own error inside a deformer: its words, not pxrInternal_v0_26_11__pxrReserved__::...layer.cpp
+    "raises_usd_error": (_deformer("raises_usd_error.py"), ["raises_usd_error.py", *RUNTIME],
+                         r"USD error: Cannot set comment on </>\. Layer .*rig_cache\.usda@ is not editable\.$"),
 }
 
 

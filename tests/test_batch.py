@@ -3,12 +3,14 @@ pool and on a real dask.distributed LocalCluster (byte-identical outputs, a work
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import re
 import shlex
 import signal
 import socket
+import subprocess
 import sys
 import threading
 import time
@@ -73,8 +75,8 @@ TASKS = 7  # pose, 2 fits, 3 eval chunks, stack
 COMMANDS = {name: cli.commands[name] for name in farm.COMMANDS}  # what psdbake batch passes: the CLI is the schema
 
 
-def load_jobs(path: str) -> farm.Batch:
-    return farm.load_jobs(path, COMMANDS)
+def load_jobs(path: str, allow_deformers: bool = False) -> farm.Batch:
+    return farm.load_jobs(path, COMMANDS, allow_deformers=allow_deformers)
 
 
 def jobs_file(folder: Path, text: str) -> str:
@@ -119,7 +121,7 @@ correctives = "out/c.usda"
 anim = "shot.usda"
 output = "out/w.usda"
 """)
-    jobs = load_jobs(path)
+    jobs = load_jobs(path, allow_deformers=True)
     fit, ev = jobs.tasks
     assert fit.args == (
         "--output=out/c.usda", "--driver=Elbow", "--kernel=cubic", "--sigma=0.25", "--degree=-1", "--no-rest-example",
@@ -175,8 +177,8 @@ output = "other.usda"
     by = {t.label: t for t in tasks}
     assert by["[[fit]] #1"].needs == (key["[[pose]] #1"],)
     assert by["[[fit]] #2"].needs == () and by["[[fit]] #2"].after == (key["[[fit]] #1"],)
-    assert by["[[eval]] #1"].needs == (key["[[fit]] #1"], key["[[fit]] #2"])  # every writer of c.usda
-    assert by["[[stack]] #1"].needs == (key["[[fit]] #1"], key["[[fit]] #2"], key["[[eval]] #1"])
+    assert by["[[eval]] #1"].needs == (key["[[fit]] #2"],)  # the last writer of c.usda, after the first
+    assert by["[[stack]] #1"].needs == (key["[[fit]] #2"], key["[[eval]] #1"])
     assert by["[[pose]] #2"].needs == by["[[pose]] #2"].after == ()
     assert len(set(key.values())) == len(tasks)
     assert [t.key for t in load_jobs(path).tasks] == [t.key for t in tasks]  # deterministic keys
@@ -343,6 +345,58 @@ output = "out/to_sculpt.usda"
     assert not (tmp_path / "out" / "c.usda").exists() and not (tmp_path / "out" / "w.usda").exists()
 
 
+def test_a_failed_earlier_writer_still_skips_the_readers(run, tmp_path):
+    """A reader needs only the last job writing a file (edges linear in the jobs), yet is skipped
+    when an earlier writer of that file failed: the failure travels along the writers' chain."""
+    path = jobs_file(tmp_path, f"""
+[[fit]]                     # nothing sculpted: psdbake fit exits 4
+asset = "{fixture("bad", "good_asset.usda")}"
+examples = ["{UNSCULPTED}"]
+group = "first"
+output = "out/c.usda"
+
+[[fit]]                     # the same layer, then: runs after #1, and succeeds
+asset = "{ASSET}"
+examples = ["{EXAMPLES}"]
+group = "second"
+output = "out/c.usda"
+
+[[eval]]
+asset = "{ASSET}"
+correctives = "out/c.usda"
+anim = "{ANIM}"
+output = "out/w.usda"
+""")
+    by = {t.label: t for t in load_jobs(path).tasks}
+    assert by["[[eval]] #1"].needs == (by["[[fit]] #2"].key,)
+    code, out, err = run("batch", path, "--json")
+    assert code == 4, err
+    status = {j["job"]: (j["status"], j["error"]) for j in json.loads(out)["jobs"]}
+    assert status["[[fit]] #2"] == ("ok", None)
+    assert status["[[eval]] #1"] == ("skipped", "needs [[fit]] #1, which did not succeed")
+    assert not (tmp_path / "out" / "w.usda").exists()
+
+
+def test_a_dry_run_of_25000_jobs_is_linear_and_small(tmp_path):
+    """25,000 jobs writing one file (a 614 kB jobs file): every job waited for every earlier one,
+    312 million pairs (19.6 GB); now a chain. Peak memory of the whole ``batch --dry-run``,
+    measured in a fresh process: under 500 MB."""
+    path = tmp_path / "jobs.toml"
+    with open(path, "w", encoding="utf-8") as fh:
+        fh.write('[defaults]\nasset = "a.usda"\nexamples = ["e.usda"]\noutput = "c.usda"\n')
+        fh.writelines(f'[[fit]]\ngroup = "g{i}"\n' for i in range(25_000))
+    script = ("import resource, subprocess, sys\n"
+              "done = subprocess.run([sys.argv[1], 'batch', sys.argv[2], '--dry-run', '--json'], capture_output=True)\n"
+              "tasks = __import__('json').loads(done.stdout)\n"
+              "print(done.returncode, len(tasks), max(len(t['after']) + len(t['needs']) for t in tasks),"
+              " resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss)")
+    psdbake = os.path.join(os.path.dirname(sys.executable), "psdbake")
+    done = subprocess.run([sys.executable, "-c", script, psdbake, str(path)], capture_output=True, text=True, check=True)
+    code, jobs, most_edges, peak_kib = map(int, done.stdout.split())
+    assert (code, jobs, most_edges) == (0, 25_000, 1)
+    assert peak_kib < 500 * 1024, f"peak RSS {peak_kib / 1024:.0f} MiB"
+
+
 def _children(pid: int) -> list[int]:
     """Child processes of pid, started by any of its threads (jobs start from pool threads)."""
     found = []
@@ -475,3 +529,116 @@ def test_bad_scheduler_address_is_one_line(run, tmp_path, monkeypatch):
     code, _, err = run("batch", path, "--scheduler", f"tcp://127.0.0.1:{port}")
     assert code == 3 and err.startswith(f"psdbake: error: --scheduler tcp://127.0.0.1:{port}: cannot connect (")
     assert err.count("\n") == 1 and not (tmp_path / "out").exists()  # nothing ran, no folder made
+
+
+def test_scheduler_that_speaks_http_is_one_line(run, tmp_path):
+    """``--scheduler`` at an HTTP server (the dashboard's port, a proxy) that answers Dask's
+    handshake with ``HTTP/1.1 400``: distributed read those bytes as a frame length and asked for
+    3.07 EiB (an internal MemoryError); now one line, exit 3, nothing run."""
+    pytest.importorskip("distributed")
+    path = jobs_file(tmp_path, GOOD_FIT)
+    with socket.socket() as server:
+        server.bind(("127.0.0.1", 0))
+        server.listen()
+        port = server.getsockname()[1]
+
+        def answer() -> None:  # every connection, as a web server does (psdbake connects twice)
+            with contextlib.suppress(OSError):
+                while True:
+                    conn, _ = server.accept()
+                    with conn:
+                        if conn.recv(65536):
+                            conn.sendall(b"HTTP/1.1 400 Bad Request\r\nContent-Length: 0\r\n\r\n")
+
+        thread = threading.Thread(target=answer, daemon=True)
+        thread.start()
+        code, _, err = run("batch", path, "--scheduler", f"tcp://127.0.0.1:{port}")
+        with contextlib.suppress(OSError):
+            server.shutdown(socket.SHUT_RDWR)  # wakes the accept (Linux)
+        thread.join(timeout=60)
+    assert code == 3, err
+    assert err.count("\n") == 1 and err.startswith(f"psdbake: error: --scheduler tcp://127.0.0.1:{port}: not a Dask "
+                                                   "scheduler: it answers in another protocol (an HTTP server?")
+    assert "MemoryError" not in err and not (tmp_path / "out").exists()
+
+
+# --- no code from a data folder -------------------------------------------------------------------
+
+#: Modules a shared asset folder might hold beside a jobs file, shadowing what a job imports: each
+#: leaves a marker in the folder when imported (and would break the job).
+PLANTED = ("click.py", "numpy.py", "json.py", "site.py", "sitecustomize.py", "pxr/__init__.py", "psdbake/__init__.py")
+_PLANT = 'import os\nopen(os.path.join({folder!r}, "IMPORTED-" + __name__), "w").close()\n'
+
+DATA_JOBS = f"""
+[defaults]
+asset = "{ASSET}"
+
+[[fit]]
+examples = ["{EXAMPLES}"]
+output = "out/correctives.usda"
+
+[[eval]]
+correctives = "out/correctives.usda"
+anim = "{ANIM}"
+output = "out/weights.usda"
+points_cache = "out/cache.usda"
+
+[[stack]]
+output = "out/shot.usda"
+layers = ["{ASSET}", "out/correctives.usda", "{ANIM}", "out/weights.usda"]
+"""
+
+
+def _planted_folder(folder: Path) -> str:
+    path = jobs_file(folder, DATA_JOBS)
+    for name in PLANTED:
+        (folder / name).parent.mkdir(exist_ok=True)
+        (folder / name).write_text(_PLANT.format(folder=str(folder)))
+    return path
+
+
+@pytest.mark.parametrize("where", ["local", "dask"])
+def test_modules_beside_the_jobs_file_are_never_imported(where, run, tmp_path, request):
+    """``python -m`` put the jobs file's folder first on the job's sys.path, so a click.py (or
+    numpy.py, json.py, pxr/) left there ran inside every job. Jobs now start isolated (``-I``)
+    with this process's own import path: the batch succeeds and no planted module is imported,
+    on the local pool and on a Dask cluster."""
+    folder = tmp_path / "shared_assets"
+    path = _planted_folder(folder)
+    scheduler = []
+    if where == "dask":
+        c, _ = request.getfixturevalue("cluster")
+        scheduler = ["--scheduler", c.scheduler_address]
+    code, _, err = run("batch", path, *scheduler, "-q")
+    assert code == 0, err
+    assert sorted(p.name for p in folder.iterdir() if p.name.startswith("IMPORTED-")) == []
+    assert all((folder / "out" / name).is_file() for name in ("correctives.usda", "weights.usda", "cache.usda"))
+
+
+IDENTITY_DEFORMER = "def make(stage, mesh, time):\n    return lambda points: points\n"
+
+
+@pytest.mark.parametrize("where", ["local", "dask"])
+@pytest.mark.parametrize("table", ["job", "defaults"])
+def test_a_deformer_named_in_a_jobs_file_needs_the_flag(where, table, run, tmp_path, request):
+    """A deformer is code: named in a jobs file (its own folder's deformer.py, say), it is refused in
+    one line before anything runs, on every back end, unless batch is given
+    --allow-deformers-from-jobs."""
+    (tmp_path / "deformer.py").write_text(IDENTITY_DEFORMER)
+    spec = 'deformer = ["deformer.py:make"]\n'
+    fit = f'[[fit]]\nasset = "{ASSET}"\nexamples = ["{EXAMPLES}"]\noutput = "out/c.usda"\n'
+    path = jobs_file(tmp_path, "[defaults]\n" + spec + fit if table == "defaults" else fit + spec)
+    scheduler = []
+    if where == "dask":
+        c, _ = request.getfixturevalue("cluster")
+        scheduler = ["--scheduler", c.scheduler_address]
+    code, _, err = run("batch", path, *scheduler)
+    named = f"{path} [defaults]" if table == "defaults" else f"{path} [[fit]] #1"
+    assert code == 3 and err == (f"psdbake: error: {named}: deformer 'deformer.py:make' would run code named by the "
+                                 "jobs file: deformers are taken from the command line only, unless batch is given "
+                                 "--allow-deformers-from-jobs\n")
+    assert not (tmp_path / "out").exists()
+    if where == "local" and table == "job":
+        code, _, err = run("batch", path, "--allow-deformers-from-jobs", "-q")
+        assert code == 0, err
+        assert (tmp_path / "out" / "c.usda").is_file()

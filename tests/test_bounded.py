@@ -78,7 +78,9 @@ def test_job_may_not_overwrite_the_jobs_file_or_a_deformer(name, what, cli):
     jobs = os.path.join(BAD, name)
     before = digest([jobs, os.path.join(DEFORMERS, "sleeps.py"), ASSET, EXAMPLES])
     out = os.path.join(BAD, name.replace(".toml", ".out.usda"))
-    refused(cli("batch", jobs), EXIT_INPUT, names=[name, "[[fit]] #1"], says=what, outputs=[out], inputs=before)
+    allowed = ["--allow-deformers-from-jobs"] if "deformer" in name else []  # allowed, and still refused for this
+    refused(cli("batch", jobs, *allowed), EXIT_INPUT, names=[name, "[[fit]] #1"], says=what, outputs=[out],
+            inputs=before)
 
 
 def test_job_may_not_overwrite_the_jobs_file_through_a_hard_link(cli, tmp_path):
@@ -147,6 +149,53 @@ def test_chunked_eval_allocates_its_chunk_only(cli, tmp_path):
     assert code == 0, err
     assert os.path.exists(tmp_path / "w.f0499901-0500000.usda")
     assert peak < 6_000_000, f"one 100-frame chunk allocated {peak} bytes"
+
+
+# --- text layers: nesting counted before USD parses them ----------------------------------------
+
+def _nested_layers(folder) -> dict[str, str]:
+    """Three text layers nested 100,000 levels: the asset with nested dictionaries in its metadata
+    (1.9 MB: USD's parser crashed, SIGSEGV), prims (crashed) and a value of nested parentheses
+    (over 120 s of parsing), the last two as an ANIM sublayering them."""
+    with open(ASSET, encoding="utf-8") as fh:
+        good = fh.read()
+    deep = 100_000
+    meta = "customLayerData = {\n" + "dictionary a = {\n" * deep + "}\n" * deep + "}\n"
+    files = {"asset": os.path.join(folder, "nested_metadata.usda")}
+    with open(files["asset"], "w", encoding="utf-8") as fh:
+        fh.write(good.replace("(\n    defaultPrim", "(\n    " + meta + "    defaultPrim", 1))
+    for name, body in (("prims", "".join(f'def "P{i}" {{\n' for i in range(deep)) + "}\n" * deep),
+                       ("parentheses", 'def "A" {\n    custom double x = ' + "(" * deep + "1" + ")" * deep + "\n}\n")):
+        with open(os.path.join(folder, f"nested_{name}.usda"), "w", encoding="utf-8") as fh:
+            fh.write("#usda 1.0\n" + body)
+        files[name] = os.path.join(folder, f"anim_over_{name}.usda")
+        with open(files[name], "w", encoding="utf-8") as fh:
+            fh.write(f"#usda 1.0\n(\n    subLayers = [@./nested_{name}.usda@, @{ANIM}@]\n)\n")
+    return files
+
+
+@pytest.mark.parametrize("which", ["asset", "prims", "parentheses"])
+def test_deeply_nested_text_is_refused_before_usd_parses_it(which, tmp_path):
+    files = _nested_layers(str(tmp_path))
+    out = tmp_path / "out.usda"
+    if which == "asset":
+        argv, names, line = ["fit", files["asset"], EXAMPLES, "-o", str(out)], [files["asset"]], 1002
+    else:
+        argv = ["eval", ASSET, CORRECTIVES, "--anim", files[which], "-o", str(out)]
+        names, line = [files[which], f"sublayer {tmp_path / f'nested_{which}.usda'}"], 1002 if which == "prims" else 3
+    before = digest([ASSET, EXAMPLES, CORRECTIVES, ANIM, *files.values()])
+    done = subprocess.run([PSDBAKE, *argv], capture_output=True, text=True, timeout=300)  # a crash fails here, alone
+    refused((done.returncode, done.stdout, done.stderr), EXIT_INPUT, names=names, outputs=[out], inputs=before,
+            says=fr"line {line}: nested deeper than {tol.MAX_TEXT_NESTING} levels .*USD's text parser would crash")
+
+
+def test_nesting_is_counted_outside_strings_and_comments():
+    from psdbake.usd.nesting import deepest
+
+    text = (b'#usda 1.0 ((((\n(\n    doc = """((((\n[[[["""\n)\ndef "A" (\n    customData = {\n'
+            b'        string x = "(((\\"(("\n    }\n)\n{\n    asset y = @a[b].usd@\n}\n')
+    assert deepest(text, limit=1) == (2, 7)  # A's metadata ( then its customData { at line 7
+    assert deepest(b"[(1, 2), (3, 4)]", limit=2) == (2, 0)
 
 
 # --- scheduler: bounded connect, plain TCP only ------------------------------------------------

@@ -12,7 +12,7 @@ import sys
 
 import numpy as np
 import pytest
-from conftest import ROOT, bake, fixture, generate, points, run_cli, stage_of
+from conftest import ROOT, bake, fixture, generate, points, run_cli, stage_of, stitched_chunks
 from pxr import Sdf, Usd, UsdValidation
 
 from psdbake.farm import plan as chunks
@@ -85,7 +85,9 @@ def test_points_cache_manifest_gives_the_single_cache(shot):
 @pytest.mark.slow
 def test_farm_tasks_write_the_same_bytes(shot, tmp_path):
     """Chunks by their own processes (at once, racing on the manifests) = the one-run files.
-    Three of the ten tasks (first, middle, last): each process spends ~1 s importing USD."""
+    Three of the ten tasks (first, middle, last) as processes, each spending ~1 s importing USD:
+    their chunks are the one run's, and the manifests stitch exactly those three (each task adds
+    its own under the lock); the other seven, run after, make the manifests the one run's too."""
     env = {**os.environ, "PYTHONPATH": ROOT}
     # the inputs where the shot has them relative to its outputs: each layer records its inputs' relative paths
     corr, anim = shutil.copy(shot["corr"], tmp_path), shutil.copy(shot["anim"], tmp_path)
@@ -104,6 +106,16 @@ def test_farm_tasks_write_the_same_bytes(shot, tmp_path):
     ours = sorted(os.listdir(tmp_path))
     assert ours == sorted(f"{kind}{part}.usda" for kind in ("weights", "cache")
                           for part in ("", ".clipmanifest", ".f0001-0100", ".f0501-0600", ".f0901-1000"))
+    _, mismatch, errors = filecmp.cmpfiles(tmp_path, shot["manifest"].parent, ours, shallow=False)
+    assert (sorted(mismatch), errors) == (["cache.usda", "weights.usda"], [])  # all but the manifests
+    for manifest in (out, cache):
+        assert stitched_chunks(manifest) == [f"./{manifest.stem}.f{span}.usda" for span in ("0001-0100", "0501-0600",
+                                                                                      "0901-1000")]
+    for k in sorted(set(range(1, FRAMES // SIZE + 1)) - {1, 6, 10}):
+        code, _, err = run_cli("eval", ASSET, str(corr), "--anim", str(anim), "-o", out, "--points-cache", cache,
+                               "--frames", f"1:{FRAMES}", "--chunk-size", SIZE, "--chunk", k, "-q")
+        assert code == 0, err
+    ours = sorted(os.listdir(tmp_path))
     _, mismatch, errors = filecmp.cmpfiles(tmp_path, shot["manifest"].parent, ours, shallow=False)
     assert (mismatch, errors) == ([], [])
     # asset paths are relative: the folder can move and still resolve its chunks

@@ -12,6 +12,7 @@ import subprocess
 import sys
 import time
 
+import pausing
 import pytest
 from conftest import ROOT, fixture
 
@@ -43,7 +44,7 @@ def complete(tmp_path_factory) -> bytes:
 
 # --- killed at a known moment, not after a guessed delay ----------------------------------
 #
-# The run is held at the moment under test (psdbake's own commit hook, PSDBAKE_PAUSE_AT, or an
+# The run is held at the moment under test (tests/pausing.py wrapping psdbake's commit, or an
 # import hook during start-up), the test checks that it is there (the marker file exists, and
 # what is on disk at that moment), then signals it.
 
@@ -206,11 +207,13 @@ MULTI = ["fit --report", "eval --points-cache", "eval --chunk-size"]
 
 
 def _run_paused(argv, moment: str, marker, sig, release: bool, at_pause=None) -> subprocess.CompletedProcess:
-    """Run until MOMENT (``commit`` or ``rename``: psdbake's commit hook; ``start-up``: argv
+    """Run until MOMENT (``commit`` or ``rename``: held by tests/pausing.py; ``start-up``: argv
     pauses itself), prove it got there (the marker), check ``at_pause()`` while it waits
     there, signal it, let it go."""
-    env = {**os.environ, "PSDBAKE_PAUSE_AT": f"{moment}:{marker}"} if moment in ("commit", "rename") else None
-    proc = subprocess.Popen(argv, cwd=ROOT, env=env, stderr=subprocess.PIPE, text=True)
+    if moment in ("commit", "rename"):  # held from the test side (tests/pausing.py); argv is psdbake's
+        assert argv[0] == PSDBAKE
+        argv = pausing.argv({moment: str(marker)}, *argv[1:])
+    proc = subprocess.Popen(argv, cwd=ROOT, stderr=subprocess.PIPE, text=True)
     deadline = time.monotonic() + 60
     try:
         while not os.path.exists(marker):

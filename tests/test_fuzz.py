@@ -1,6 +1,7 @@
-"""A bounded fuzz run of each mode in make test (make fuzz runs 20,000 cases of each): every
-mutated input ends in finite output or a clean one-line refusal, inputs byte-identical and no
-file left; never an internal error, traceback, C++ location, crash or hang. Cases run in
+"""A bounded fuzz run of each mode in make test (make fuzz runs 20,000 cases of each mutation
+mode and 2,000 of concurrency): every mutated input ends in finite output or a clean one-line
+refusal, inputs byte-identical and no file left; never an internal error, traceback, C++
+location, crash or hang; two racing writers end as the two runs one after the other. Cases run in
 worker subprocesses (tests/fuzz.py), so a crash inside USD fails one case, not the session."""
 
 from __future__ import annotations
@@ -15,9 +16,10 @@ pytestmark = pytest.mark.slow  # make test-fast leaves this module out (make tes
 # cases per mode: together under a minute on two cores (a usdc case costs most: psdbake
 # reads every crate input in a probe process of its own)
 BOUNDED = {"text": 150, "sdf": 500, "usdc": 80}
+CONCURRENCY_CASES = 5  # about 9 s each on two cores, the references they need included
 
 
-@pytest.mark.parametrize("mode", fuzz.MODES)
+@pytest.mark.parametrize("mode", fuzz.MUTATION_MODES)
 def test_mutated_inputs_end_cleanly(mode):
     outcomes = fuzz.run(cases=BOUNDED[mode], seed=2026, mode=mode)
     assert len(outcomes) == BOUNDED[mode]
@@ -48,3 +50,15 @@ def test_crate_regions_cover_the_file():
     regions = fuzz.crate_regions(data)
     assert {"header", "values", "TOKENS", "PATHS", "SPECS", "toc"} <= set(regions)
     assert regions["values"][0] == 88 and regions["values"][1] > 1000
+
+
+def test_racing_writers_end_as_two_runs_one_after_the_other():
+    """A few concurrency cases (each runs its two writers, and the serial references it needs,
+    as psdbake processes): every one ends as one of the two serial orders."""
+    outcomes = fuzz.run(cases=CONCURRENCY_CASES, seed=2026, mode="concurrency")
+    assert len(outcomes) == CONCURRENCY_CASES
+    failures = [f"case {o.case} ({o.target}): {o.what}\n    {'; '.join(o.mutations)}\n    command: {o.command}\n"
+                f"    replay: python -m tests.fuzz --mode concurrency --seed 2026 --only {o.case}"
+                for o in outcomes if not o.ok]
+    assert not failures, "\n".join(failures)
+    assert all(o.what.startswith("ok: as ") for o in outcomes)

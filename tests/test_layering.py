@@ -120,7 +120,7 @@ def test_registries_are_keyed_by_their_names():
 #: The layers, lowest first: a module imports only from its own layer or lower ones. The tree
 #: reads as the pipeline: read USD -> pose space -> black-box skinning -> inverse -> RBF -> write.
 LAYERS = (
-    ("base", ("errors", "names", "tolerances", "arrays", "lookup", "outputs", "atomic")),
+    ("base", ("errors", "names", "tolerances", "arrays", "lookup", "outputs", "atomic", "paths")),
     ("model", ("model",)),
     ("geometry", ("normals", "deformers")),
     ("usd", ("usd",)),
@@ -138,6 +138,7 @@ UPWARD = {
     ("psdbake.farm.job", "psdbake._entry"),  # a farm task is the psdbake command in a process of its own
     ("psdbake.outputs", "psdbake.usd.provenance"),  # an existing layer's kind is read with USD, lazily
     ("psdbake.usd.meshfaces", "psdbake.sculpting.obj.faces"),  # USD's faces read into the OBJ format's class
+    ("psdbake.deformers", "psdbake.usd.diagnostics"),  # a deformer's USD error in USD's words, lazily
 }
 
 

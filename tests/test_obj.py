@@ -23,6 +23,7 @@ import time
 
 import character
 import numpy as np
+import pausing
 import pytest
 from conftest import (
     CESIUM,
@@ -241,12 +242,11 @@ def test_obj_dir_policy(run, tmp_path):
 
 @pytest.mark.slow
 def test_interrupted_before_the_commit_leaves_nothing(tmp_path):
-    """SIGTERM with EXAMPLES, every OBJ and the manifest written to temporary files (psdbake's
-    commit hook holds the run there): exit 130, no EXAMPLES, and the folder it made is gone."""
+    """SIGTERM with EXAMPLES, every OBJ and the manifest written to temporary files (tests/pausing.py
+    holds the run there): exit 130, no EXAMPLES, and the folder it made is gone."""
     examples, objs, marker = tmp_path / "posed.usda", tmp_path / "objs", tmp_path / "marker"
-    env = {**os.environ, "PSDBAKE_PAUSE_AT": f"commit:{marker}"}
-    proc = subprocess.Popen([sys.executable, "-m", "psdbake", "pose", ASSET, "--anim", GOOD_EXAMPLES, "-o", str(examples),
-                             "--obj-dir", str(objs)], env=env, stderr=subprocess.PIPE, text=True)
+    proc = subprocess.Popen(pausing.argv({"commit": str(marker)}, "pose", ASSET, "--anim", GOOD_EXAMPLES, "-o",
+                                         str(examples), "--obj-dir", str(objs)), stderr=subprocess.PIPE, text=True)
     deadline = time.monotonic() + 60
     while not marker.exists():
         assert proc.poll() is None and time.monotonic() < deadline, proc.stderr.read() if proc.stderr else ""

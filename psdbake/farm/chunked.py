@@ -7,13 +7,22 @@ CORRECTIVES + ANIM + manifest opens as one animation.
 
 Exactness: a frame's weights are computed from that frame alone (``rbf.row_independent_product``),
 so chunked and single evaluations give the same bits. The manifest is any chunk without its
-time samples plus clips over the plan's chunks: it never depends on sample values, so every
-farm task writes the identical manifest atomically and racing writers are harmless.
+time samples plus clips over the chunks written so far: it never depends on sample values.
+
+Concurrency: every chunk task adds its chunk to the manifest in a read-modify-write under the
+output folders' lock (``api.updating``). The manifest records its *shot* (``shot_id``: the
+inputs' bytes, the plan, the points cache, the deformers) and the chunks of that shot written
+so far, and stitches only those, so it never stitches chunks of two shots: a task of another
+shot is refused (exit 6) while the recorded shot is incomplete, and starts the manifest over
+once it is complete (or with ``--force``). Once every task of a shot has run, the manifest is
+the same bytes whatever order they ran in, and the same as one run of all the chunks.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import hashlib
+import json
 import os
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -24,7 +33,7 @@ from numpy.typing import NDArray
 
 from .. import __version__, api, atomic
 from ..arrays import Progress
-from ..errors import InputError, where
+from ..errors import InputError, OutputError, where
 from ..outputs import CLIP_MANIFEST, POINTS_CACHE, WEIGHTS
 from ..results import WeightsResult
 from ..usd import clips, provenance
@@ -117,15 +126,54 @@ def _relative(path: str, anchor: str) -> str:
     return rel if rel.startswith("../") else "./" + rel
 
 
-def manifest_layers(template: Any, plan: ChunkPlan, output: str, what: str) -> tuple[Any, Any]:
+def manifest_layers(template: Any, plan: ChunkPlan, output: str, what: str,
+                    stitched: Sequence[int] | None = None) -> tuple[Any, Any]:
     """(manifest layer for ``output``, its clip manifest), from one chunk layer written for ``output``:
-    that chunk without its time samples, plus clips over every chunk of the plan."""
-    assets = [_relative(chunk_path(output, plan, c), output) for c in plan.chunks]
+    that chunk without its time samples, plus clips over the chunks numbered ``stitched`` (1-based;
+    None: every chunk of the plan)."""
+    chosen = list(plan.chunks) if stitched is None else [plan.chunks[k - 1] for k in sorted(stitched)]
+    assets = [_relative(chunk_path(output, plan, c), output) for c in chosen]
     return clips.stitching_layers(
-        template, assets, [c.first for c in plan.chunks], (plan.first, plan.last),
+        template, assets, [c.first for c in chosen], (plan.first, plan.last),
         _relative(clip_manifest_path(output), output),
         f"psdbake {__version__} eval: {what}, stitched from farm chunks with value clips",
     )
+
+
+def shot_id(ev: ChunkedWeights, points_cache: str | None, output: str, deformers: Sequence[str]) -> str:
+    """What makes two chunk tasks parts of one shot: the bytes of the asset, CORRECTIVES and ANIM,
+    the plan (chunk size, frames), the animations and channels evaluated (``--mesh`` changes
+    them), the points cache beside the manifest and the deformer chain. Every task of one farm job
+    gives the same id; another shot, the same files edited, or another choice of meshes, another."""
+    plan = ev.plan
+    samples = hashlib.sha256(np.ascontiguousarray(plan.samples).tobytes()).hexdigest() if plan.samples is not None \
+        else None
+    record = {
+        "inputs": [provenance.file_sha256(p) for p in (ev.asset, ev.correctives, ev.anim)],
+        "plan": [plan.size, plan.count, plan.first, plan.last, samples],
+        "animations": [[path, list(channels)] for path, channels in ev.animations],
+        "points_cache": provenance.relative(points_cache, output) if points_cache else None,
+        "deformers": list(deformers), "version": __version__,
+    }
+    return hashlib.sha256(json.dumps(record, sort_keys=True).encode()).hexdigest()[:16]
+
+
+def _stitched(manifest: str, shot: str, count: int, mine: Sequence[int]) -> list[int]:
+    """The chunks the manifest at ``manifest`` is to stitch once this task's chunks ``mine`` are
+    written: those already recorded for this shot, and mine. Read under the update lock. A
+    manifest of another shot that is still incomplete is refused (OutputError, exit 6): adding a
+    chunk would stitch two shots; a complete one, or with ``--force``, is started over."""
+    record = provenance.plain(provenance.read_stamp(manifest).get("shot", {})) if os.path.isfile(manifest) else {}
+    if not record or record.get("id") == shot:
+        done = [int(k) for k in record.get("chunks", [])] if record else []
+        return sorted(set(done) | set(mine))
+    written, total = len(record.get("chunks", [])), int(record.get("count", 0))
+    if written < total and not atomic.forced():
+        raise OutputError(
+            f"{manifest}: the manifest of another shot, {written} of its {total} chunk(s) written so far: this chunk "
+            "would stitch two shots into one output; let that eval finish, write elsewhere, or give --force to "
+            "start this shot over")
+    return sorted(mine)
 
 
 @dataclass(frozen=True)
@@ -150,6 +198,7 @@ class WrittenChunks:
     points_clip_manifest: str | None
     chunks: tuple[ChunkFiles, ...]
     chunk_count: int
+    stitched: tuple[int, ...] = ()  # the chunks the manifest stitches now (this shot's, written so far)
 
 
 def _targets(ev: ChunkedWeights, output: str, points_cache: str | None) -> tuple[list[ChunkFiles], list[str]]:
@@ -174,7 +223,9 @@ def write_chunks(
 ) -> WrittenChunks:
     """Write the computed chunks and the manifests in one commit (``usdwrite.export_all``):
     all checks and all computing (points caches included) happen before the first file is
-    written, and a failure leaves every old file in place."""
+    written, and a failure leaves every old file in place. The manifests are read, extended
+    with this run's chunks and written under the update lock (``_stitched``: exit 6 while
+    another shot's chunks are being written there)."""
     inputs = api.files_read([ev.asset, ev.correctives, ev.anim], deformers)
     files, targets = _targets(ev, output, points_cache)
     kinds = {output: WEIGHTS, clip_manifest_path(output): CLIP_MANIFEST, **{f.weights: WEIGHTS for f in files}}
@@ -182,27 +233,38 @@ def write_chunks(
         kinds |= {points_cache: POINTS_CACHE, clip_manifest_path(points_cache): CLIP_MANIFEST,
                   **{f.points_cache: POINTS_CACHE for f in files if f.points_cache}}
     atomic.check_outputs([(t, kinds[t]) for t in targets], inputs)
-    layers = []
+    chunks = []
     for (_, result), f in zip(ev.results, files, strict=True):
-        layers.append((f.weights, api.stamp_weights(api.weights_layer(result), "weights", result, f.weights)))
+        chunks.append((f.weights, api.stamp_weights(api.weights_layer(result), "weights", result, f.weights)))
         if f.points_cache:
             cache = api.points_cache_layer(result, deformers, progress=progress)
-            layers.append((f.points_cache, api.stamp_weights(cache, "points_cache", result, f.points_cache, deformers)))
-    # The manifests from the first chunk computed here, stamped without the command line (which
-    # names the chunk): any chunk gives the same bytes.
-    first = ev.results[0][1]
-    manifest, clip_manifest = manifest_layers(layers[0][1], ev.plan, output, "corrective blend-shape weights")
-    api.stamp_weights(manifest, "weights", first, output, command=False)
-    layers += [(clip_manifest_path(output), provenance.stamp(clip_manifest, "clip_manifest")), (output, manifest)]
-    if points_cache:
-        cache_manifest, cache_clip_manifest = manifest_layers(layers[1][1], ev.plan, points_cache,
-                                                              "points cache (no UsdSkel needed)")
-        api.stamp_weights(cache_manifest, "points_cache", first, points_cache, deformers, command=False)
-        layers += [(clip_manifest_path(points_cache), provenance.stamp(cache_clip_manifest, "clip_manifest")),
-                   (points_cache, cache_manifest)]
-    usdwrite.export_all(layers, inputs)
+            chunks.append((f.points_cache, api.stamp_weights(cache, "points_cache", result, f.points_cache, deformers)))
+    shot, count, mine = shot_id(ev, points_cache, output, deformers), len(ev.plan.chunks), [f.chunk for f in files]
+    manifests = [output, *([points_cache] if points_cache else [])]
+    with api.updating(*manifests):  # read the manifests, add this task's chunks, commit: one step
+        stitched = _stitched(output, shot, count, mine)
+        if points_cache:
+            stitched = sorted((set(stitched) & set(_stitched(points_cache, shot, count, mine))) | set(mine))
+        record = {"id": shot, "count": count, "chunks": stitched}
+        # The manifests from the first chunk computed here, stamped without the command line (which
+        # names the chunk): any chunk of the shot gives the same bytes.
+        first = ev.results[0][1]
+        manifest, clip_manifest = manifest_layers(chunks[0][1], ev.plan, output, "corrective blend-shape weights",
+                                                  stitched)
+        api.stamp_weights(manifest, "weights", first, output, command=False)
+        provenance.add_to_stamp(manifest, {"shot": record})
+        layers = [*chunks, (clip_manifest_path(output), provenance.stamp(clip_manifest, "clip_manifest")),
+                  (output, manifest)]
+        if points_cache:
+            cache_manifest, cache_clip_manifest = manifest_layers(chunks[1][1], ev.plan, points_cache,
+                                                                  "points cache (no UsdSkel needed)", stitched)
+            api.stamp_weights(cache_manifest, "points_cache", first, points_cache, deformers, command=False)
+            provenance.add_to_stamp(cache_manifest, {"shot": record})
+            layers += [(clip_manifest_path(points_cache), provenance.stamp(cache_clip_manifest, "clip_manifest")),
+                       (points_cache, cache_manifest)]
+        usdwrite.export_all(layers, inputs)
     return WrittenChunks(
         manifest=output, clip_manifest=clip_manifest_path(output), points_cache=points_cache,
         points_clip_manifest=clip_manifest_path(points_cache) if points_cache else None,
-        chunks=tuple(files), chunk_count=len(ev.plan.chunks),
+        chunks=tuple(files), chunk_count=len(ev.plan.chunks), stitched=tuple(stitched),
     )

@@ -1,4 +1,5 @@
-"""One ``psdbake batch`` task: ``python -m psdbake.farm.job PARENT_PID COMMAND ARGS...``.
+"""One ``psdbake batch`` task: ``main`` with argv ``PARENT_PID COMMAND ARGS...`` (started by
+``runner.job_argv`` with an isolated ``sys.path``).
 
 Exactly ``python -m psdbake COMMAND ARGS...``, except that the process dies with the one that
 started it (Linux ``PR_SET_PDEATHSIG``, delivered as SIGTERM, which psdbake unwinds, removing

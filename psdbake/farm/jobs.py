@@ -108,6 +108,16 @@ def _parts(name: str, n: int, where: str, values: Mapping[str, Any], keys: Mappi
             for k, files in chunks]
 
 
+def _refuse_deformers(where: str, table: Mapping[str, Any], keys: Mapping[str, click.Parameter]) -> None:
+    """A deformer named in a jobs file is code a data folder would make psdbake run: refused unless
+    the batch was started with ``--allow-deformers-from-jobs``."""
+    for key, value in table.items():
+        if key in keys and keys[key].name == "deformers":
+            specs = value if isinstance(value, list) else [value]
+            raise InputError(f"{where}: deformer {specs[0]!r} would run code named by the jobs file: deformers are "
+                             "taken from the command line only, unless batch is given --allow-deformers-from-jobs")
+
+
 def _job(name: str, n: int, where: str, values: Mapping[str, Any], command: click.Command,
          keys: Mapping[str, click.Parameter], kept: list[tuple[str, str]]) -> Job:
     """One checked job; the ``--deformer`` sources it names are added to ``kept``."""
@@ -124,16 +134,21 @@ def _job(name: str, n: int, where: str, values: Mapping[str, Any], command: clic
     return Job(f"[[{name}]] #{n}", name, reads, writes, _parts(name, n, where, values, keys, args, writes))
 
 
-def load_jobs(path: str, commands: Mapping[str, click.Command]) -> Batch:
+def load_jobs(path: str, commands: Mapping[str, click.Command], *, allow_deformers: bool = False) -> Batch:
     """Parse, check and expand a jobs file; refuse it whole (InputError) if any job is wrong.
 
     commands: the click command of each job table (``[[fit]]`` -> ``psdbake fit``), the CLI's
     own, so a job takes exactly what its command takes; their order is the order messages list
-    them in. Passed in: the farm never imports the CLI."""
+    them in. Passed in: the farm never imports the CLI.
+    allow_deformers: accept ``deformer`` keys (``batch --allow-deformers-from-jobs``); without
+    it a jobs file naming one is refused, since a deformer is code."""
     doc = _read_toml(path)
     folder = os.path.dirname(os.path.abspath(path))
     schemas = {name: schema.schema(cmd) for name, cmd in commands.items()}
     defaults = _defaults(path, doc, schemas)
+    if not allow_deformers:
+        for keys in schemas.values():
+            _refuse_deformers(f"{path} [defaults]", {k: v for k, v in defaults.items() if k in keys}, keys)
     jobs: list[Job] = []
     kept: list[tuple[str, str]] = [(os.path.abspath(path), "the jobs file itself")]  # read, never written by a job
     for name in doc:  # tables in order of first appearance, jobs in file order
@@ -150,6 +165,8 @@ def load_jobs(path: str, commands: Mapping[str, click.Command]) -> Batch:
                 if key not in keys:
                     owned = " (psdbake batch sets it)" if key in ("quiet", "verbose", "json") else ""
                     raise InputError(f"{where}: unknown key {key!r} for psdbake {name}{owned}")
+            if not allow_deformers:
+                _refuse_deformers(where, job, keys)
             values = {k: v for k, v in defaults.items() if k in keys} | job
             jobs.append(_job(name, n, where, values, commands[name], keys, kept))
     _refuse_overwrites(folder, kept, [(p, f"{path} {j.label}") for j in jobs for p in j.writes])

@@ -55,6 +55,10 @@ class JobResult:
     error: str = ""  # the job's last stderr line when it failed; why it was skipped or lost
     warnings: tuple[str, ...] = ()
     worker: str = ""  # host:pid of the process that ran it
+    #: (file, label) for each file this task writes whose writers so far, this task included, did
+    #: not all succeed: the first that did not. A reader needs only the last writer of a file
+    #: (edges stay linear), and learns from it whether any earlier one failed.
+    failed_writes: tuple[tuple[str, str], ...] = ()
 
 
 @dataclass(frozen=True)

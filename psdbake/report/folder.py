@@ -4,7 +4,9 @@
 folder without it is refused, a folder with it is updated in place. Every file of one
 report is written to a temporary file first and all are renamed together
 (``atomic.Transaction``), so a failed or interrupted run leaves the previous report whole;
-files the previous report listed and this one does not write are removed after the commit.
+files the previous report listed and this one does not write are removed after the commit,
+under the folder's update lock with the check and the commit (another run into the same folder
+comes wholly before or after).
 """
 
 from __future__ import annotations
@@ -66,25 +68,28 @@ def write_folder(out_dir: str, files: Sequence[tuple[str, Writer]], inputs: Sequ
     """Check and create out_dir, write every (name, writer) into one transaction, commit,
     then drop the previous report's files this one no longer has. Returns the names."""
     check_report_dir(out_dir, inputs)
-    previous = (previous_files(out_dir) or []) if os.path.isdir(out_dir) else []
     try:
         os.makedirs(out_dir, exist_ok=True)
     except OSError as exc:
         raise OutputError(f"{out_dir}: cannot create the folder ({exc.strerror or exc})") from None
     names = [name for name, _ in files]
-    with atomic.Transaction(inputs) as tx:
-        for name, write in files:
-            dest = os.path.join(out_dir, name)
-            tmp = tx.path(dest)
+    # one step for another run into the same folder: the check again, the commit and the removals
+    with atomic.updating(os.path.join(out_dir, names[0] if names else "index.html")):
+        check_report_dir(out_dir, inputs)
+        previous = previous_files(out_dir) or []
+        with atomic.Transaction(inputs) as tx:
+            for name, write in files:
+                dest = os.path.join(out_dir, name)
+                tmp = tx.path(dest)
+                try:
+                    write(tmp)
+                except OSError as exc:
+                    raise OutputError(f"{dest}: cannot write ({exc.strerror or exc})") from None
+        for stale in sorted(set(previous) - set(names)):
             try:
-                write(tmp)
-            except OSError as exc:
-                raise OutputError(f"{dest}: cannot write ({exc.strerror or exc})") from None
-    for stale in sorted(set(previous) - set(names)):
-        try:
-            os.remove(os.path.join(out_dir, stale))
-        except FileNotFoundError:
-            pass
+                os.remove(os.path.join(out_dir, stale))
+            except FileNotFoundError:
+                pass
     return names
 
 

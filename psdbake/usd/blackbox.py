@@ -22,11 +22,12 @@ from typing import NoReturn
 
 import numpy as np
 from numpy.typing import NDArray
-from pxr import Usd, UsdGeom, UsdSkel, Vt
+from pxr import Tf, Usd, UsdGeom, UsdSkel, Vt
 
 from ..arrays import Points, is_singular
 from ..deformers import DeformerFactory, PointFn
 from ..errors import DeformerError, InputError, where
+from .diagnostics import first_line
 from .posedpoints import PosedPoints, RestPoints, writable
 from .read import Scene
 
@@ -248,6 +249,8 @@ def _why(exc: BaseException) -> str:
     """One line for an exception a deformer raised (SystemExit: it tried to end the process)."""
     if isinstance(exc, SystemExit):
         return f"it called sys.exit({exc.code!r}) (SystemExit): a deformer must return points or raise an error"
+    if isinstance(exc, Tf.ErrorException) or "pxrInternal" in str(exc):  # USD's error: its words, not its C++ location
+        return f"USD error: {first_line(exc)}"
     text = (str(exc).strip().splitlines() or [""])[0]
     return f"{type(exc).__name__}: {text}"
 

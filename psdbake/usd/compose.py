@@ -4,7 +4,8 @@ Every command opens an in-memory root layer whose sublayers are the given files,
 strongest first (e.g. ``[EXAMPLES, ASSET]``), so ``POSES``/``EXAMPLES``/``ANIM`` layers
 need not reference ASSET. Inputs are opened read-only and never saved; only regular
 files are opened, binary ones after a child process has read them whole
-(``integrity``), and layer metadata that would make USD loop is refused.
+(``integrity``), text ones after their nesting is counted (``nesting``), and layer metadata
+that would make USD loop is refused.
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ from ..errors import InputError
 from .dependencies import layer_files, require_regular
 from .diagnostics import first_line as _first_line
 from .integrity import require_readable_crates
+from .nesting import require_shallow
 
 
 def open_layer(path: str) -> Sdf.Layer:
@@ -31,6 +33,7 @@ def open_layer(path: str) -> Sdf.Layer:
         raise InputError(f"{path}: file is not readable (permission denied)")
     require_regular(path)
     require_readable_crates([path])
+    require_shallow(path)
     try:
         layer = Sdf.Layer.FindOrOpen(path)
     except Tf.ErrorException as exc:
@@ -51,6 +54,29 @@ def open_layer(path: str) -> Sdf.Layer:
             if not np.isfinite(value) or (positive and value <= 0):
                 raise InputError(f"{path}: layer metadata {key} = {value!r} is not a {'positive ' if positive else ''}number")
     return layer
+
+
+def reread(path: str) -> None:
+    """Make USD's copy of the layer file at path what the file holds now.
+
+    USD keeps one copy of each layer per process: ``Sdf.Layer.FindOrOpen`` returns the copy
+    this process already loaded (the command walks its inputs, and keeps them open, before it
+    reads them) even after another process has replaced the file. A read-modify-write of an
+    output (``fit --group``, ``mirror`` in place) calls this under its update lock, so what it
+    reads and merges is the file as the last writer left it, not the copy of minutes ago. The
+    new bytes are checked as any input is (regular file, crate probe, text nesting) first."""
+    layer = Sdf.Layer.Find(path)
+    if layer is None or not os.path.isfile(path):
+        return  # not loaded: the next open reads the file; gone: the next open says so
+    require_regular(path)
+    require_readable_crates([path])
+    require_shallow(path)
+    try:
+        reloaded = layer.Reload(force=True)
+    except Tf.ErrorException as exc:
+        raise InputError(f"{path}: not a readable USD file ({_first_line(exc)})") from None
+    if not reloaded:
+        raise InputError(f"{path}: not a readable USD file (USD could not read it again)")
 
 
 def _time_rates(root: Sdf.Layer, layers: Sequence[Sdf.Layer]) -> None:

@@ -28,6 +28,7 @@ from pxr import Sdf, Tf, UsdUtils
 from ..errors import InputError
 from .diagnostics import first_line
 from .integrity import require_readable_crates
+from .nesting import require_shallow
 
 _KIND = ("sublayer", "reference", "payload")  # UsdUtils.ExtractExternalReferences' three lists
 #: The layers the walk opened inside ``layers_kept_open`` (innermost context last).
@@ -98,6 +99,7 @@ def _open(path: str, referrer: str | None, kind: str) -> Sdf.Layer | None:
         return None
     try:
         require_readable_crates([outer])
+        require_shallow(outer)
     except InputError as exc:
         if referrer is None:
             raise

@@ -10,7 +10,7 @@ import numpy as np
 from pxr import Sdf, Usd, UsdGeom, UsdSkel
 
 from .compose import compose, open_layer
-from .read import Scene
+from .read import Scene, hidden_from_usdskel, why_hidden
 from .schema import read_groups
 
 #: Two world matrices are the same transform when no entry differs by more than this
@@ -69,7 +69,8 @@ def describe(path: str) -> dict:
 
     layer.Traverse(Sdf.Path.absoluteRootPath, visit)
     out["examples"] = [{"mesh": m, "time_codes": t} for m, t in sorted(found)]
-    out["warnings"] = client_layout_warnings(stage, path)
+    out["warnings"] = [f"{path} <{mesh}>: {why_hidden(stage, blocker)}" for mesh, blocker in hidden_from_usdskel(stage)]
+    out["warnings"] += client_layout_warnings(stage, path)
     return out
 
 

@@ -87,7 +87,7 @@ def _key(path: str) -> tuple[str, int, int]:
     return os.path.realpath(path), st.st_size, st.st_mtime_ns
 
 
-def _settled_identity(path: str) -> tuple[int, ...] | None:
+def settled_identity(path: str) -> tuple[int, ...] | None:
     """(device, inode, size, mtime, ctime) of path when its last change is at least
     SETTLED_SECONDS old, else None: two equal identities mean the same bytes."""
     try:
@@ -164,15 +164,15 @@ def _remember(path: str, entry: str | None, before: tuple[int, ...] | None) -> N
     shortcut is stored too. Any failure is silently skipped."""
     if entry is None:
         return
-    unchanged = before is not None and _settled_identity(path) == before
+    unchanged = before is not None and settled_identity(path) == before
     if not unchanged and _verdict_entry(path) != entry:
         return
-    _store(entry)
+    store_entry(entry)
     if unchanged:
-        _store(_identity_entry(path, before))
+        store_entry(_identity_entry(path, before))
 
 
-def _store(entry: str | None) -> None:
+def store_entry(entry: str | None) -> None:
     """An empty file at entry, made atomically; any failure silently skipped."""
     if entry is None:
         return
@@ -201,7 +201,7 @@ def vouch_written(entries: list[str | None]) -> None:
     replacing it, finds it vouched for by content and does not probe it again (every farm re-run
     of a ``.usdc`` output would otherwise pay a child process)."""
     for entry in entries:
-        _store(entry)
+        store_entry(entry)
 
 
 def require_readable_crates(paths: list[str]) -> None:
@@ -219,7 +219,7 @@ def require_readable_crates(paths: list[str]) -> None:
         key = _key(path)  # before hashing: a file changed after it is not taken as checked
         if key in _checked:
             continue
-        identity = _settled_identity(path)  # before hashing too: what _remember compares
+        identity = settled_identity(path)  # before hashing too: what _remember compares
         shortcut = _identity_entry(path, identity)
         if shortcut is not None and os.path.isfile(shortcut):
             _checked[key] = None
@@ -227,8 +227,8 @@ def require_readable_crates(paths: list[str]) -> None:
         entry = _verdict_entry(path)
         if entry is not None and os.path.isfile(entry):
             _checked[key] = None
-            if identity is not None and _settled_identity(path) == identity:  # the bytes hashed are the identity's
-                _store(shortcut)
+            if identity is not None and settled_identity(path) == identity:  # the bytes hashed are the identity's
+                store_entry(shortcut)
             continue
         todo.append(path)
         keys[path], entries[path], identities[path] = key, entry, identity

@@ -218,6 +218,14 @@ def stamp(layer: Sdf.Layer, kind: str, record: Mapping[str, Any] | None = None) 
     return layer
 
 
+def add_to_stamp(layer: Sdf.Layer, record: Mapping[str, Any]) -> Sdf.Layer:
+    """Add ``record``'s entries to the provenance layer already carries (``stamp``)."""
+    custom = dict(layer.customLayerData)
+    custom[KEY] = {**dict(custom.get(KEY, {})), **_vt(dict(record))}
+    layer.customLayerData = custom
+    return layer
+
+
 def plain(value: Any) -> Any:
     """customLayerData values -> plain Python (typed arrays become lists), for comparisons and JSON."""
     if isinstance(value, Mapping):

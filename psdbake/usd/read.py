@@ -15,19 +15,74 @@ from collections.abc import Sequence
 
 import numpy as np
 from numpy.typing import NDArray
-from pxr import Sdf, Usd, UsdGeom, UsdSkel
+from pxr import Sdf, Usd, UsdGeom, UsdSkel, Vt
 
 from ..errors import InputError, where
 from ..model.posespace import undefined_rotations
 from ..model.rig import SkinnedMesh
 from .compose import compose
+from .diagnostics import first_line
 from .schema import BlendShapeData, DriverData, read_blend_shape, read_groups
 from .valuetypes import Checked, check_value_types
+
+
+def hidden_from_usdskel(stage: Usd.Stage) -> list[tuple[str, str]]:
+    """(mesh, ancestor) for each point-based prim bound to a skeleton below a SkelRoot that
+    UsdSkel never reaches: its traversal does not descend below a prim that is not imageable
+    (a typeless ``def "Geo"``, a Material), so no viewer, no BakeSkinning and no psdbake
+    command skins that mesh, although its binding is authored."""
+    out = []
+    for prim in stage.Traverse(Usd.TraverseInstanceProxies()):
+        if not (prim.IsA(UsdGeom.PointBased) and prim.HasAPI(UsdSkel.BindingAPI)):
+            continue
+        if not UsdSkel.BindingAPI(prim).GetInheritedSkeleton():
+            continue
+        blocker, parent = None, prim.GetParent()
+        while parent and not parent.IsPseudoRoot() and not parent.IsA(UsdSkel.Root):
+            if not parent.IsA(UsdGeom.Imageable):
+                blocker = parent
+            parent = parent.GetParent()
+        if blocker is not None and parent and parent.IsA(UsdSkel.Root):
+            out.append((str(prim.GetPath()), str(blocker.GetPath())))
+    return out
+
+
+def why_hidden(stage: Usd.Stage, blocker: str) -> str:
+    """Why UsdSkel does not skin a mesh below ``blocker`` (``hidden_from_usdskel``), and the fix."""
+    kind = stage.GetPrimAtPath(blocker).GetTypeName()
+    what = f'has no type (def "{blocker.rsplit("/", 1)[-1]}")' if not kind else f"is a {kind}, not an imageable prim"
+    return (f"bound to a skeleton, but UsdSkel never skins it: its ancestor <{blocker}> {what}, and UsdSkel does not "
+            f"look below such prims; give <{blocker}> a type such as Xform or Scope")
+
+
+def _invalid_skeleton(prim: Usd.Prim) -> str:
+    """Why UsdSkel refuses a skeleton's joint list (its query is invalid), in the list's terms."""
+    joints = [str(j) for j in UsdSkel.Skeleton(prim).GetJointsAttr().Get() or []]
+    if not joints:
+        return "the skeleton lists no joints"
+    index: dict[str, int] = {}
+    for i, joint in enumerate(joints):
+        if joint in index:
+            return f"joint {joint!r} is listed twice (indices {index[joint]} and {i})"
+        index.setdefault(joint, i)
+    for i, joint in enumerate(joints):
+        parent = joint.rpartition("/")[0]
+        if parent in index and index[parent] > i:
+            return (f"joint {joint!r} (index {i}) is listed before its parent {parent!r} (index {index[parent]}): "
+                    "UsdSkel needs every joint after its parent")
+    valid, reason = UsdSkel.Topology(Vt.TokenArray(joints)).Validate()
+    if not valid:
+        return f"UsdSkel refuses the joint hierarchy ({first_line(reason)})"
+    return "UsdSkel refuses the skeleton"
 
 
 def matrices(values) -> NDArray[np.float64]:
     """Vt.Matrix4dArray (or a list of Gf.Matrix4d) -> (n, 4, 4) float64, row-vector convention."""
     return np.array(values, dtype=np.float64).reshape(-1, 4, 4)
+
+
+#: The prim fields that author a composition arc: where an instance's prototype comes from.
+_ARC_KEYS = ("references", "payload", "inheritPaths", "specializes")
 
 
 class Scene:
@@ -87,7 +142,8 @@ class Scene:
         for path in sorted(self._targets):
             query, skel_query, root, skeleton = self._targets[path]
             if not skel_query:
-                raise InputError(f"{where(self.label, path)}: bound skeleton is invalid")
+                raise InputError(f"{where(self.label, skeleton, 'joints')}: {_invalid_skeleton(self.prim(skeleton))}, "
+                                 f"so it cannot skin <{path}>")
             joints = tuple(str(j) for j in skel_query.GetJointOrder())
             unknown = [str(j) for j in (query.GetJointOrder() or []) if str(j) not in set(joints)]
             if unknown:
@@ -133,7 +189,13 @@ class Scene:
         arcs = list(prim.GetPrimIndex().rootNode.children)
         if not arcs:
             return str(prim.GetPath()), "its prototype"
-        return str(prim.GetPath()), f"@{arcs[0].layerStack.identifier.rootLayer.identifier}@<{arcs[0].path}>"
+        source = arcs[0].layerStack.identifier.rootLayer
+        if source.anonymous:  # an arc inside the inputs (``references = </Proto>``): name the file authoring it
+            authors = [spec.layer for spec in prim.GetPrimStack() if not spec.layer.anonymous
+                       and any(spec.HasInfo(key) for key in _ARC_KEYS)]
+            source = authors[0] if authors else source
+        name = self.label if source.anonymous else source.identifier
+        return str(prim.GetPath()), f"@{name}@<{arcs[0].path}>"
 
     def require_not_instanced(self, mesh: str) -> None:
         """Refuse a mesh inside an instance: USD ignores opinions authored over instance
@@ -152,6 +214,8 @@ class Scene:
         if not roots:
             raise InputError(f"{self.label}: no SkelRoot prim found (UsdSkel needs one above the skinned meshes)")
         if not self._targets:
+            for mesh, blocker in hidden_from_usdskel(self.stage)[:1]:
+                raise InputError(f"{where(self.label, mesh)}: {why_hidden(self.stage, blocker)}")
             names = ", ".join(f"<{p.GetPath()}>" for p in roots)
             raise InputError(
                 f"{self.label}: no skinned mesh under {names} "

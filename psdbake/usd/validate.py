@@ -83,6 +83,11 @@ def require_psd_prims_skinned(scene: Scene, correctives: str, asset: str) -> Non
         reached |= {str(s.path) for s in scene.prim(info.path).GetPrimStack() if s.layer.identifier == layer.identifier}
     stray = [p for p in psd_prims(layer) if p not in reached]
     if stray:
+        inside = scene.instance_of(stray[0])
+        if inside:
+            raise InputError(f"{where(correctives, stray[0])}: has correctives, but in {asset} it is inside instance "
+                             f"<{inside[0]}> of {inside[1]}, where USD ignores them: fit that asset itself and reference "
+                             "the corrected asset")
         raise InputError(f"{where(correctives, stray[0])}: has correctives but is not a skinned mesh of {asset} "
                          "(CORRECTIVES fitted on another asset?): eval would ignore them")
 
@@ -161,6 +166,13 @@ def validate_skinning(scene: Scene, mesh: str) -> list[str]:
     ind_pv, w_pv = binding.GetJointIndicesPrimvar(), binding.GetJointWeightsPrimvar()
     if not ind_pv or not ind_pv.HasAuthoredValue() or not w_pv or not w_pv.HasAuthoredValue():
         raise InputError(f"{label}: no primvars:skel:jointIndices/jointWeights: the mesh has no skin influences")
+    for name, primvar in (("jointIndices", ind_pv), ("jointWeights", w_pv)):
+        interpolation = primvar.GetInterpolation()
+        if interpolation not in (UsdGeom.Tokens.vertex, UsdGeom.Tokens.constant):
+            raise InputError(
+                f"{where(scene.label, mesh, 'primvars:skel:' + name)}: interpolation {str(interpolation)!r}: UsdSkel "
+                "skins with 'vertex' influences (one set per point) or 'constant' ones (one set for every point) only"
+            )
     indices = numbers(ind_pv.Get(), np.int64)
     weights = numbers(w_pv.Get(), np.float64)
     k = max(1, int(ind_pv.GetElementSize()))

@@ -97,6 +97,9 @@ def _probe(address: str, timeout: float) -> None:
     except TimeoutError:  # asyncio.TimeoutError is TimeoutError since 3.11
         raise InputError(f"--scheduler {address}: no answer within {timeout:g} s "
                          "(not a Dask scheduler, or a hung one)") from None
+    except (MemoryError, OverflowError):  # distributed read another protocol's bytes as a frame length
+        raise InputError(f"--scheduler {address}: not a Dask scheduler: it answers in another protocol (an HTTP "
+                         "server? Dask's dashboard is HTTP, usually on port 8787; its scheduler on 8786)") from None
     except (OSError, ValueError) as exc:
         raise InputError(f"--scheduler {address}: cannot connect ({_first_line(exc)})") from None
 

@@ -186,36 +186,47 @@ def write_obj_dir(folder: str, examples: str, write_examples: Callable[[str], No
                   objs: Sequence[tuple[ObjEntry, str]], sources: dict[str, str], inputs: Sequence[str] = ()) -> list[str]:
     """EXAMPLES (written by ``write_examples`` to the temporary path it is given), every OBJ
     text and the manifest, in one ``atomic.Transaction``; then the previous manifest's files
-    this run does not write are removed. Returns the OBJ names."""
+    this run does not write are removed. Returns the OBJ names. The folder is checked again,
+    committed and cleaned under the update lock of the folder and EXAMPLES' folder, so two runs
+    into one folder are one after the other: neither removes a file the other just wrote."""
     names = [e.file for e, _ in objs]
     check_obj_dir(folder, inputs, names)
-    previous = _previous(folder) if os.path.isdir(folder) else None
     created = not os.path.isdir(folder)
     try:
         os.makedirs(folder, exist_ok=True)
     except OSError as exc:
         raise OutputError(f"{folder}: cannot create the folder ({exc.strerror or exc})") from None
     try:
-        with atomic.Transaction(inputs) as tx:
-            tmp = tx.path(examples, kind=kind)
-            write_examples(tmp)
-            sources = {**sources, "examples_sha256": sha256_file(tmp)}
-            entries = []
-            for entry, text in objs:
-                data = text.encode("utf-8")
-                _write(tx, os.path.join(folder, entry.file), data)
-                entries.append(ObjEntry(entry.file, entry.mesh, entry.time, entry.points, entry.faces,
-                                        hashlib.sha256(data).hexdigest()))
-            _write(tx, os.path.join(folder, MANIFEST), manifest_text(entries, sources).encode("utf-8"))
+        # one step for other writers of the folder: the checks again, the commit and the removals
+        with atomic.updating(os.path.join(folder, MANIFEST), examples):
+            check_obj_dir(folder, inputs, names)
+            previous = _previous(folder)
+            _commit(folder, examples, write_examples, kind, objs, sources, inputs)
+            for stale in sorted({e.file for e in previous.entries} - set(names) if previous else ()):
+                with contextlib.suppress(FileNotFoundError):
+                    os.remove(os.path.join(folder, stale))
     except BaseException:
         if created:
             with contextlib.suppress(OSError):
                 os.rmdir(folder)  # a failed run leaves no folder it made
         raise
-    for stale in sorted({e.file for e in previous.entries} - set(names) if previous else ()):
-        with contextlib.suppress(FileNotFoundError):
-            os.remove(os.path.join(folder, stale))
     return names
+
+
+def _commit(folder: str, examples: str, write_examples: Callable[[str], None], kind: OutputKind,
+            objs: Sequence[tuple[ObjEntry, str]], sources: dict[str, str], inputs: Sequence[str]) -> None:
+    """EXAMPLES, every OBJ and the manifest in one ``atomic.Transaction``."""
+    with atomic.Transaction(inputs) as tx:
+        tmp = tx.path(examples, kind=kind)
+        write_examples(tmp)
+        sources = {**sources, "examples_sha256": sha256_file(tmp)}
+        entries = []
+        for entry, text in objs:
+            data = text.encode("utf-8")
+            _write(tx, os.path.join(folder, entry.file), data)
+            entries.append(ObjEntry(entry.file, entry.mesh, entry.time, entry.points, entry.faces,
+                                    hashlib.sha256(data).hexdigest()))
+        _write(tx, os.path.join(folder, MANIFEST), manifest_text(entries, sources).encode("utf-8"))
 
 
 def _write(tx: atomic.Transaction, dest: str, data: bytes) -> None:
