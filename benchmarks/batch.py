@@ -38,7 +38,7 @@ def run_batch(folder: str, text: str, workers: int) -> tuple[float, dict[str, by
         fh.write(text)
     exe = os.path.join(os.path.dirname(sys.executable), "psdbake")
     started = time.perf_counter()
-    subprocess.run([exe, "batch", os.path.join(folder, "jobs.toml"), "--workers", str(workers), "-q"], check=True)
+    subprocess.run([exe, "batch", os.path.join(folder, "jobs.toml"), "--jobs", str(workers), "-q"], check=True)
     seconds = time.perf_counter() - started
     out = os.path.join(folder, "out")
     files = {}

@@ -96,9 +96,14 @@ def check_output(path: str, inputs: Iterable[str] = (), extensions: Iterable[str
             raise OutputError(f"{path}: output path is also an input{also}; inputs are never modified")
     folder = os.path.dirname(real) or "."
     shown = os.path.dirname(path) or "."
-    if not os.path.isdir(folder):
-        raise OutputError(f"{path}: output folder {shown} does not exist")
-    if not os.access(folder, os.W_OK | os.X_OK):
+    existing = _existing_ancestor(folder)
+    if existing != folder:  # created when the output is written (make_folders), as --obj-dir and compare do
+        blocker = existing if os.path.isabs(path) else os.path.relpath(existing)
+        if not os.path.isdir(existing):
+            raise OutputError(f"{path}: cannot create output folder {shown}: {blocker} is not a folder")
+        if not os.access(existing, os.W_OK | os.X_OK):
+            raise OutputError(f"{path}: cannot create output folder {shown}: {blocker} is not writable")
+    elif not os.access(folder, os.W_OK | os.X_OK):
         raise OutputError(f"{path}: output folder {shown} is not writable")
     if os.path.isdir(real):
         raise OutputError(f"{path}: is a folder")
@@ -106,6 +111,42 @@ def check_output(path: str, inputs: Iterable[str] = (), extensions: Iterable[str
         raise OutputError(f"{path}: exists and is not a regular file (a FIFO or device is never replaced)")
     _check_replace(path, real, kind)
     return real
+
+
+def _existing_ancestor(folder: str) -> str:
+    """folder, or its nearest ancestor that exists (a file there makes the folder impossible)."""
+    while not os.path.exists(folder) and os.path.dirname(folder) != folder:
+        folder = os.path.dirname(folder)
+    return folder
+
+
+def make_folders(folder: str, shown: str) -> list[str]:
+    """Create folder and its missing ancestors, as ``mkdir -p``; return the ones this call made,
+    outermost first, so a failed run can remove them again (``remove_folders``). Every output
+    flag creates its folder: a farm writes into new shot folders."""
+    made: list[str] = []
+    missing = folder
+    while not os.path.isdir(missing) and os.path.dirname(missing) != missing:
+        made.insert(0, missing)
+        missing = os.path.dirname(missing)
+    try:
+        for each in list(made):
+            try:
+                os.mkdir(each)
+            except FileExistsError:  # another run made it first: not ours to remove
+                made.remove(each)
+    except OSError as exc:
+        remove_folders(made)
+        raise OutputError(f"{shown}: cannot create the output folder ({exc.strerror or exc})") from None
+    return made
+
+
+def remove_folders(made: list[str]) -> None:
+    """Remove the folders ``make_folders`` made, innermost first, where they are still empty: a
+    failed run leaves no folder it made, and never one another run has written into since."""
+    for folder in reversed(made):
+        with contextlib.suppress(OSError):
+            os.rmdir(folder)
 
 
 def check_outputs(outputs: Iterable[tuple[str, OutputKind]], inputs: Iterable[str] = ()) -> list[str]:
@@ -162,6 +203,7 @@ class Transaction:
     def __init__(self, inputs: Iterable[str] = ()) -> None:
         self.inputs = [str(p) for p in inputs if p]
         self._planned: list[tuple[str, str, str]] = []  # (shown path, real path, temp path)
+        self._made: list[str] = []  # output folders this transaction created, removed if it fails
 
     def path(self, dest: str, extensions: Iterable[str] | None = None, kind: OutputKind | None = None) -> str:
         real = check_output(dest, self.inputs, extensions, kind)
@@ -170,6 +212,7 @@ class Transaction:
                 raise OutputError(f"{dest}: written twice by this run (also as {shown})")
         folder, name = os.path.split(real)
         ext = os.path.splitext(name)[1]
+        self._made += make_folders(folder, os.path.dirname(dest) or ".")
         try:
             fd, tmp = tempfile.mkstemp(prefix=_TEMP_PREFIX, suffix=f".tmp{ext}", dir=folder)
         except OSError as exc:
@@ -189,6 +232,7 @@ class Transaction:
                     raise OutputError(f"{shown}: cannot write ({exc.strerror or exc})") from None
             with updating(*(real for _, real, _ in self._planned)), _signals_held():
                 self._rename_all()
+            self._made.clear()  # they hold the outputs now
         finally:
             self.abort()
         return [shown for shown, _, _ in self._planned]
@@ -226,6 +270,8 @@ class Transaction:
             for leftover in (tmp, tmp + ".old"):
                 with contextlib.suppress(FileNotFoundError):
                     os.remove(leftover)
+        remove_folders(self._made)
+        self._made = []
 
     def __enter__(self) -> Transaction:
         return self
@@ -261,24 +307,36 @@ class _Held(threading.local):
 _HELD = _Held()
 
 
-def _acquire(folder: str) -> int:
-    """An exclusive ``flock`` on folder, waited for; returns the descriptor holding it."""
+def _acquire(folder: str) -> tuple[int, list[str]]:
+    """An exclusive ``flock`` on folder, waited for, creating the folder if it is missing; returns
+    the descriptor holding it and the folders made. A folder removed while this run waited (a
+    failed run removing the folder it made) is made again and locked afresh."""
     import fcntl
 
-    try:
-        fd = os.open(folder, os.O_RDONLY)
-    except OSError as exc:
-        raise OutputError(f"{folder}: cannot lock the output folder ({exc.strerror or exc})") from None
-    try:
-        fcntl.flock(fd, fcntl.LOCK_EX)
-    except OSError as exc:
+    made: list[str] = []
+    while True:
+        made += make_folders(folder, folder)
+        try:
+            fd = os.open(folder, os.O_RDONLY)
+        except OSError as exc:
+            raise OutputError(f"{folder}: cannot lock the output folder ({exc.strerror or exc})") from None
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX)
+        except OSError as exc:
+            os.close(fd)
+            raise OutputError(f"{folder}: cannot lock the output folder ({exc.strerror or exc}): psdbake "
+                              "serialises writers of one folder with flock") from None
+        except BaseException:  # interrupted while waiting (SIGTERM unwinds as KeyboardInterrupt)
+            os.close(fd)
+            raise
+        try:
+            now = os.stat(folder)
+        except FileNotFoundError:
+            now = None
+        mine = os.fstat(fd)
+        if now is not None and (now.st_dev, now.st_ino) == (mine.st_dev, mine.st_ino):
+            return fd, made
         os.close(fd)
-        raise OutputError(f"{folder}: cannot lock the output folder ({exc.strerror or exc}): psdbake serialises "
-                          "writers of one folder with flock") from None
-    except BaseException:  # interrupted while waiting (SIGTERM unwinds as KeyboardInterrupt)
-        os.close(fd)
-        raise
-    return fd
 
 
 @contextlib.contextmanager
@@ -300,15 +358,21 @@ def updating(*paths: str) -> Iterator[None]:
     if new and held and new[0] < max(held):
         raise RuntimeError(f"lock order: {new[0]} taken while holding {max(held)}")
     taken: list[str] = []
+    made: list[str] = []
     try:
         for folder in folders:
             if folder in held:
                 fd, holds = held[folder]
                 held[folder] = (fd, holds + 1)
             else:
-                held[folder] = (_acquire(folder), 1)
+                fd, made_here = _acquire(folder)
+                made += made_here
+                held[folder] = (fd, 1)
             taken.append(folder)
         yield
+    except BaseException:
+        remove_folders(made)  # under the lock still: a run waiting for it finds the folder gone
+        raise
     finally:
         for folder in reversed(taken):
             fd, holds = held[folder]

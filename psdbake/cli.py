@@ -688,8 +688,9 @@ def groups_cmd(file, remove, rename, asset, output, force, quiet, verbose, as_js
 
 @cli.command("batch")
 @click.argument("jobs_file", metavar="JOBS.toml", type=str)
-@click.option("--workers", "-w", type=click.IntRange(min=1), default=None,
+@click.option("--jobs", "-j", "workers", type=click.IntRange(min=1), default=None,
               help="Jobs at once on the local pool (default: one per core; a job's start-up is single-threaded).")
+@click.option("--workers", "-w", "workers_alias", type=click.IntRange(min=1), default=None, hidden=True)
 @click.option("--scheduler", metavar="tcp://HOST:PORT",
               help="Run on this Dask cluster instead (pip install 'psdbake[dask]'); workers need the same paths.")
 @click.option("--retries", type=click.IntRange(min=0), default=2, show_default=True,
@@ -699,14 +700,18 @@ def groups_cmd(file, remove, rename, asset, output, force, quiet, verbose, as_js
               help="Run the deformers the jobs file names (their code runs in every job). Without it, a jobs file "
                    "naming a deformer is refused.")
 @_common
-def batch_cmd(jobs_file, workers, scheduler, retries, dry_run, allow_deformers, quiet, verbose, as_json) -> None:
-    """Run the pose/fit/eval/stack jobs of JOBS.toml, in parallel where their files allow.
+def batch_cmd(jobs_file, workers, workers_alias, scheduler, retries, dry_run, allow_deformers, quiet, verbose,
+              as_json) -> None:
+    """Run the jobs of JOBS.toml (any command that writes files), in parallel where their files allow.
 
     A job reading a file other jobs write runs after them; jobs writing one file run in file
     order. One line per finished job on stderr; the exit code is the first failed job's.
     """
     from . import farm
 
+    if workers is not None and workers_alias is not None and workers != workers_alias:
+        raise click.UsageError(f"--jobs {workers} and --workers {workers_alias} name one setting: give one")
+    workers = workers if workers is not None else workers_alias  # --workers/-w: the name before --jobs
     ui = Ui(quiet, verbose, as_json)
     jobs = farm.load_jobs(jobs_file, {name: cli.commands[name] for name in farm.COMMANDS},  # the CLI is the job schema
                           allow_deformers=allow_deformers)

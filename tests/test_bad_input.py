@@ -386,10 +386,32 @@ def test_pose_output_is_an_input(inputs, cli):
     _unchanged([inputs["asset"], inputs["poses"]])
 
 
-def test_output_folder_missing(cli, tmp_path):
-    out = tmp_path / "no" / "such" / "corr.usda"
-    refused(cli("fit", ASSET, EXAMPLES, "-o", out), EXIT_OUTPUT, names=[str(out)], says=r"does not exist")
-    assert not (tmp_path / "no").exists()
+def test_output_folders_are_created(cli, tmp_path):
+    """-o, --report and --points-cache create their missing folders, as --obj-dir, compare and
+    batch do: a farm writes into new shot folders."""
+    out, report = tmp_path / "no" / "such" / "corr.usda", tmp_path / "reports" / "fit.json"
+    code, _, err = cli("fit", ASSET, EXAMPLES, "-o", out, "--report", report)
+    assert code == 0, err
+    assert out.is_file() and report.is_file()
+    w, pc = tmp_path / "shot" / "weights.usda", tmp_path / "shot" / "cache" / "points.usdc"
+    code, _, err = cli("eval", ASSET, out, "--anim", ANIM, "-o", w, "--points-cache", pc)
+    assert code == 0, err
+    assert w.is_file() and pc.is_file()
+
+
+def test_output_folder_under_a_file(cli, tmp_path):
+    (tmp_path / "plain").write_text("not a folder")
+    out = tmp_path / "plain" / "sub" / "corr.usda"
+    refused(cli("fit", ASSET, EXAMPLES, "-o", out), EXIT_OUTPUT, names=[str(out)], says=r"is not a folder")
+    assert (tmp_path / "plain").read_text() == "not a folder"
+
+
+def test_failed_run_leaves_no_folder_it_made(cli, tmp_path):
+    """A run that fails after its output folders were made removes them again (they are empty)."""
+    out = tmp_path / "new" / "deeper" / "corr.usda"
+    bad = tmp_path / "missing_examples.usda"
+    refused(cli("fit", ASSET, bad, "-o", out), 3, names=[str(bad)], says=r"not found")
+    assert not (tmp_path / "new").exists()
 
 
 def test_output_folder_read_only(cli, tmp_path):
@@ -416,18 +438,6 @@ def test_output_is_a_folder(cli, tmp_path):
     out.mkdir()
     refused(cli("fit", ASSET, EXAMPLES, "-o", out), EXIT_OUTPUT, names=["corr.usda"], says=r"folder|directory")
     assert out.is_dir() and not os.listdir(out)
-
-
-def test_report_folder_missing(cli, tmp_path):
-    out, report = tmp_path / "corr.usda", tmp_path / "no" / "report.json"
-    refused(cli("fit", ASSET, EXAMPLES, "-o", out, "--report", report), EXIT_OUTPUT, names=[str(report)],
-            says=r"does not exist", outputs=[out, report])
-
-
-def test_points_cache_folder_missing(cli, tmp_path):
-    w, pc = tmp_path / "weights.usda", tmp_path / "no" / "cache.usda"
-    refused(cli("eval", ASSET, CORRECTIVES, "--anim", ANIM, "-o", w, "--points-cache", pc), EXIT_OUTPUT,
-            names=[str(pc)], says=r"does not exist", outputs=[w, pc])
 
 
 @pytest.mark.parametrize("failure", ["duplicate_poses", "bad_deformer", "bad_asset"])

@@ -642,3 +642,13 @@ def test_a_deformer_named_in_a_jobs_file_needs_the_flag(where, table, run, tmp_p
         code, _, err = run("batch", path, "--allow-deformers-from-jobs", "-q")
         assert code == 0, err
         assert (tmp_path / "out" / "c.usda").is_file()
+
+
+def test_jobs_is_the_flag_and_workers_its_older_name(run, tmp_path):
+    """batch takes -j/--jobs as fit and eval do; -w/--workers still works; both, disagreeing, is a usage error."""
+    path = jobs_file(tmp_path, f'[[pose]]\nasset = "{ASSET}"\nanim = "{POSES}"\noutput = "out/p.usda"\n')
+    for flags in (["-j", "2"], ["--jobs", "1"], ["-w", "2"], ["--workers", "2", "--jobs", "2"]):
+        code, out, err = run("batch", path, *flags, "--dry-run")
+        assert code == 0 and "[[pose]] #1" in out, (flags, err)
+    code, _, err = run("batch", path, "-j", "1", "-w", "2", "--dry-run")
+    assert code == 2 and "--jobs 1 and --workers 2" in err

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import os
+import shlex
 import shutil
 import sys
 
@@ -127,3 +128,78 @@ def test_a_first_day(character, tmp_path, monkeypatch):
 
     assert digest([asset, truth, poses]) == inputs  # nothing the TD gave was modified
     assert not [f for f in os.listdir(tmp_path) if ".tmp" in f]
+
+
+@pytest.mark.slow
+def test_the_loop_after_sculpting_as_one_batch(character, tmp_path, monkeypatch):
+    """Everything after the sculpting is one jobs file for the farm: sculpts, fit, mirror in place,
+    a group renamed in place, eval, stack and export-gltf, into folders that do not exist yet.
+    Each job runs after the jobs that write what it reads, and the outputs are byte-identical
+    to the same commands typed one by one."""
+    asset, truth, poses = character["asset"], character["truth"], character["poses"]
+    farm, direct = tmp_path / "farm", tmp_path / "direct"  # one depth: the outputs' relative paths agree
+    farm.mkdir()
+    _ok(run_cli("pose", asset, "--poses", poses, "-o", str(farm / "to_sculpt.usda"), "--obj-dir",
+                str(farm / "sculpt"), "-q"))
+    manifest = json.loads((farm / "sculpt" / "manifest.json").read_text())
+    for entry in manifest["files"]:
+        if entry["time"] in LEFT_AND_NECK:
+            make_bad.sculpt_obj(str(farm / "sculpt" / entry["file"]), sculpt(truth, humanoid.MESH, entry["time"]))
+    jobs = farm / "jobs.toml"
+    jobs.write_text(f"""
+[defaults]
+asset = "{asset}"
+
+[[stack]]  # listed first: the order comes from the files, not the table order
+output = "shot/shot.usda"
+layers = ["{asset}", "out/correctives.usda", "{poses}", "shot/weights.usda"]
+
+[[sculpts]]
+examples = "to_sculpt.usda"
+obj_dir = "sculpt"
+output = "out/sculpted.usda"
+
+[[fit]]
+examples = ["out/sculpted.usda"]
+output = "out/correctives.usda"
+
+[[mirror]]
+correctives = "out/correctives.usda"
+joints = ["L_=R_"]
+output = "out/correctives.usda"
+
+[[groups]]
+file = "out/correctives.usda"
+rename = ["Neck=neck_fix"]
+
+[[eval]]
+correctives = "out/correctives.usda"
+anim = "{poses}"
+output = "shot/weights.usda"
+
+[[export-gltf]]
+correctives = "out/correctives.usda"
+anim = "{poses}"
+output = "shot/shot.glb"
+""")
+    code, out, err = run_cli("batch", str(jobs), "-j", "2", "--json")
+    assert code == 0, err
+    summary = json.loads(out)
+    assert [j["status"] for j in summary["jobs"]] == ["ok"] * 7
+    ran = [j["job"] for j in summary["jobs"]]
+    for first, then in [("[[sculpts]] #1", "[[fit]] #1"), ("[[fit]] #1", "[[mirror]] #1"),
+                        ("[[mirror]] #1", "[[groups]] #1"), ("[[groups]] #1", "[[eval]] #1"),
+                        ("[[eval]] #1", "[[stack]] #1"), ("[[groups]] #1", "[[export-gltf]] #1")]:
+        assert ran.index(first) < ran.index(then), ran
+    names = [g["group"] for g in json.loads(_ok(run_cli("groups", str(farm / "out" / "correctives.usda"),
+                                                           "--json")))["groups"]]
+    assert "neck_fix" in names and "R_Elbow" in names and "Neck" not in names
+
+    direct.mkdir()
+    monkeypatch.chdir(direct)
+    shutil.copytree(farm / "sculpt", direct / "sculpt")
+    shutil.copy(farm / "to_sculpt.usda", direct / "to_sculpt.usda")
+    for job in summary["jobs"]:  # the command lines the batch ran, typed in its folder
+        _ok(run_cli(*shlex.split(job["command"])[1:]))
+    for name in ("out/sculpted.usda", "out/correctives.usda", "shot/weights.usda", "shot/shot.usda", "shot/shot.glb"):
+        assert (direct / name).read_bytes() == (farm / name).read_bytes(), name

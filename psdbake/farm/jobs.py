@@ -24,9 +24,16 @@ from .order import Job, Part, order
 from .plan import eval_chunks
 from .tasks import Batch
 
-COMMANDS = ("pose", "fit", "eval", "stack")  # the commands a job may run, in the order messages list them
-_READS = frozenset({"asset", "examples", "poses", "anim", "correctives", "layers"})  # click parameter names
+#: The commands a job may run, in the order of the sculptor's loop (and of messages). Every command
+#: that writes files; ``inspect`` prints only and ``batch`` is the runner itself.
+COMMANDS = ("pose", "sculpts", "fit", "mirror", "groups", "eval", "stack", "export-gltf", "export-blender", "compare")
+_READS = frozenset({"asset", "examples", "poses", "anim", "correctives", "layers", "file"})  # click parameter names
 _WRITES = frozenset({"output", "report", "points_cache", "obj_dir"})  # obj_dir: a folder, ordered like a file
+#: Parameters whose role is the other one for one command: ``sculpts`` reads the OBJ folder
+#: ``pose --obj-dir`` wrote.
+_READ_BY = {("sculpts", "obj_dir")}
+#: Commands that edit a file in place when no ``output`` is given: ``groups FILE``.
+_IN_PLACE = {"groups": "file"}
 
 #: Largest jobs file read. A job is a few hundred bytes, so 1 MiB is thousands of jobs (more
 #: than a farm queue takes from one file); the cap keeps a wrong path (a huge log, a disk image)
@@ -124,8 +131,12 @@ def _job(name: str, n: int, where: str, values: Mapping[str, Any], command: clic
     args = schema.arguments(command, values, where)
     paths = {key: schema.values(keys[key], values[key], where, key) for key in values
              if keys[key].name in _READS | _WRITES}
-    reads = tuple(p for k, ps in paths.items() if keys[k].name in _READS for p in ps)
-    writes = tuple(p for k, ps in paths.items() if keys[k].name in _WRITES for p in ps)
+    role = {k: "read" if keys[k].name in _READS or (name, keys[k].name) in _READ_BY else "write" for k in paths}
+    in_place = _IN_PLACE.get(name)
+    if in_place is not None and not any(keys[k].name == "output" for k in paths):
+        role.update({k: "write" for k in paths if keys[k].name == in_place})  # read-modify-write, as fit --group
+    reads = tuple(p for k, ps in paths.items() if role[k] == "read" for p in ps)
+    writes = tuple(p for k, ps in paths.items() if role[k] == "write" for p in ps)
     for k in values:
         if keys[k].name == "deformers":
             specs = schema.values(keys[k], values[k], where, k)

@@ -22,6 +22,9 @@ from dataclasses import dataclass
 from ..errors import InputError
 from .tasks import Task
 
+#: The commands that read-modify-write a CORRECTIVES layer under its update lock.
+UPDATERS = frozenset({"fit", "mirror", "groups"})
+
 
 @dataclass(frozen=True)
 class Part:
@@ -65,13 +68,15 @@ def _link(path: str, folder: str, tasks: Sequence[Task]) -> list[Task]:
     chain per file, in file order) and needs the tasks of the last job writing each file it
     reads (``needs``). An earlier writer's failure reaches the readers along the chain
     (``JobResult.failed_writes``), so a reader is still skipped when any writer of what it reads
-    failed. Only jobs of one command may write the same file."""
+    failed. Only jobs of one command may write the same file, but for the commands that update a
+    CORRECTIVES layer (``UPDATERS``: ``fit``, ``mirror`` and ``groups`` into one file run in file
+    order, each on the one before's result)."""
     writers: dict[str, list[list[Task]]] = {}  # file -> the tasks of each job writing it, in file order
     before: dict[tuple[str, str], list[Task]] = {}  # (file, job) -> the tasks of the job writing it just before
     for t in tasks:
         for p in t.writes:
             jobs = writers.setdefault(p, [])
-            if jobs and jobs[0][0].command != t.command:
+            if jobs and jobs[0][0].command != t.command and not {jobs[0][0].command, t.command} <= UPDATERS:
                 raise InputError(f"{path} {t.job}: writes {os.path.relpath(p, folder)}, as {jobs[0][0].job} does: "
                                  "only jobs of one command may write the same file")
             if not jobs or jobs[-1][0].job != t.job:
@@ -81,7 +86,10 @@ def _link(path: str, folder: str, tasks: Sequence[Task]) -> list[Task]:
             jobs[-1].append(t)
     linked = []
     for t in tasks:
-        needs = {w.key for p in t.reads for w in (writers[p][-1] if p in writers else ()) if w.job != t.job}
+        # a job that reads the file it also writes (mirror in place) reads the writer's just before it
+        needs = {w.key for p in t.reads
+                 for w in (before.get((p, t.job), ()) if p in t.writes else writers.get(p, [()])[-1])
+                 if w.job != t.job}
         after = {w.key for p in t.writes for w in before.get((p, t.job), ())}
         linked.append(dataclasses.replace(t, needs=tuple(needs), after=tuple(after - needs)))
     return linked

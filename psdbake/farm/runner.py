@@ -21,8 +21,7 @@ import sys
 import threading
 import time
 
-from ..errors import OutputError
-from .tasks import Batch, JobResult, Task
+from .tasks import JobResult, Task
 
 _KILLED = (130, 143)  # psdbake's exit after SIGINT/SIGTERM (unwound, temporary file removed)
 _STOP = threading.Event()  # set on Ctrl-C/SIGTERM of a local batch: no new attempts
@@ -150,13 +149,3 @@ def stop_running() -> None:
 def allow_running() -> None:
     """A new local batch starts: attempts are allowed again after an earlier one was stopped."""
     _STOP.clear()
-
-
-def make_output_folders(batch: Batch) -> None:
-    """Create the outputs' folders before the first job starts: a farm writes into new shot
-    folders, and the commands themselves refuse a missing one."""
-    for folder in sorted({os.path.dirname(p) for t in batch.tasks for p in t.writes}):
-        try:
-            os.makedirs(folder, exist_ok=True)
-        except OSError as exc:
-            raise OutputError(f"{batch.path}: cannot create output folder {folder} ({exc.strerror or exc})") from None

@@ -22,7 +22,7 @@ import time
 from typing import Any
 
 from ...errors import BatchUsageError, InputError
-from ..runner import make_output_folders, run_job
+from ..runner import run_job
 from ..tasks import Batch, BatchResult, JobResult, OnDone, Task
 from .base import Backend
 
@@ -167,7 +167,6 @@ class Dask(Backend):
         timeout = connect_timeout()
         _probe(address, timeout)
         with _client(address, timeout) as client:
-            make_output_folders(batch)
             n_workers = len(client.scheduler_info(n_workers=-1).get("workers", {}))
             futures: dict[str, Any] = {}
             for t in batch.tasks:  # topological order: every dependency is already submitted

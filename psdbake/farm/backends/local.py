@@ -11,7 +11,7 @@ import concurrent.futures
 import os
 import time
 
-from ..runner import allow_running, make_output_folders, run_job, stop_running
+from ..runner import allow_running, run_job, stop_running
 from ..tasks import Batch, BatchResult, JobResult, OnDone, Task
 from .base import Backend
 
@@ -30,7 +30,6 @@ class Local(Backend):
             on_done: OnDone | None) -> BatchResult:
         """Run the batch here, at most `workers` jobs at once, each as soon as what it waits for is done."""
         workers = workers or default_workers()
-        make_output_folders(batch)
         started = time.perf_counter()
         results: dict[str, JobResult] = {}
         pending = list(batch.tasks)
