@@ -24,6 +24,8 @@ HUMANOID, HUMANOID_EXAMPLES = fixture("humanoid", "humanoid.usda"), fixture("hum
 ARM, ARM_EXAMPLES, ARM_ANIM = fixture("arm_lbs.usda"), fixture("arm_lbs_examples.usda"), fixture("arm_anim.usda")
 EXIT_OUTPUT = 6
 
+pytestmark = pytest.mark.slow  # psdbake processes racing each other: make test runs them, make test-fast does not
+
 
 class Held:
     """One psdbake run, held at the moments given."""
