@@ -117,14 +117,13 @@ FINISH_EVALUATIONS = 40
 #: fraction ends the solve at an optimum (``InverseResult.at_optimum``): the residual left is
 #: orthogonal to everything the chain produced from the directions tried.
 OPTIMUM_RTOL = 0.02
-#: The finish after the smooth start relaxes its regularisation in levels (factors of
-#: ``smoothstart.ridge``: the ridge's scale 3e-2, 1e-2, 3e-3 and 1e-3 of the blocks' gain):
-#: each level runs to its optimum, the next starts from there, and where a level lowered the
-#: RMS residual by less than LEVEL_GAIN, the solve ends at an optimum (what is left is the
-#: chain's own limit, and offsets stay bounded by the stronger level). From zero there is one
-#: level, the weakest.
-RIDGE_LEVELS = (900.0, 100.0, 10.0, 1.0)
-LEVEL_GAIN = 0.3
+#: The finish after the smooth start regularises the offsets' departure from the smooth start,
+#: ``|r|^2 + ridge |D - D_start|^2``, with the ridge's scale this fraction of the blocks' gain:
+#: a direction the chain passes at less than that is not pushed further than what it removes.
+#: Weaker, it chased detail no smoothing passes (a ripple around the 1.3k rig's tube: offsets
+#: grew to 5.8x the sculpt's largest move at 1e-3); this leaves the smooth start's own offsets,
+#: which the sculpt needs at full size, unpulled.
+FINISH_RIDGE = 1e-2
 #: The finish after the smooth start weighs each vertex's residual by max(1, |r| / u), u the
 #: larger of the residuals' RMS and WEIGHT_FLOOR * atol: there the residual's RMS is far
 #: within the tolerance and a few vertices miss it (13k bench, five examples: 245 calls in
@@ -343,7 +342,8 @@ def invert_coupled(
     ``call(rest)``; ``call.calls`` counts the example's calls so far (the budget's measure);
     ``start_outputs`` the chain's outputs at ``start`` when known (else one call);
     ``blocks`` are ``chain_blocks`` (measured here when not given). Steps lower the
-    regularised misfit ``|r|^2 + ridge |D|^2`` (``smoothstart.ridge``); the result is
+    regularised misfit ``|r|^2 + ridge |D - anchor|^2`` (``smoothstart.ridge`` and zero from
+    zero; after the smooth start ``FINISH_RIDGE`` and the start, with ``weighted``); the result is
     ``at_optimum`` where no direction of a step's Krylov space could lower its linear model
     by ``OPTIMUM_RTOL``. ``weighted``: each vertex's residual weighs by how far above the
     residuals' RMS it is (``WEIGHT_FLOOR``), for a finish where few vertices are left above
@@ -377,8 +377,10 @@ def invert_coupled(
     norms = np.linalg.norm(r, axis=1)
     stalled = optimum = False
     steps = 0
-    levels = [smoothstart.ridge(blocks) * factor for factor in (RIDGE_LEVELS if weighted else RIDGE_LEVELS[-1:])]
-    level, previous = 0, np.inf  # the regularisation's level, the RMS residual where the last one ended
+    # the regularisation: offsets pulled towards zero weakly (``smoothstart.ridge``); after the
+    # smooth start, its departures from the smooth start more strongly (``FINISH_RIDGE``)
+    anchor = np.zeros((k, 3)) if start is None or not weighted else np.array(start, dtype=np.float64)
+    ridge = smoothstart.ridge(blocks) * ((FINISH_RIDGE / smoothstart.SPAN_RIDGE) ** 2 if weighted else 1.0)
     scale = max(diagonal, floor)
     while np.isfinite(norms).all() and norms.max() > atol and call.calls < max_evaluations - 2:
         at, out_at = offsets, out
@@ -403,19 +405,10 @@ def invert_coupled(
 
         directions, images = _gmres(weighted_jvp, precondition, weight * r, target_lin, budget)
         scaled = weight * r
-        while True:  # the step at this level; at its optimum, the next (weaker) level from the same Krylov space
-            ridge = levels[level]
-            merit = float(np.sum(scaled**2)) + ridge * float(np.sum(offsets**2))
-            delta, left = _ridge_step(scaled, offsets, directions, images, ridge)
-            if float(np.sum(scaled**2)) - float(np.sum(left**2)) > OPTIMUM_RTOL * float(np.sum(scaled**2)):
-                break
-            rms = float(np.sqrt(np.mean(norms**2)))  # no direction tried lowers the residual: this level's optimum
-            if level == len(levels) - 1 or rms > (1.0 - LEVEL_GAIN) * previous:
-                optimum = True  # weaker regularisation stopped paying: the chain's own limit
-                break
-            level, previous = level + 1, rms
-        if optimum:
-            stalled = True
+        merit = float(np.sum(scaled**2)) + ridge * float(np.sum((offsets - anchor) ** 2))
+        delta, left = _ridge_step(scaled, offsets - anchor, directions, images, ridge)
+        if float(np.sum(scaled**2)) - float(np.sum(left**2)) <= OPTIMUM_RTOL * float(np.sum(scaled**2)):
+            stalled = optimum = True  # no direction tried lowers the residual: an optimum
             break
         # Trust region: no vertex moves further than STEP_CAP times the largest residual.
         lengths = np.linalg.norm(delta, axis=1)
@@ -426,7 +419,7 @@ def invert_coupled(
             out_trial = evaluate(trial)
             r_trial = target - out_trial
             better = bool(np.all(np.isfinite(r_trial))
-                          and float(np.sum((weight * r_trial) ** 2)) + ridge * float(np.sum(trial**2)) < merit)
+                          and float(np.sum((weight * r_trial) ** 2)) + ridge * float(np.sum((trial - anchor) ** 2)) < merit)
             if better or call.calls >= max_evaluations - 1:
                 break
             delta = 0.5 * delta
