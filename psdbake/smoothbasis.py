@@ -1,20 +1,20 @@
 """The smoothest offsets a sculpted region can take: the coupled inverse's way into the right basin.
 
 Where skinning folds the mesh, a chain that smooths (Delta Mush) leaves the inverse extremely
-ill-conditioned: half the offset space barely moves the output (measured on the 1.3k bench rig at
-a 100-degree elbow: 879 of 1,761 singular values of the chain's Jacobian below 1e-3 of the
-largest). Newton from zero then follows large high-frequency offsets into a spurious minimum
-(14-100x above the tolerance, even with the exact Jacobian), while the sculpt's own rest-space
-offset is smooth. Restricting the first Gauss-Newton steps to smooth offsets lands next to it:
-``coupled.smooth_start`` solves in the span of this basis, Newton-Krylov finishes.
+ill-conditioned: half the offset space barely moves the output (the 1.3k bench rig's tube is
+bipartite, and half the singular values of the chain's Jacobian are below 1e-3 of the largest,
+at any pose). A solve that follows large high-frequency offsets lands in a spurious minimum,
+while the sculpt's own rest-space offset is smooth. Restricting the first steps to smooth
+offsets lands next to it: ``coupled.smooth_start`` solves in the span of these bases
+(``psdbake.smoothstart``), Newton-Krylov finishes.
 
-The basis is the low end of the region's graph-Laplacian spectrum (the mesh's own "manifold
+The fields are the low end of the region's graph-Laplacian spectrum (the mesh's own "manifold
 harmonics", Vallet and Levy, Computer Graphics Forum 2008), from the mesh's edges only: no
-look inside the chain. ARPACK finds it in shift-invert mode (``scipy.sparse.linalg.eigsh``):
-64 fields in 0.13 s on a 4.6k-vertex region, 1.7 s on a grid of 35k (the 100k bench rig's
-sculpted regions are 34k: about half of a coupled example's 3.1 s there, and more than its
-19 calls of the Delta Mush chain), 6.6 s on 100k, 32 s on 340k. Should ARPACK fail, there is
-no smooth start (``coupled`` falls back as for a mesh without edges).
+look inside the chain. ARPACK finds them in shift-invert mode (``scipy.sparse.linalg.eigsh``);
+on the 100k bench rig's 34k-vertex regions its 56 fields are about half of a coupled example's
+time. ``basis_sizes`` sizes the bases to the region, ``smooth_bases`` shares them among the
+region's connected pieces. Should ARPACK fail, there is no smooth start (``coupled`` falls
+back as for a mesh without edges).
 """
 
 from __future__ import annotations

@@ -1,5 +1,5 @@
-"""The coupled inverse's smooth start: Gauss-Newton over a region's smoothest fields, on a
-model of the chain that knows how much the chain smooths.
+"""The coupled inverse's smooth start: Levenberg-Marquardt over a region's smoothest fields, on
+a model of the chain that knows how much the chain smooths.
 
 Model. ``basis`` (k, b) holds the region's smoothest fields (``psdbake.smoothbasis``), field
 j with normalised frequency ``f_j`` (its Rayleigh quotient of the random-walk Laplacian,
@@ -28,9 +28,10 @@ it is cut where the model predicted well and raised where it did not. The object
 regularised, ``|r|^2 + ridge |D|^2`` with ``ridge`` (``ridge``) ``SPAN_RIDGE**2`` times the
 blocks' squared gain: the documented regularisation that keeps offsets bounded where a sculpt
 asks for what the chain cannot produce (a direction the chain passes at less than
-``SPAN_RIDGE`` of a smooth move is not pushed further than the residual it removes), and that
-Newton-Krylov's finish (``coupled.invert_coupled``) minimises too. A rejected step
-changes nothing but the model. The solve stops when every vertex is within ``atol``, at the span's optimum
+``SPAN_RIDGE`` of a smooth move is not pushed further than the residual it removes);
+Newton-Krylov's finish (``coupled.invert_coupled``) then weighs the departure from the smooth
+start more strongly. A rejected step changes nothing but the model. The solve stops when every
+vertex is within ``atol``, at the span's optimum
 (``SpanResult.stalled``: ``SPAN_PATIENCE`` accepted steps in a row gained less than
 ``SPAN_MIN_GAIN`` of the residual, or, for a model the probe found accurate, a model whose
 last prediction came true within ``1 - GOOD_RATIO`` predicts no more than that for the next
