@@ -7,7 +7,7 @@ BIN    := $(VENV)/bin
 OUT    ?= out
 STAMP  := $(VENV)/.installed
 
-.PHONY: demo test lint bench fidelity fuzz fixtures interop clean
+.PHONY: demo test lint docs pages bench fidelity fuzz fixtures interop clean test-fast
 
 $(STAMP): pyproject.toml tests/gltf/package-lock.json
 	$(PYTHON) -m venv $(VENV)
@@ -26,10 +26,10 @@ DEMO_ANIM     := fixtures/humanoid/humanoid_anim.usda
 demo: $(STAMP)
 	@mkdir -p $(OUT)
 	$(BIN)/psdbake inspect $(DEMO_ASSET)
-	$(BIN)/psdbake pose $(DEMO_ASSET) --anim $(DEMO_EXAMPLES) -o $(OUT)/to_sculpt.usda
+	$(BIN)/psdbake pose $(DEMO_ASSET) --poses $(DEMO_EXAMPLES) -o $(OUT)/to_sculpt.usda
 	$(BIN)/psdbake fit $(DEMO_ASSET) $(DEMO_EXAMPLES) -o $(OUT)/correctives.usda --report $(OUT)/fit_report.json
 	$(BIN)/psdbake eval $(DEMO_ASSET) $(OUT)/correctives.usda --anim $(DEMO_ANIM) -o $(OUT)/weights.usda --points-cache $(OUT)/points_cache.usdc
-	$(BIN)/psdbake stack $(OUT)/shot.usda $(DEMO_ASSET) $(OUT)/correctives.usda $(DEMO_ANIM) $(OUT)/weights.usda
+	$(BIN)/psdbake stack $(DEMO_ASSET) $(OUT)/correctives.usda $(DEMO_ANIM) $(OUT)/weights.usda -o $(OUT)/shot.usda
 	$(BIN)/psdbake export-gltf $(DEMO_ASSET) $(OUT)/correctives.usda --anim $(DEMO_ANIM) -o $(OUT)/shot.glb
 	@echo
 	@echo "Outputs in $(OUT)/:"
@@ -49,13 +49,29 @@ test: $(STAMP)
 	$(BIN)/mypy
 	$(BIN)/python -m pytest -q
 
+# the tests that take under a second each (no fuzz, faults, farm or real characters): under a
+# minute on 2 cores, for the edit-test loop; make test still runs everything, and CI calls it
+test-fast: $(STAMP)
+	$(BIN)/python -m pytest -q -m "not slow"
+
 lint: $(STAMP)
 	$(BIN)/ruff check $(LINTED)
 	$(BIN)/mypy
 
+# The documentation site (mkdocs.yml, docs/) into site/: no warnings, no broken links (tests/test_docs.py
+# builds it in make test too). The CLI reference is generated from click, the API from the docstrings.
+docs: $(STAMP)
+	NO_MKDOCS_2_WARNING=1 $(BIN)/mkdocs build --strict --clean
+
+# docs/benchmarks.md and docs/fidelity.md from the results records in benchmarks/results/*.json
+# (each benchmark writes its own record; tests/test_docs.py checks the committed pages are current).
+pages: $(STAMP)
+	$(BIN)/python -m benchmarks.pages
+
 fidelity: $(STAMP)
 	$(BIN)/python -m benchmarks.fidelity
 	$(BIN)/python -m benchmarks.humanoid
+	$(BIN)/python -m benchmarks.pages
 	@mkdir -p $(OUT)
 	$(BIN)/psdbake compare fixtures/hinge/hinge.usda fixtures/hinge/hinge_examples.usda --anim fixtures/hinge/hinge_anim.usda -o $(OUT)/hinge_report
 	$(BIN)/psdbake compare fixtures/arm_lbs.usda fixtures/arm_lbs_examples.usda --anim fixtures/arm_anim.usda -o $(OUT)/arm_report
@@ -69,6 +85,7 @@ bench: $(STAMP)
 	$(BIN)/python -m benchmarks.evalspeed
 	$(BIN)/python -m benchmarks.fitspeed
 	$(BIN)/python -m benchmarks.startup
+	$(BIN)/python -m benchmarks.pages
 
 fuzz: $(STAMP)
 	$(BIN)/python -m tests.fuzz --mode $${MODE:-all} --cases $${CASES:-20000} --seed $${SEED:-0}
@@ -94,4 +111,4 @@ interop: $(STAMP) $(BPY_STAMP)
 	BLENDER_PYTHON=$(BPY_VENV)/bin/python OUT=$(OUT) $(BIN)/python -m interop.run
 
 clean:
-	rm -rf $(OUT) $(VENV) $(BPY_VENV) .pytest_cache .ruff_cache tests/gltf/node_modules
+	rm -rf $(OUT) site $(VENV) $(BPY_VENV) .pytest_cache .ruff_cache tests/gltf/node_modules

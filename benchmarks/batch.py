@@ -16,7 +16,7 @@ import sys
 import tempfile
 import time
 
-from benchmarks import rigs
+from benchmarks import results, rigs
 
 KERNELS = ("gaussian", "inverse_quadratic", "inverse_multiquadric", "thin_plate_spline", "cubic", "linear")
 
@@ -54,6 +54,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--fits", type=int, default=4)
     parser.add_argument("--evals", type=int, default=4)
     parser.add_argument("--frames", type=int, default=48)
+    parser.add_argument("--json", default=results.path_of("batch"), help="where to write the results record")
     args = parser.parse_args(argv)
     cores = os.cpu_count() or 1
     with tempfile.TemporaryDirectory() as folder:
@@ -73,6 +74,14 @@ def main(argv: list[str] | None = None) -> None:
         print(f"  {workers:>9} {seconds:>8.2f} {rows[0][1] / seconds:>8.2f}x")
     identical = all(o == outputs[0] for o in outputs)
     print(f"  outputs byte-identical across --workers: {'yes' if identical else 'NO'}")
+    about = (f"`psdbake batch` of {args.fits} fits (each with its own kernel) and {args.evals} evals with a points cache "
+             f"over a {args.frames}-frame shot, lbs {args.size} bench rig, with `--workers 1` and `--workers <cores>`; "
+             "the output layers compared byte for byte. This is what chose the default.")
+    table = results.table(f"`batch --workers`: {args.fits} fits + {args.evals} evals, {args.size}",
+                          ["--workers", "seconds", "speed-up"],
+                          [[str(w), f"{s:.2f}", f"{rows[0][1] / s:.2f}x"] for w, s in rows],
+                          f"Outputs byte-identical across --workers: {'yes' if identical else 'NO'}.")
+    results.write("batch", argv, about, [table], raw={"rows": rows, "identical": identical}, path=args.json)
     if not identical:
         raise SystemExit(1)
 

@@ -26,7 +26,7 @@ from numpy.typing import NDArray
 from pxr import Sdf
 
 from psdbake.deformers import load_deformers
-from psdbake.smoothbasis import edge_adjacency
+from psdbake.solver.smoothbasis import edge_adjacency
 from psdbake.usd.blackbox import SkinningBlackBox
 from psdbake.usd.meshrest import rest_mesh
 from psdbake.usd.read import Scene

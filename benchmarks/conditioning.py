@@ -27,12 +27,13 @@ import warnings
 import numpy as np
 from pxr import Gf, Sdf, Usd, UsdGeom, UsdSkel
 
-from psdbake import api, rbf
+from psdbake import api
 from psdbake import tolerances as tol
 from psdbake.errors import PsdWarning
+from psdbake.fitting import rbf_fit as rbf
 from psdbake.settings import FitSettings
 
-from . import rigs
+from . import results, rigs
 
 #: The round-trip guarantee: every example reproduced to this fraction of the diagonal.
 ROUND_TRIP_RTOL = 1e-5
@@ -87,7 +88,8 @@ def measure(folder: str, count: int, jobs: int | None) -> dict:
                         for m in result.meshes for inv in m.inverses)
 
     log(f"{count} examples: the written stack at the example poses")
-    corr = api.write_correctives(result, os.path.join(sub, "correctives.usda"))
+    corr = os.path.join(sub, "correctives.usda")
+    api.write_correctives(result, corr)
     weights = api.evaluate(rig.asset, corr, poses_layer)
     cache = api.points_cache_layer(weights)
     spec = Sdf.Path(rigs.MESH).AppendProperty("points")
@@ -123,10 +125,33 @@ def table(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
+ABOUT = (
+    "Default fits of many examples on the 13k bench rig (lbs; one global group, since every bench example bends "
+    "the elbow and the wrist together). sigma is the largest sigma_0 * 2^(-j/4) whose system has a condition number ≤ "
+    f"{tol.RBF_COND_TARGET:.0e}. \"max residual\" is the points cache of the written stack at every example; "
+    f"\"baked\" is `UsdSkel.BakeSkinning` of the stack at the first {BAKED}; exact = both within "
+    f"{ROUND_TRIP_RTOL:g} of the diagonal."
+)
+
+
+def tables(rows: list[dict]) -> list[dict]:
+    """The conditioning table of the results record."""
+    cells = []
+    for r in rows:
+        lo, hi = min(r["sigmas"]), max(r["sigmas"])
+        cells.append([str(r["examples"]), f"{r['condition']:.2e}", f"{lo:.4g}" if lo == hi else f"{lo:.3g}..{hi:.3g}",
+                      f"{r['seconds_per_example']:.3f}", f"{r['cache_max_rel']:.2e}", f"{r['baked_max_rel']:.2e}",
+                      "yes" if r["exact"] else "NO"])
+    return [results.table("Many examples: conditioning, time, exactness",
+                          ["examples", "condition number", "sigma (rad)", "s / example", "max residual / diag",
+                           "baked / diag", "exact"], cells)]
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description="Default fits of many examples: conditioning, time, exactness.")
     parser.add_argument("--counts", type=int, nargs="+", default=[8, 32, 128, 500])
     parser.add_argument("--jobs", type=int, default=None, help="worker processes for api.fit (default: 1)")
+    parser.add_argument("--json", default=results.path_of("conditioning"), help="where to write the results record")
     args = parser.parse_args(argv)
     rows = []
     with tempfile.TemporaryDirectory() as folder:
@@ -139,6 +164,7 @@ def main(argv: list[str] | None = None) -> int:
           f"condition-number target {tol.RBF_COND_TARGET:.0e}, exact = every example within "
           f"{ROUND_TRIP_RTOL:g} of the diagonal (points cache; BakeSkinning for the first {BAKED}).")
     print(table(rows))
+    results.write("conditioning", argv, ABOUT, tables(rows), raw=rows, path=args.json)
     return 0 if all(r["exact"] for r in rows) else 1
 
 

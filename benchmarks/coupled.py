@@ -6,7 +6,7 @@ Three methods on the same examples, side by side in one run:
 * one-shot: cvShapeInverter's linearisation, a 3x3 Jacobian per vertex from 3 calls moving
   every sculpted vertex together, D = J^-1 r, no iteration (its residual checked here);
 * psdbake: ``coupled.invert`` (the smooth start that measures the chain's smoothing, then
-  Newton-Krylov: ``psdbake.coupled``).
+  Newton-Krylov: ``psdbake.solver.coupled``).
 
 Tables: the bench rigs (``benchmarks.rigs`` variant ``lbs+deltamush``) at about 1.3k, 3k, 13k
 and 100k points, eight examples each (elbow 20-160 degrees), every example and the folded
@@ -31,13 +31,13 @@ from numpy.typing import NDArray
 from scipy.optimize import least_squares
 from threadpoolctl import threadpool_limits
 
-from psdbake import coupled
 from psdbake import tolerances as tol
-from psdbake.inverse import invert_example, sculpted_vertices
-from psdbake.smoothbasis import edge_adjacency
+from psdbake.solver import coupled
+from psdbake.solver.inverse import invert_example, sculpted_vertices
+from psdbake.solver.smoothbasis import edge_adjacency
 from psdbake.usd.meshrest import rest_mesh
 
-from . import characters, rigs
+from . import characters, results, rigs
 
 VARIANT = "lbs+deltamush"
 METHODS = ("per-vertex", "one-shot", "coupled")
@@ -86,57 +86,85 @@ def residuals(check: Box, rest: NDArray[np.float64], sculpt: NDArray[np.float64]
 
 
 class Tally:
-    """Sums over examples for one table row."""
+    """Sums over examples for one table row, and each example's own figures (the record's raw)."""
 
     def __init__(self) -> None:
         self.calls: list[int] = []
-        self.seconds = self.worst = 0.0
+        self.seconds = self.worst = self.squares = 0.0
         self.missed = self.sculpted = 0
+        self.examples: list[dict] = []
 
-    def add(self, calls: int, seconds: float, residual: NDArray[np.float64], atol: float, diagonal: float) -> None:
+    def add(self, name: str, calls: int, seconds: float, residual: NDArray[np.float64], atol: float,
+            diagonal: float) -> None:
         self.calls.append(calls)
         self.seconds += seconds
-        self.worst = max(self.worst, float(residual.max(initial=0.0)) / diagonal)
-        self.missed += int(np.count_nonzero(residual > atol))
+        worst = float(residual.max(initial=0.0)) / diagonal
+        self.worst = max(self.worst, worst)
+        self.squares += float(np.sum((residual / diagonal) ** 2))
+        missed = int(np.count_nonzero(residual > atol))
+        self.missed += missed
         self.sculpted += len(residual)
+        self.examples.append({"example": name, "calls": calls, "seconds": round(seconds, 3), "missed": missed,
+                              "sculpted": len(residual), "max_residual_rel": worst,
+                              "rms_residual_rel": float(np.sqrt(np.mean((residual / diagonal) ** 2)))})
 
-    def row(self, label: str, count: str, method: str) -> str:
+    def cells(self) -> list[str]:
+        """calls / example (range), s / example, max and RMS residual / diag, vertices above tolerance."""
         n = max(len(self.calls), 1)
-        spread = f"{min(self.calls)}-{max(self.calls)}" if self.calls else "-"
-        return (f"{label:<28} {count:>8} {method:<11} {sum(self.calls) / n:>9.1f} {spread:>9} {self.seconds / n:>8.2f} "
-                f"{self.worst:>13.2e} {f'{self.missed} / {self.sculpted}':>18}")
+        spread = f" ({min(self.calls)}-{max(self.calls)})" if len(set(self.calls)) > 1 else ""
+        rms = np.sqrt(self.squares / max(self.sculpted, 1))
+        return [f"{sum(self.calls) / n:.1f}{spread}", f"{self.seconds / n:.2f}", f"{self.worst:.2e}", f"{rms:.2e}",
+                f"{self.missed:,} of {self.sculpted:,}"]
 
 
-HEADER = (f"{'rig':<28} {'examples':>8} {'method':<11} {'calls/ex':>9} {'range':>9} {'s/ex':>8} {'max res/diag':>13} "
-          f"{'missed / sculpted':>18}")
+COLUMNS = ["calls / example (range)", "s / example", "max residual / diag", "RMS residual / diag",
+           "vertices above tolerance"]
+LABELS = {"per-vertex": "per-vertex (Powell in lockstep)", "one-shot": "one-shot linearisation (cvShapeInverter's method)",
+          "coupled": "psdbake"}
 
 
-def bench_rig(rig: rigs.Rig, times: Sequence[float], poses: dict, methods: Sequence[str]) -> None:
+def _show(row: Sequence[str]) -> None:
+    print(" | ".join(row), flush=True)
+
+
+def bench_rig(rig: rigs.Rig, times: Sequence[float], poses: dict, methods: Sequence[str], raw: list[dict]
+              ) -> list[list[str]]:
     """Every method on every example of one rig: a row for all, one for the folded ones."""
     scene = rig.scene()
     adjacency = edge_adjacency(rest_mesh(scene.stage, rigs.MESH)[1])
     folded = [t for t in times if poses[t]["Elbow"][1] >= FOLDED_DEGREES]
+    rows = []
     for method in methods:
         every, bent = Tally(), Tally()
         for t in times:
             idx, offsets, calls, seconds = run_method(method, rig.blackbox(scene, t), rig.rest, rig.sculpts[t], adjacency)
             residual, atol, diagonal = residuals(rig.blackbox(scene, t), rig.rest, rig.sculpts[t], idx, offsets)
+            name = f"{rig.name} elbow {poses[t]['Elbow'][1]:g} deg"
             for tally in (every, bent) if t in folded else (every,):
-                tally.add(calls, seconds, residual, atol, diagonal)
-        print(every.row(rig.name, str(len(times)), method), flush=True)
+                tally.add(name, calls, seconds, residual, atol, diagonal)
+        rows.append([rig.name.split()[0], str(len(times)), LABELS[method], *every.cells()])
+        _show(rows[-1])
         if folded and len(folded) < len(times):
-            print(bent.row(f"{rig.name} folded", str(len(folded)), method), flush=True)
+            rows.append([f"{rig.name.split()[0]} folded", str(len(folded)), LABELS[method], *bent.cells()])
+            _show(rows[-1])
+        raw.append({"rig": rig.name, "method": method, "examples": every.examples})
+    return rows
 
 
-def bench_cases(label: str, cases: Sequence[characters.Case], methods: Sequence[str]) -> None:
+def bench_cases(label: str, cases: Sequence[characters.Case], methods: Sequence[str], raw: list[dict]
+                ) -> list[list[str]]:
     """Every method on a set of character examples (one row per method)."""
+    rows = []
     for method in methods:
         tally = Tally()
         for case in cases:
             idx, offsets, calls, seconds = run_method(method, case.box, case.rest, case.sculpt, case.adjacency)
             residual, atol, diagonal = residuals(case.box, case.rest, case.sculpt, idx, offsets)
-            tally.add(calls, seconds, residual, atol, diagonal)
-        print(tally.row(label, str(len(cases)), method), flush=True)
+            tally.add(case.name, calls, seconds, residual, atol, diagonal)
+        rows.append([label, str(len(cases)), LABELS[method], *tally.cells()])
+        _show(rows[-1])
+        raw.append({"rig": label, "method": method, "examples": tally.examples})
+    return rows
 
 
 def reference(case: characters.Case, iterations: int) -> tuple[float, int, float]:
@@ -145,7 +173,7 @@ def reference(case: characters.Case, iterations: int) -> tuple[float, int, float
     least squares (``least_squares(method="trf")``) from zero, its Jacobian by finite
     differences over Delta Mush's reach, coloured (``jac_sparsity``: one call per colour).
     Only the chain is called, as psdbake does. Returns (RMS residual / diagonal, calls, seconds)."""
-    from psdbake import smoothstart
+    from psdbake.solver import smoothstart
 
     started = time.perf_counter()
     base = case.box(case.rest)
@@ -173,21 +201,52 @@ def reference(case: characters.Case, iterations: int) -> tuple[float, int, float
     return float(np.sqrt(np.mean(np.sum(r**2, axis=1)))), calls[0], time.perf_counter() - started
 
 
-def bench_shipped(iterations: int) -> None:
+def bench_shipped(iterations: int, raw: list[dict]) -> list[list[str]]:
     """psdbake against the reference optimiser on CesiumMan's shipped sculpts."""
-    print(f"{'example':<24} {'psdbake calls':>13} {'rms/diag':>10} {'max/diag':>10} {'at optimum':>10} {'unreachable':>11} "
-          f"{'reference calls':>15} {'rms/diag':>10} {'ratio':>7}")
+    rows = []
     for case in characters.cesium(shipped=True):
+        started = time.perf_counter()
         res = coupled.invert(case.box, case.rest, case.sculpt, neighbours=lambda case=case: case.adjacency)
-        residual, _, diagonal = residuals(case.box, case.rest, case.sculpt, res.indices, res.offsets)
+        seconds = time.perf_counter() - started
+        residual, atol, diagonal = residuals(case.box, case.rest, case.sculpt, res.indices, res.offsets)
         rms = float(np.sqrt(np.mean(residual**2))) / diagonal
-        ref_rms, ref_calls, _ = reference(case, iterations) if iterations > 0 else (float("nan"), 0, 0.0)
-        optimum, unreachable = getattr(res, "at_optimum", "-"), getattr(res, "unreachable_fraction", float("nan"))
-        print(f"{case.name:<24} {res.evaluations:>13} {rms:>10.3e} {float(residual.max()) / diagonal:>10.2e} "
-              f"{optimum!s:>10} {unreachable:>11.1%} {ref_calls:>15} {ref_rms:>10.3e} {rms / ref_rms:>7.3f}", flush=True)
+        ref_rms, ref_calls, ref_seconds = reference(case, iterations) if iterations > 0 else (float("nan"), 0, 0.0)
+        optimum, unreachable = getattr(res, "at_optimum", None), getattr(res, "unreachable_fraction", None)
+        rows.append([case.name.removesuffix(" shipped"), str(res.evaluations), f"{seconds:.1f}", f"{rms:.3e}",
+                     f"{float(residual.max()) / diagonal:.2e}",
+                     f"{int(np.count_nonzero(residual > atol)):,} of {len(residual):,}",
+                     "-" if optimum is None else ("yes" if optimum else "no"),
+                     "-" if unreachable is None else f"{unreachable:.1%}",
+                     f"{ref_calls:,}", f"{ref_seconds:.0f}", f"{ref_rms:.3e}", f"{rms / ref_rms:.3f}"])
+        _show(rows[-1])
+        raw.append({"example": case.name, "calls": res.evaluations, "seconds": seconds, "rms_residual_rel": rms,
+                    "regime": res.regime, "at_optimum": optimum, "unreachable_fraction": unreachable,
+                    "reference_calls": ref_calls, "reference_seconds": ref_seconds, "reference_rms_residual_rel": ref_rms})
+    return rows
 
 
-def main() -> None:
+ABOUT = (
+    "LBS followed by the reference Delta Mush (10 iterations, step 0.5). The bench rigs (`benchmarks/rigs.py`) at "
+    "about 1.3k, 3k, 13k and 100k points, 8 examples each bending the elbow from 20° to 160° with the wrist "
+    "(\"folded\": the six at 60° and more, where LBS folds the inner elbow); real characters (`benchmarks/characters.py`: "
+    "CesiumMan and the character fixture) with sculpts made through the chain from the fixtures' own smooth rest-space "
+    "offsets, so an exact answer exists; and CesiumMan's shipped sculpts, made on the plain-skinned mesh, which no "
+    "offset reproduces through Delta Mush, against a long-run reference optimiser on the same objective. Three "
+    "methods side by side in one run: the per-vertex solver (Powell in lockstep, which assumes no coupling), the "
+    "one-shot linearisation (cvShapeInverter's method: a 3x3 Jacobian per vertex from 3 calls, no iteration) and "
+    "psdbake. Every residual is measured by running the chain on rest + offsets. How the stages were chosen: "
+    "[decisions/coupled-inverse.md](decisions/coupled-inverse.md) and "
+    "[decisions/coupled-inverse-coarse-meshes.md](decisions/coupled-inverse-coarse-meshes.md)."
+)
+SHIPPED_ABOUT = (
+    "The reference optimiser minimises psdbake's objective, |r|² + ridge |D|² over the sculpted vertices, with "
+    "scipy's `least_squares(method=\"trf\")` from zero, its Jacobian by finite differences over Delta Mush's 12-edge "
+    "reach, coloured (one call per colour); like psdbake it only calls the chain. \"Not reproduced\" is what the "
+    "summary reports: the RMS residual over the RMS of the sculpt's own displacement."
+)
+
+
+def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--sizes", default=",".join(SIZES), help="comma-separated, of: " + ", ".join(rigs.SIZES))
     parser.add_argument("--examples", type=int, default=8, help="examples per rig (of 8)")
@@ -195,7 +254,8 @@ def main() -> None:
     parser.add_argument("--no-characters", action="store_true", help="skip CesiumMan and the character fixture")
     parser.add_argument("--reference-iterations", type=int, default=REFERENCE_ITERATIONS,
                         help="the reference optimiser's iterations on CesiumMan's shipped sculpts (0: skip it)")
-    args = parser.parse_args()
+    parser.add_argument("--json", default=results.path_of("coupled"), help="where to write the results record")
+    args = parser.parse_args(argv)
     methods = tuple(m for m in args.methods.split(",") if m)
     sizes = tuple(s for s in args.sizes.split(",") if s)
     if not set(methods) <= set(METHODS):
@@ -203,18 +263,31 @@ def main() -> None:
     if not set(sizes) <= set(rigs.SIZES):
         parser.error(f"--sizes: unknown {sorted(set(sizes) - set(rigs.SIZES))}")
     print(f"# {VARIANT}: per-vertex vs one-shot vs coupled inverse (residuals by running the chain)")
-    print(HEADER)
+    rig_rows: list[list[str]] = []
+    character_rows: list[list[str]] = []
+    raw: dict[str, list[dict]] = {"rigs": [], "characters": [], "shipped": []}
     with tempfile.TemporaryDirectory() as folder:
         poses_layer, poses = rigs.write_poses(folder)
         for size in sizes:
             rig = rigs.build(folder, VARIANT, size, poses, poses_layer)
-            bench_rig(rig, rig.times[: args.examples], poses, methods)
+            rig_rows += bench_rig(rig, rig.times[: args.examples], poses, methods, raw["rigs"])
         if not args.no_characters:
-            bench_cases("CesiumMan", characters.cesium(), methods)
-            bench_cases("character", characters.whole_character(folder), methods)
+            character_rows += bench_cases("CesiumMan (3,273 points, 2 examples)", characters.cesium(), methods,
+                                          raw["characters"])
+            character_rows += bench_cases("character fixture (3 tubes + sleeve, 8 examples)",
+                                          characters.whole_character(folder), methods, raw["characters"])
+    tables = [results.table("The bench rigs: LBS + Delta Mush", ["rig", "examples", "method", *COLUMNS], rig_rows)]
     if not args.no_characters:
+        tables.append(results.table("Real characters, sculpts made through the chain", ["character", "examples", "method",
+                                                                                        *COLUMNS], character_rows))
         print(f"# CesiumMan's shipped sculpts (made on the plain-skinned mesh) through {VARIANT}")
-        bench_shipped(args.reference_iterations)
+        shipped = bench_shipped(args.reference_iterations, raw["shipped"])
+        tables.append(results.table(
+            "CesiumMan's shipped sculpts against a reference optimiser",
+            ["example", "psdbake calls", "s", "RMS residual / diag", "max residual / diag", "vertices above tolerance",
+             "at optimum", "not reproduced", "reference calls", "reference s", "reference RMS / diag",
+             "RMS ratio (psdbake / reference)"], shipped, notes=SHIPPED_ABOUT))
+    results.write("coupled", argv, ABOUT, tables, raw=raw, path=args.json)
 
 
 if __name__ == "__main__":

@@ -46,11 +46,11 @@ from pxr import Gf, Sdf, Usd, UsdGeom, UsdSkel
 from psdbake import api
 from psdbake import tolerances as tol
 
-from . import rigs
+from . import results, rigs
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.dirname(HERE)
-DEFAULT_JSON = os.path.join(HERE, "results", "evalspeed.json")
+DEFAULT_JSON = results.path_of("evalspeed")
 #: Points cache: frames per measurement and rig sizes.
 CACHE_FRAMES, CACHE_SIZES = 48, ("13k", "100k")
 #: Eval: frames of the shot, example counts, CORRECTIVES formats, rig size.
@@ -304,11 +304,43 @@ def main(argv: list[str] | None = None) -> int:
             shutil.rmtree(folder, ignore_errors=True)
     report["total_seconds"] = time.perf_counter() - started
     print(render(report))
-    os.makedirs(os.path.dirname(os.path.abspath(args.json)), exist_ok=True)
-    with open(args.json, "w") as fh:
-        json.dump(report, fh, indent=1)
-    log(f"wrote {os.path.relpath(args.json)}")
+    results.write("evalspeed", argv, ABOUT, tables(report), raw=report, path=args.json)
     return 0
+
+
+ABOUT = (
+    "Two measurements, each interleaved repeat by repeat, medians. **Points cache against "
+    "`UsdSkel.BakeSkinning`**: the LBS bench rig with 8 correctives, each side composing its own stack "
+    "ASSET + CORRECTIVES + ANIM + WEIGHTS with every input layer held open, after one untimed run of each; "
+    "the two must agree within float32 round-off and every cached extent must be its points' exact min/max. "
+    "**`eval` against example count**: `psdbake eval` of a 1,000-frame shot, 13k points, in a fresh process "
+    "per eval with an empty crate-probe cache (a `.usdc` CORRECTIVES is a first read: hashed, probed by a "
+    "child process and remembered); \"command\" is the eval after start-up and a warm-up eval of the arm, "
+    "\"whole\" a plain `psdbake eval` process."
+)
+
+
+def tables(report: dict[str, Any]) -> list[dict]:
+    """The points-cache and eval tables of the results record."""
+    out = []
+    if report.get("cache"):
+        rows = []
+        for r in report["cache"]:
+            lo, hi = min(r["ratio_per_repeat"]), max(r["ratio_per_repeat"])
+            rows.append([r["size"], f"{r['cache_ms_per_frame']:.2f} ms/frame", f"{r['bake_ms_per_frame']:.2f} ms/frame",
+                         f"{r['ratio']:.2f} ({lo:.2f}-{hi:.2f})", f"{r['cache_vs_bake_max_rel']:.1e}",
+                         "exact min/max" if r["extents_exact"] else "WRONG"])
+        out.append(results.table(f"Points cache against UsdSkel.BakeSkinning ({report['cache'][0]['frames']} frames)",
+                                 ["points", "psdbake cache", "BakeSkinning", "ratio (range over repeats)",
+                                  "max |cache - bake| / diag", "extents"], rows))
+    if report.get("eval"):
+        rows = [[str(r["examples"]), f"`{r['format']}`, {r['correctives_mb']:.1f} MB", f"{r['command_seconds']:.3f} s",
+                 f"{r['command_over_fewest']:.2f}", f"{r['wall_seconds']:.2f} s", f"{r['wall_over_fewest']:.2f}"]
+                for r in report["eval"]]
+        first = report["eval"][0]
+        out.append(results.table(f"`eval` against example count ({first['frames']:,} frames, {first['size']} points)",
+                                 ["examples", "CORRECTIVES", "command", "vs fewest", "whole process", "vs fewest"], rows))
+    return out
 
 
 if __name__ == "__main__":

@@ -17,6 +17,7 @@ Run: ``python -m benchmarks.fidelity`` (``make fidelity``).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import math
 import os
 import sys
@@ -124,14 +125,38 @@ def table(rows: list[Row]) -> str:
     return "\n".join(lines)
 
 
+ABOUT = (
+    "The arm's true shape at pose (elbow θ, wrist twist τ) is UsdSkel skinning of the rest shape plus a "
+    "rest-space forearm muscle swelling with g(θ) and a twist corrective following sin τ. Examples at elbow "
+    "90° and 135° and twist 70° (bind pose implicit); 24 intermediate poses (12 elbow 10→150°, 12 twist "
+    "5→65°). Forward and inverse PSD use the same RBF weights, so the rows differ only in the space the "
+    "examples are interpolated in. Errors relative to the bounding-box diagonal: the mean over poses of "
+    "the mean vertex error, and the largest vertex error over all poses."
+)
+TRUTH_LABEL = {"sin": "g = sin θ", "linear": "g = θ / 90°"}
+
+
+def tables(rows: list[Row]) -> list[dict]:
+    """The ground-truth table of the results record."""
+    from . import results
+
+    cells = [[TRUTH_LABEL.get(r.truth, r.truth), r.settings, r.method, f"{r.mean:.2e}", f"{r.max:.2e}"] for r in rows]
+    return [results.table("Ground truth: SSD, forward PSD and inverse PSD", ["truth", "RBF", "method", "mean error",
+                                                                                  "max error"], cells)]
+
+
 def main(argv: list[str] | None = None) -> None:
+    from . import results
+
     parser = argparse.ArgumentParser(description="Ground-truth fidelity table (SSD / forward / inverse PSD).")
-    parser.parse_args(argv)
+    parser.add_argument("--json", default=results.path_of("fidelity"), help="where to write the results record")
+    args = parser.parse_args(argv)
     with tempfile.TemporaryDirectory() as folder:
         rows = run(folder)
     print(f"Arm rig, examples at elbow 90 and 135 deg and wrist twist 70 deg (bind pose implicit); "
           f"{len(test_poses())} intermediate poses; errors vs the true deformation.")
     print(table(rows))
+    results.write("fidelity", argv, ABOUT, tables(rows), raw=[dataclasses.asdict(r) for r in rows], path=args.json)
 
 
 if __name__ == "__main__":

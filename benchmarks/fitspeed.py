@@ -51,7 +51,7 @@ import tempfile
 import time
 from typing import Any
 
-from . import rigs
+from . import results, rigs
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -252,12 +252,13 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--child", nargs=3, metavar=("ASSET", "EXAMPLES", "OUT"), help=argparse.SUPPRESS)
     parser.add_argument("--warm", nargs=3, help=argparse.SUPPRESS)
     parser.add_argument("--skin-time", type=float, default=None, help=argparse.SUPPRESS)
+    parser.add_argument("--json", default=results.path_of("fitspeed"), help="where to write the results record")
     args = parser.parse_args(argv)
     if args.child:
         child(*args.child, args.warm, args.skin_time, args.profile)
         return
     repeats = {"100k": args.repeats_100k, "1M": args.repeats_1m}
-    lines = []
+    lines, medians = [], []
     with tempfile.TemporaryDirectory() as scratch:
         folder = args.folder or scratch
         os.makedirs(folder, exist_ok=True)
@@ -282,9 +283,55 @@ def main(argv: list[str] | None = None) -> None:
                     _run_child(*files[ext], os.path.join(scratch, f"corr_{size}{ext}"), warm[ext], None,
                                tempfile.mkdtemp(prefix="cache-", dir=scratch), profile=True)
             lines += [_row(size, count, ext, runs[ext]) for ext in FORMATS]
+            medians += [_medians(size, count, ext, runs[ext]) for ext in FORMATS]
     print("psdbake fit end to end (the command, after process start-up), lbs rig; medians of fresh processes, "
           "formats interleaved; first read (probe verdicts not cached) | verified (cached):")
     print("\n".join(lines))
+    results.write("fitspeed", argv, ABOUT, tables(medians), raw=medians, path=args.json)
+
+
+ABOUT = (
+    "`psdbake fit` in fresh processes, timed after start-up (a warm-up fit of the arm fixture pays the imports), "
+    "`.usda` and `.usdc` interleaved repeat by repeat, medians. \"First read\": the crate probe's verdict cache "
+    "empty; \"verified\": the inputs' verdicts cached (every farm chunk and batch job after the first). At 100k "
+    "points, one example: the whole command divided by one `ComputeSkinnedPoints` of the same mesh timed just "
+    "before the fit in the same process (skinning-equivalents). At 1M points, 8 examples: seconds and peak "
+    "resident memory (the psdbake process's high-water mark; the crate probe's child separately)."
+)
+
+
+def _medians(size: str, count: int, ext: str, runs: dict[str, list[dict]]) -> dict[str, Any]:
+    """The medians a table row shows, per state (first read, verified)."""
+    med: dict[str, Any] = {state: {k: statistics.median(r[k] for r in rs) for k in rs[0]} for state, rs in runs.items()}
+    if "skin_seconds" in runs["first read"][0]:
+        med["ratio"] = {state: statistics.median(r["seconds"] / r["skin_seconds"] for r in rs) for state, rs in runs.items()}
+        med["skin_seconds"] = statistics.median(r["skin_seconds"] for rs in runs.values() for r in rs)
+    return {"size": size, "examples": count, "format": ext, "repeats": len(runs["verified"]), **med}
+
+
+def tables(medians: list[dict[str, Any]]) -> list[dict]:
+    """The 100k and 1M tables of the results record."""
+    out = []
+    small = [m for m in medians if "ratio" in m]
+    if small:
+        rows = [[f"`{m['format']}` in/out",
+                 f"{m['first read']['seconds']:.3f} s (probe {m['first read']['probe_seconds']:.3f} s)",
+                 f"{m['verified']['seconds']:.3f} s (hash {m['verified']['lookup_seconds']:.3f} s)",
+                 f"{1000 * m['skin_seconds']:.2f} ms", f"{m['ratio']['first read']:.0f} / {m['ratio']['verified']:.0f}"]
+                for m in small]
+        out.append(results.table(f"{small[0]['size']}, {small[0]['examples']} example ({small[0]['repeats']} repeats)",
+                                 ["format", "fit, first read", "verified", "one `ComputeSkinnedPoints`",
+                                  "skinning-equivalents, first read / verified"], rows))
+    large = [m for m in medians if "ratio" not in m]
+    if large:
+        rows = [[f"`{m['format']}` in/out", f"{m['first read']['seconds']:.2f} / {m['verified']['seconds']:.2f} s "
+                 f"(probe {m['first read']['probe_seconds']:.2f} s / hash {m['verified']['lookup_seconds']:.2f} s)",
+                 f"{m['first read']['wall']:.2f} / {m['verified']['wall']:.2f} s",
+                 f"{m['first read']['rss_mib']:.0f} MiB (probe child {m['first read']['children_rss_mib']:.0f} MiB)"]
+                for m in large]
+        out.append(results.table(f"{large[0]['size']}, {large[0]['examples']} examples ({large[0]['repeats']} repeats)",
+                                 ["format", "fit, first read / verified", "whole process", "peak RSS"], rows))
+    return out
 
 
 def _row(size: str, count: int, ext: str, runs: dict[str, list[dict]]) -> str:

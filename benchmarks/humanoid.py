@@ -51,7 +51,7 @@ import generate  # noqa: E402
 import humanoid as hum  # noqa: E402
 
 from psdbake import api  # noqa: E402
-from psdbake.channels import column_weights  # noqa: E402
+from psdbake.model.channels import column_weights  # noqa: E402
 from psdbake.results import FitResult, WeightsResult  # noqa: E402
 from psdbake.settings import FitSettings  # noqa: E402
 
@@ -213,7 +213,8 @@ def run(folder: str) -> dict:
         nonlocal combo_weight
         result = api.fit(ASSET, [EXAMPLES], FitSettings())
         notes["default fit"] = [*result.warnings, *result.layout, *(f"skipped {s}" for s in result.skipped)]
-        path = api.write_correctives(result, os.path.join(folder, "correctives_default.usda"))
+        path = os.path.join(folder, "correctives_default.usda")
+        api.write_correctives(result, path)
         shot["inverse PSD, default fit"], w_shot = stacked(path, ANIM, frames, folder, "default")
         ex_pts, w_ex = stacked(path, poses_layer, ex_times, folder, "default_examples")
         at_combos["inverse PSD, default fit"] = ex_pts[[ex_times.index(t) for t in combos]]
@@ -236,7 +237,8 @@ def run(folder: str) -> dict:
     def global_group() -> None:
         """psdbake 0.1's default: one RBF over every driver (``--group main``)."""
         result = api.fit(ASSET, [EXAMPLES], FitSettings(group="main"))
-        path = api.write_correctives(result, os.path.join(folder, "correctives_global.usda"))
+        path = os.path.join(folder, "correctives_global.usda")
+        api.write_correctives(result, path)
         shot["inverse PSD, one global group"], _ = stacked(path, ANIM, frames, folder, "global")
         ex_pts, _ = stacked(path, poses_layer, ex_times, folder, "global_examples")
         at_combos["inverse PSD, one global group"] = ex_pts[[ex_times.index(t) for t in combos]]
@@ -339,13 +341,48 @@ def render(report: dict) -> str:
     return "\n".join(lines)
 
 
+ABOUT = (
+    "A 17-joint humanoid (`fixtures/humanoid/`, made by `fixtures/humanoid.py`) with seven regions (neck, "
+    "shoulders, elbows, knees) whose true rest-space correctives follow sin of their joint's bend, plus a "
+    "combination term for each shoulder+elbow pair (sin·sin, zero when either is at bind). 13 sculpts in one "
+    "EXAMPLES file: 11 bend one joint, 2 bend a shoulder and its elbow. The shot moves one region at a time, "
+    "past the sculpted angles, then all seven together. Errors relative to the bounding-box diagonal."
+)
+
+
+def tables(report: dict) -> list[dict]:
+    """The humanoid's tables for the results record."""
+    from . import results
+
+    fx = report["fixture"]
+    rows = [[row["method"], *(_cell(row, part, key) for part in ("one joint", "all together") for key in ("mean", "max"))]
+            for row in report["rows"]]
+    notes = (f"{fx['points']} points, diagonal {fx['diagonal_mm']:.0f} mm; one joint at a time = frames "
+             f"{fx['one_joint_frames'][0]:g}-{fx['one_joint_frames'][1]:g}, all together = frames "
+             f"{fx['all_together_frames'][0]:g}-{fx['all_together_frames'][1]:g}.")
+    if report["max_combination_weight_one_joint_frames"] is not None:
+        notes += (" Default fit: the largest combination weight while one joint moves alone is "
+                  f"{report['max_combination_weight_one_joint_frames']:.1e}.")
+    out = [results.table("A whole character: vertex error against the ground truth",
+                         ["method", "one joint: mean", "max", "all together: mean", "max"], rows, notes)]
+    combos = [[f"t={c['time']:g}", ", ".join(f"{r} {a:g}" for r, a in c["angles"].items()),
+               *("failed" if c[m] is None else f"{c[m]:.2e}" for m in METHODS)] for c in report["combinations"]]
+    out.append(results.table("Round trip at each combination sculpt's pose (max vertex error / diagonal)",
+                             ["example", "pose (deg)", *METHODS], combos))
+    return out
+
+
 def main(argv: list[str] | None = None) -> None:
+    from . import results
+
     parser = argparse.ArgumentParser(description="Whole-character fidelity table on fixtures/humanoid/.")
     parser.add_argument("--json", action="store_true", help="print the figures as JSON")
+    parser.add_argument("--record", default=results.path_of("humanoid"), help="where to write the results record")
     args = parser.parse_args(argv)
     with tempfile.TemporaryDirectory() as folder:
         report = run(folder)
     print(json.dumps(report, indent=2, sort_keys=True) if args.json else render(report))
+    results.write("humanoid", argv, ABOUT, tables(report), raw=report, path=args.record)
 
 
 if __name__ == "__main__":

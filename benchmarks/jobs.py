@@ -16,7 +16,7 @@ import sys
 import tempfile
 import time
 
-from benchmarks import rigs
+from benchmarks import results, rigs
 
 
 def _tree_rss_kb(pid: int) -> int:
@@ -54,6 +54,7 @@ def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--size", default="100k", choices=sorted(rigs.SIZES))
     parser.add_argument("--examples", type=int, default=20)
+    parser.add_argument("--json", default=results.path_of("jobs"), help="where to write the results record")
     args = parser.parse_args(argv)
     cores = os.cpu_count() or 1
     with tempfile.TemporaryDirectory() as folder:
@@ -61,8 +62,10 @@ def main(argv: list[str] | None = None) -> None:
         rig = rigs.build(folder, "lbs", args.size, poses, poses_layer)
         rows = []
         outputs = {}
+        out = os.path.join(folder, "corr.usdc")  # one path: the layer records the command line that wrote it
         for jobs in sorted({1, cores}):
-            out = os.path.join(folder, f"corr_j{jobs}.usdc")
+            if os.path.exists(out):
+                os.remove(out)
             seconds, peak = run_fit(rig.asset, rig.examples, out, jobs)
             with open(out, "rb") as fh:
                 outputs[jobs] = fh.read()
@@ -75,6 +78,14 @@ def main(argv: list[str] | None = None) -> None:
     for jobs, seconds, peak in rows:
         print(f"  {jobs:>6} {seconds:>8.2f} {peak:>13.0f} MiB {base / seconds:>8.2f}x")
     print(f"  outputs byte-identical across --jobs: {'yes' if identical else 'NO'}")
+    about = (f"`psdbake fit` of {args.examples} examples of the {args.size} lbs bench rig ({rig.points:,} points, a third "
+             "sculpted) as a separate process with `--jobs 1` and `--jobs <cores>`; peak resident memory of the whole "
+             "process tree (psdbake and its workers) sampled every 20 ms; the outputs compared byte for byte.")
+    table = results.table(f"`fit --jobs`: {args.examples} examples, {args.size}", ["--jobs", "seconds", "peak RSS (tree)",
+                                                                                   "speed-up"],
+                          [[str(j), f"{s:.2f}", f"{p:.0f} MiB", f"{base / s:.2f}x"] for j, s, p in rows],
+                          f"Outputs byte-identical across --jobs: {'yes' if identical else 'NO'}.")
+    results.write("jobs", argv, about, [table], raw={"rows": rows, "identical": identical}, path=args.json)
     if not identical:
         raise SystemExit(1)
 

@@ -30,8 +30,7 @@ FIX = os.path.join(ROOT, "fixtures")
 
 
 def _psdbake(*args: str, cwd: str = ROOT) -> None:
-    subprocess.run([sys.executable, "-m", "psdbake", *args, "-q"] if args[0] != "stack" else
-                   [sys.executable, "-m", "psdbake", *args], cwd=cwd, check=True, stdout=subprocess.DEVNULL)
+    subprocess.run([sys.executable, "-m", "psdbake", *args, "-q"], cwd=cwd, check=True, stdout=subprocess.DEVNULL)
 
 
 def demo(out: str) -> None:
@@ -47,8 +46,8 @@ def demo(out: str) -> None:
     _psdbake("fit", arm, os.path.join(inputs, "arm_lbs_examples.usda"), "-o", os.path.join(d, "correctives.usda"))
     _psdbake("eval", arm, os.path.join(d, "correctives.usda"), "--anim", anim, "-o", os.path.join(d, "weights.usda"),
              "--points-cache", os.path.join(d, "points_cache.usda"))
-    _psdbake("stack", os.path.join(d, "shot.usda"), arm, os.path.join(d, "correctives.usda"), anim,
-             os.path.join(d, "weights.usda"))
+    _psdbake("stack", arm, os.path.join(d, "correctives.usda"), anim, os.path.join(d, "weights.usda"),
+             "-o", os.path.join(d, "shot.usda"))
 
 
 def character_batch(out: str) -> None:

@@ -18,7 +18,7 @@ the non-linear chain):
 
 Then the eval side: RBF weights over a long shot and the points cache against
 ``UsdSkel.BakeSkinning``. A fixed-width table goes to stdout, the full record to
-``benchmarks/results/bench.json``.
+``benchmarks/results/run.json`` (``benchmarks.results``: docs/benchmarks.md is made from it).
 """
 
 from __future__ import annotations
@@ -27,7 +27,6 @@ import argparse
 import cProfile
 import io
 import itertools
-import json
 import os
 import platform
 import pstats
@@ -50,15 +49,15 @@ from pxr import Gf, Sdf, Usd, UsdGeom, UsdSkel
 import psdbake
 from psdbake import api
 from psdbake import tolerances as tol
-from psdbake.inverse import InverseResult, invert_example, invert_example_with
 from psdbake.results import FitResult
 from psdbake.settings import FitSettings
+from psdbake.solver.inverse import InverseResult, invert_example, invert_example_with
 from psdbake.usd.read import Scene
 
-from . import references, rigs
+from . import references, results, rigs
 
 HERE = os.path.dirname(os.path.abspath(__file__))
-DEFAULT_JSON = os.path.join(HERE, "results", "bench.json")
+DEFAULT_JSON = results.path_of("run")
 
 #: Literal-method sample: vertices per rig, spread over the examples (it is ~1000x slower).
 LITERAL_VERTICES = {"1.3k": 10, "13k": 10, "100k": 3}
@@ -387,7 +386,8 @@ def _stack_stage(layers: Sequence[str]) -> Usd.Stage:
 
 def measure_eval(folder: str, rig: rigs.Rig, fit_result: FitResult) -> dict:
     """RBF weights over EVAL_FRAMES frames; points cache vs UsdSkel.BakeSkinning over CACHE_FRAMES."""
-    corr = api.write_correctives(fit_result, os.path.join(folder, "eval_correctives.usda"))
+    corr = os.path.join(folder, "eval_correctives.usda")
+    api.write_correctives(fit_result, corr)
     started = time.perf_counter()
     anim = rigs.write_shot(folder, EVAL_FRAMES)
     write_seconds = time.perf_counter() - started
@@ -591,6 +591,57 @@ def render_solver(report: dict) -> list[str]:
     return out
 
 
+ABOUT = (
+    "The tube/arm rig at 1.3k, 13k and 100k points (a third of the vertices sculpted, 8 examples) in LBS, "
+    "dual-quaternion and a non-linear chain (LBS followed by a position-dependent twist-and-bulge "
+    "`--deformer`); psdbake against the reference methods side by side in one run: the closed-form LBS inverse "
+    "(blend each vertex's matrices and solve), the paper's literal method (scipy `minimize(method=\"Powell\")` "
+    "per vertex, each evaluation a whole-mesh black-box call, timed on a few sampled vertices and extrapolated "
+    "to all sculpted vertices) and the one-shot linearisation. Seconds vary ±30-50% between runs on shared "
+    "machines: read the ratios, taken in the same run."
+)
+SOLVER_ABOUT = (
+    "`python -m benchmarks.run --solver-only`: the solver (Broyden-refreshed directions) against Powell alone "
+    "after the linearised start, alternating per example in one run, 8 examples per rig."
+)
+
+
+def tables(report: dict) -> list[dict]:
+    """The rig table (and the solver table and the eval figures) of the results record."""
+    rows = []
+    for r in report["rigs"]:
+        p, ratios = r["psdbake"], r["ratios"]
+        closed = ratios.get("psdbake_over_closed_form_time")
+        rows.append([r["rig"], f"{r['points']:,}", f"{p['evaluations']:.0f}", f"{p['max_rel']:.1e}", _s(p["seconds"]),
+                     "-" if closed is None else f"{closed:.2f}x the closed form",
+                     f"{ratios['literal_over_psdbake_time']:.2g}x faster",
+                     f"{ratios['psdbake_over_one_shot_max_residual']:.2g}x the one-shot's {r['one_shot']['max_rel']:.1e}"])
+    out = [results.table("psdbake against the reference methods",
+                         ["rig", "points", "evals / example", "max residual / diag", "s / example", "vs closed-form LBS",
+                          "vs literal Powell", "residual vs one-shot"], rows,
+                         "Literal Powell: extrapolated from sampled vertices (see the JSON's `literal` records).")]
+    if any(r.get("solver") for r in report["rigs"]):
+        out.append(solver_table(report))
+    ev = report.get("eval")
+    if ev:
+        out.append(results.table(f"eval on {ev['rig']} ({ev['correctives']} correctives)", ["measure", "value"], [
+            [f"weights for {ev['anim_frames']:,} frames",
+             f"{_s(ev['weights_seconds'])} ({ev['weights_us_per_frame']:.0f} us/frame)"],
+            [f"points cache, {ev['cache_frames']} frames", f"{ev['points_cache_ms_per_frame']:.2f} ms/frame"],
+            [f"UsdSkel.BakeSkinning, {ev['cache_frames']} frames", f"{ev['bake_ms_per_frame']:.2f} ms/frame"],
+            ["max |cache - bake| / diag", f"{ev['cache_vs_bake_max_rel']:.1e}"]]))
+    return out
+
+
+def solver_table(report: dict) -> dict:
+    """The solver table (Broyden refresh against Powell alone) as a results table."""
+    recs = [r for r in report["rigs"] if r.get("solver")]
+    rows = [[fmt(r) for _, fmt in SOLVER_COLUMNS] for r in recs]
+    return results.table("The solver: Broyden refresh against Powell alone", [h for h, _ in SOLVER_COLUMNS], rows,
+                         "calls = black-box calls per example (mean; 'max' the worst example); missed: vertices above "
+                         "tolerance (new/old).")
+
+
 def _jsonable(x: Any) -> Any:
     if isinstance(x, dict):
         return {str(k): _jsonable(v) for k, v in x.items()}
@@ -604,7 +655,7 @@ def _jsonable(x: Any) -> Any:
 
 
 def solver_only(json_path: str, sizes: Sequence[str] = ("13k", "100k"),
-                variants: Sequence[str] = ("lbs", "dqs", "lbs+bulge")) -> int:
+                variants: Sequence[str] = ("lbs", "dqs", "lbs+bulge"), argv: Sequence[str] | None = None) -> int:
     """``--solver-only``: the solver table alone, written to stdout and beside ``json_path``."""
     m = machine_info()
     report: dict[str, Any] = {"mode": "solver-only", "machine": m, "rigs": []}
@@ -625,10 +676,7 @@ def solver_only(json_path: str, sizes: Sequence[str] = ("13k", "100k"),
           f"machine: {m['nproc']} cores, {m['cpu_model']}")
     print("\n".join(render_solver(report)))
     path = os.path.splitext(json_path)[0] + "_solver.json"
-    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
-    with open(path, "w") as f:
-        json.dump(_jsonable(report), f, indent=1)
-    log(f"wrote {os.path.relpath(path)}")
+    results.write("run", argv, SOLVER_ABOUT, [solver_table(report)], raw=_jsonable(report), path=path)
     return 0
 
 
@@ -645,7 +693,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
 
     if args.solver_only:
-        return solver_only(args.json)
+        return solver_only(args.json, argv=argv)
     sizes = ["1.3k", "13k"] if args.quick else ["1.3k", "13k", "100k"]
     report: dict[str, Any] = {"mode": "quick" if args.quick else "full", "machine": machine_info(), "rigs": []}
     folder = tempfile.mkdtemp(prefix="psdbake-bench-")
@@ -677,10 +725,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         else:
             shutil.rmtree(folder, ignore_errors=True)
     print(render(report))
-    os.makedirs(os.path.dirname(os.path.abspath(args.json)), exist_ok=True)
-    with open(args.json, "w") as f:
-        json.dump(_jsonable(report), f, indent=1)
-    log(f"wrote {os.path.relpath(args.json)}")
+    results.write("run", argv, ABOUT, tables(report), raw=_jsonable(report), path=args.json)
     return 0
 
 

@@ -85,9 +85,35 @@ def table(seconds: dict[str, list[float]]) -> list[str]:
     return lines
 
 
+ABOUT = (
+    "Every farm chunk and batch job is a fresh process, so what the command loads before its first frame is "
+    "paid once per task. `--help`, option parsing and usage errors load only click and the option names; each "
+    "command imports the library it runs; `eval` loads numpy and USD but not SciPy. Wall time of a new process "
+    "per run, the commands interleaved, medians; the ratio to `python -c pass` is the figure to compare "
+    "between machines."
+)
+
+
+def tables(seconds: dict[str, list[float]], runs: int) -> list[dict]:
+    """The start-up table of the results record."""
+    from . import results
+
+    floor = statistics.median(seconds["python -c pass"])
+    rows = []
+    for label, values in seconds.items():
+        median = statistics.median(values)
+        target = TARGETS.get(label)
+        rows.append([f"`{label}`", f"{median:.3f} s", f"{median / floor:.1f}", f"{target} s" if target else ""])
+    return [results.table(f"Start-up ({runs} runs of each command, interleaved)",
+                          ["command", "median", "x `python -c pass`", "target"], rows)]
+
+
 def main(argv: list[str] | None = None) -> None:
+    from . import results
+
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--runs", type=int, default=15, help="timed runs of each command (default 15)")
+    parser.add_argument("--json", default=results.path_of("startup"), help="where to write the results record")
     args = parser.parse_args(argv)
     with tempfile.TemporaryDirectory() as folder:
         seconds = measure(commands(folder), args.runs)
@@ -95,6 +121,7 @@ def main(argv: list[str] | None = None) -> None:
     print(f"start-up, {args.runs} interleaved runs each, {os.cpu_count()} cores, load average {load:.2f} "
           f"at the end (python {sys.version.split()[0]})")
     print("\n".join(table(seconds)))
+    results.write("startup", argv, ABOUT, tables(seconds, args.runs), raw=seconds, path=args.json)
 
 
 if __name__ == "__main__":

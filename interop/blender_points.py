@@ -3,13 +3,15 @@ mesh object's evaluated vertices in world space and its shape keys' values.
 
 Runs INSIDE the bpy virtual environment (``make interop`` creates ``.venv-blender``)::
 
-    .venv-blender/bin/python interop/blender_points.py FILE --frames 1,2,3 -o OUT.npz [--importer usd|gltf]
+    .venv-blender/bin/python interop/blender_points.py FILE --frames 1,2,3 -o OUT.npz [--importer usd|gltf|blend]
 
 FILE is a USD stack (.usd/.usda/.usdc/.usdz: ``bpy.ops.wm.usd_import`` with its defaults plus
-``import_skeletons`` and ``import_blendshapes``, what a rigger ticks for a skinned character)
-or a .glb/.gltf (``bpy.ops.import_scene.gltf`` with its defaults). Nothing is changed after the
-import: no slider ranges, no modifiers, no transforms. The scene starts empty
-(``read_factory_settings(use_empty=True)``).
+``import_skeletons`` and ``import_blendshapes``, what a rigger ticks for a skinned character),
+a .glb/.gltf (``bpy.ops.import_scene.gltf`` with its defaults), or a .blend (``psdbake
+export-blender``'s live rig), opened as a user opens a file with Blender's defaults: Python
+auto-run off (``open_mainfile(use_scripts=False)`` after factory settings, whose preference is
+off too). Nothing is changed after the import or open: no slider ranges, no modifiers, no
+transforms. The scene starts empty (``read_factory_settings(use_empty=True)``).
 
 OUT.npz holds ``meta`` (a JSON string: Blender version, importer and every operator option as
 used, scene frame range and fps, frames, and one entry per object: name, type, data name, parent
@@ -22,7 +24,9 @@ chain, modifiers, custom properties, shape keys with slider ranges) and, for mes
 - ``curves_i`` (F, K) each shape key's animation curve evaluated at the frame (what the file asked
   for, before clamping; NaN where a key has no curve);
 
-and, for every object ``j``, ``matrix_j`` (F, 4, 4) its ``matrix_world`` per frame.
+and, for every object ``j``, ``matrix_j`` (F, 4, 4) its ``matrix_world`` per frame. For a .blend,
+``meta["drivers"]`` also says how its drivers ran: how many, how many are simple expressions and
+valid, and whether Blender blocked any Python (``bpy.app.autoexec_fail``) while sampling.
 Blender's conversions are not undone here: the caller compares in a common frame.
 """
 
@@ -39,6 +43,7 @@ import numpy as np
 
 USD_EXTENSIONS = (".usd", ".usda", ".usdc", ".usdz")
 GLTF_EXTENSIONS = (".glb", ".gltf")
+BLEND_EXTENSIONS = (".blend",)
 # The only USD importer options set: a rigger's ticks for a skinned character (both are on by
 # default in Blender 5.0 too; set explicitly so a changed default cannot drop them silently).
 USD_OPTIONS = {"import_skeletons": True, "import_blendshapes": True}
@@ -63,8 +68,28 @@ def operator_options(op, overrides: dict) -> dict:
     return options
 
 
+def open_blend(path: str) -> dict:
+    """Open a .blend as a user does with Blender's defaults: Python auto-run off."""
+    if bpy.context.preferences.filepaths.use_scripts_auto_execute:
+        raise SystemExit("blender_points: factory settings have Python auto-run on; expected off")
+    bpy.ops.wm.open_mainfile(filepath=os.path.abspath(path), use_scripts=False)
+    return {"use_scripts": False, "use_scripts_auto_execute": bpy.context.preferences.filepaths.use_scripts_auto_execute}
+
+
+def driver_facts() -> dict:
+    """Every driver of every datablock: counts, simple expressions, validity, blocked Python."""
+    drivers = [fc.driver for coll in (bpy.data.objects, bpy.data.shape_keys, bpy.data.meshes, bpy.data.armatures)
+               for idblock in coll if idblock.animation_data for fc in idblock.animation_data.drivers]
+    return {"drivers": len(drivers), "simple": sum(d.is_simple_expression for d in drivers),
+            "valid": sum(d.is_valid for d in drivers), "autoexec_fail": bool(bpy.app.autoexec_fail),
+            "autoexec_fail_message": bpy.app.autoexec_fail_message,
+            "longest_expression": max((len(d.expression) for d in drivers), default=0)}
+
+
 def import_file(path: str, importer: str) -> dict:
     """Import path into the (empty) scene; returns the options used."""
+    if importer == "blend":
+        return open_blend(path)
     if importer == "usd":
         op, overrides = bpy.ops.wm.usd_import, dict(USD_OPTIONS)
     else:
@@ -214,10 +239,11 @@ def main(argv: list[str]) -> None:
     parser.add_argument("file")
     parser.add_argument("--frames", required=True, help="comma-separated frames, or A:B for every whole frame A..B")
     parser.add_argument("-o", "--out", required=True, help="output .npz")
-    parser.add_argument("--importer", choices=("usd", "gltf"), help="default: from the file's extension")
+    parser.add_argument("--importer", choices=("usd", "gltf", "blend"), help="default: from the file's extension")
     args = parser.parse_args(argv)
     ext = os.path.splitext(args.file)[1].lower()
-    importer = args.importer or ("gltf" if ext in GLTF_EXTENSIONS else "usd" if ext in USD_EXTENSIONS else None)
+    importer = args.importer or ("gltf" if ext in GLTF_EXTENSIONS else "usd" if ext in USD_EXTENSIONS
+                                 else "blend" if ext in BLEND_EXTENSIONS else None)
     if importer is None:
         parser.error(f"cannot tell the importer from {args.file!r}: use --importer")
     frames = parse_frames(args.frames)
@@ -228,11 +254,14 @@ def main(argv: list[str]) -> None:
     arrays, objects = sample(frames)
     meta = {
         "blender": bpy.app.version_string, "file": os.path.abspath(args.file), "importer": importer,
-        "operator": "wm.usd_import" if importer == "usd" else "import_scene.gltf", "options": options,
+        "operator": {"usd": "wm.usd_import", "gltf": "import_scene.gltf", "blend": "wm.open_mainfile"}[importer],
+        "options": options,
         "scene": {"frame_start": scene.frame_start, "frame_end": scene.frame_end, "fps": scene.render.fps,
                   "fps_base": scene.render.fps_base, "unit_scale": scene.unit_settings.scale_length},
         "frames": frames, "objects": objects,
     }
+    if importer == "blend":
+        meta["drivers"] = driver_facts()
     np.savez_compressed(args.out, meta=np.array(json.dumps(meta)), **arrays)
 
 

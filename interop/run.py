@@ -27,6 +27,16 @@ weights.md with the per-frame weights, results.json).
 
 glTF: ``check_gltf`` compares a .glb imported by Blender's glTF importer with a BakeSkinning
 reference; the glTF cases run when ``psdbake export-gltf --help`` works (criterion 1e-5).
+
+Live rig: ``live_case`` builds ``psdbake export-blender ASSET CORRECTIVES --anim ANIM`` (the
+drivers compute the weights from the armature's pose), opens the .blend as a user does, Python
+auto-run off, plays every frame and asserts: each channel's shape-key value within 1e-6 of
+``psdbake eval``'s weight (what UsdSkel reads from WEIGHTS), the evaluated mesh within plain +
+1e-6 of the corrected stack's BakeSkinning (the criterion above), every driver a valid simple
+expression and no Python blocked; and (``interop/blender_constraints.py``) that a driver bone
+turned by a constraint drives the correctives as the same turn keyed on the bone, within 1e-6.
+``interop/blender_speed.py`` then times a frame of the plain stack, the baked corrected stack and
+the live rig side by side in one Blender process.
 """
 
 from __future__ import annotations
@@ -50,11 +60,15 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 FIXTURES = os.path.join(ROOT, "fixtures")
 HERE = os.path.dirname(os.path.abspath(__file__))
 BLENDER_SCRIPT = os.path.join(HERE, "blender_points.py")
+SPEED_SCRIPT = os.path.join(HERE, "blender_speed.py")
+CONSTRAINTS_SCRIPT = os.path.join(HERE, "blender_constraints.py")
 DEFAULT_BLENDER_PYTHON = os.path.join(ROOT, ".venv-blender", "bin", "python")
 
 CRITERION = 1e-6  # corrected error may exceed plain error by at most this (fraction of the diagonal)
 GLTF_CRITERION = 1e-5  # glTF: error against the corrected BakeSkinning reference
 PLAIN_MISMATCH = 1e-5  # a plain-stack error above this is a placement mismatch of Blender's import
+LIVE_WEIGHT_ATOL = 1e-6  # live rig: each channel's shape-key value against eval's weight
+SPEED_ROUNDS = 5  # blender_speed.py: interleaved rounds per case (each plays the shot 3 times per variant)
 BLENDER_NAME_BYTES = 63  # Blender's MAX_NAME - 1
 BLENDER_FACTORY_FPS = 24.0  # the scene's frame rate after read_factory_settings (the glTF importer keeps it)
 
@@ -75,6 +89,7 @@ class Case:
     fits: tuple[tuple[str | None, tuple[str, ...]], ...]
     anim: str | None
     note: str = ""
+    mirror: tuple[str, ...] = ()  # psdbake mirror --joints rules applied to CORRECTIVES after the fits
 
 
 def character_fits() -> tuple[tuple[str | None, tuple[str, ...]], ...]:
@@ -96,6 +111,12 @@ def make_cases(tmp: str, only: list[str] | None) -> list[Case]:
         cases.append(Case("humanoid", fixture("humanoid", "humanoid.usda"),
                           ((None, (fixture("humanoid", "humanoid_examples.usda"),)),),
                           fixture("humanoid", "humanoid_anim.usda"), "make demo's set-up: default fit, combinations"))
+    if want("humanoid_mirrored"):
+        cases.append(Case("humanoid_mirrored", fixture("humanoid", "humanoid.usda"),
+                          ((None, (fixture("humanoid", "humanoid_examples.usda"),)),),
+                          fixture("humanoid", "humanoid_anim.usda"),
+                          "make demo's fit, then psdbake mirror --joints L_=R_: the R groups from the L ones",
+                          mirror=("L_=R_",)))
     if want("arm"):
         cases.append(Case("arm", fixture("arm_lbs.usda"), ((None, (fixture("arm_lbs_examples.usda"),)),),
                           fixture("arm_anim.usda"), "a layout Blender misplaces (psdbake inspect warns)"))
@@ -138,8 +159,7 @@ def run(cmd: list[str], log: list[str]) -> subprocess.CompletedProcess:
 
 
 def psdbake(log: list[str], *args: str) -> None:
-    quiet = [] if args[0] == "stack" else ["-q"]  # stack has no -q
-    run([psdbake_exe(), *args, *quiet], log)
+    run([psdbake_exe(), *args, "-q"], log)
 
 
 def inspect_warnings(asset: str) -> set[str]:
@@ -171,12 +191,15 @@ def build(case: Case, folder: str) -> Stacks:
     corr, weights = os.path.join(folder, "correctives.usda"), os.path.join(folder, "weights.usda")
     for group, examples in case.fits:
         psdbake(log, "fit", case.asset, *examples, *(["--group", group] if group else []), "-o", corr)
+    if case.mirror:
+        psdbake(log, "mirror", case.asset, corr, *(a for rule in case.mirror for a in ("--joints", rule)), "-o", corr,
+                "--replace-sculpted")  # the case is the R groups made from the L ones, over the ones fitted on R sculpts
     anim = case.anim or case.asset
     psdbake(log, "eval", case.asset, corr, "--anim", anim, "-o", weights)
     anim_layers = [case.anim] if case.anim else []
     plain, corrected = os.path.join(folder, "plain.usda"), os.path.join(folder, "corrected.usda")
-    psdbake(log, "stack", plain, case.asset, *anim_layers)
-    psdbake(log, "stack", corrected, case.asset, corr, *anim_layers, weights)
+    psdbake(log, "stack", case.asset, *anim_layers, "-o", plain)
+    psdbake(log, "stack", case.asset, corr, *anim_layers, weights, "-o", corrected)
     return Stacks(plain, corrected, corr, anim, log)
 
 
@@ -543,11 +566,12 @@ class CaseResult:
     commands: list[str] = field(default_factory=list)
     error: str = ""
     gltf: dict = field(default_factory=dict)
+    live: dict = field(default_factory=dict)
 
     @property
     def passed(self) -> bool:
         return (not self.error and bool(self.meshes) and all(m.passed for m in self.meshes)
-                and (not self.gltf or bool(self.gltf.get("passed"))))
+                and (not self.gltf or bool(self.gltf.get("passed"))) and bool(self.live.get("passed")))
 
 
 def compare_case(case: Case, tmp: str, gltf: bool) -> CaseResult:
@@ -601,9 +625,72 @@ def compare_case(case: Case, tmp: str, gltf: bool) -> CaseResult:
             start = time.perf_counter()
             result.gltf = gltf_case(case, stacks, ref_corr, folder)
             result.seconds["gltf (export + Blender)"] = time.perf_counter() - start
+        start = time.perf_counter()
+        result.live = live_case(case, stacks, ref_corr, {m.path: m.plain for m in result.meshes}, frames, folder)
+        result.seconds["live rig (export + Blender + speed)"] = time.perf_counter() - start
     except HarnessError as exc:
         result.error = str(exc)
     return result
+
+
+# --- the live rig -------------------------------------------------------------------------------
+
+def live_case(case: Case, stacks: Stacks, ref: Reference, plain: dict[str, float], frames: list[float],
+              folder: str) -> dict:
+    """``psdbake export-blender`` with the shot, opened with Python auto-run off and played: the
+    drivers' weights against eval's, the mesh against the corrected stack's BakeSkinning (the
+    criterion of the stacks: corrected <= plain + 1e-6), then the per-frame cost."""
+    blend = os.path.join(folder, "live.blend")
+    log: list[str] = []
+    psdbake(log, "export-blender", case.asset, stacks.correctives, "--anim", stacks.anim, "-o", blend,
+            "--blender", blender_python())
+    view = blender_points(blend, frames, os.path.join(folder, "blender_live.npz"), importer="blend")
+    c, _ = usd_import_conversion(ref.up_axis, ref.meters_per_unit, {"scale": 1.0, "apply_unit_conversion_scale": True})
+    facts = view.meta["drivers"]
+    mapping, problems = match_meshes(view, ref)
+    report: dict = {"commands": log, "drivers": facts, "meshes": {}, "file": blend,
+                    "auto_run": view.meta["options"]}
+    passed = (facts["drivers"] > 0 and facts["simple"] == facts["valid"] == facts["drivers"]
+              and not facts["autoexec_fail"] and not view.meta["options"]["use_scripts_auto_execute"])
+    for path, mesh in ref.meshes.items():
+        if path not in mapping:
+            report["meshes"][path] = {"error": math.inf, "passed": False, "problem": problems.get(path, "unmapped")}
+            passed = False
+            continue
+        i, obj = mapping[path]
+        assert mesh.world is not None
+        error = relative_error(blender_world_in_usd(view, i, c), mesh.world, mesh.diag)
+        weights, _ = weight_check(mesh, view, i, obj, frames)
+        dw = weights.get("max_abs_diff", 0.0) if mesh.channels else 0.0
+        ok = (error <= plain.get(path, math.inf) + CRITERION and dw <= LIVE_WEIGHT_ATOL
+              and weights.get("matched", 0) == len(mesh.channels))
+        report["meshes"][path] = {"error": error, "plain": plain.get(path, math.nan), "max_abs_dw": dw,
+                                  "channels": len(mesh.channels), "matched": weights.get("matched", 0),
+                                  "clamped_samples": weights.get("clamped_samples", 0), "passed": ok}
+        passed = passed and ok
+    report["constraints"] = blender_json(CONSTRAINTS_SCRIPT, [blend], os.path.join(folder, "constraints.json"), case)
+    passed = (passed and report["constraints"]["max_abs_dw"] <= LIVE_WEIGHT_ATOL
+              and report["constraints"]["max_value"] > LIVE_WEIGHT_ATOL)
+    report["speed"] = speed(case, stacks, blend, frames, folder)
+    report["passed"] = passed
+    return report
+
+
+def blender_json(script: str, args: list[str], out: str, case: Case) -> dict:
+    """Run an interop script in the bpy venv; the JSON it wrote to ``out``."""
+    proc = subprocess.run([blender_python(), script, *args, "-o", out], capture_output=True, text=True, cwd=ROOT)
+    if proc.returncode != 0 or not os.path.exists(out):
+        raise HarnessError(f"{os.path.basename(script)} failed (exit {proc.returncode}) on {case.name}:\n"
+                           f"{proc.stderr[-2000:]}")
+    with open(out, encoding="utf-8") as fh:
+        return json.load(fh)
+
+
+def speed(case: Case, stacks: Stacks, blend: str, frames: list[float], folder: str) -> dict:
+    """blender_speed.py on the plain stack, the baked corrected stack and the live rig."""
+    return blender_json(SPEED_SCRIPT, ["--frames", ",".join(f"{f:g}" for f in frames), "--rounds", str(SPEED_ROUNDS),
+                                       f"plain={stacks.plain}", f"baked={stacks.corrected}", f"live={blend}"],
+                        os.path.join(folder, "speed.json"), case)
 
 
 # --- glTF ---------------------------------------------------------------------------------------
@@ -810,6 +897,7 @@ def report(results: list[CaseResult], gltf_available: bool, seconds: float) -> s
                              f"[{w.get('usd_min', math.nan):.3f}, {w.get('usd_max', math.nan):.3f}] Blender "
                              f"[{w.get('blender_min', math.nan):.3f}, {w.get('blender_max', math.nan):.3f}], max abs Δw "
                              f"{fmt(w.get('max_abs_diff', math.nan))}")
+    lines += live_report(results)
     problems = [(res.case.name, m.path, p) for res in results for m in res.meshes for p in m.problems]
     errors = [(res.case.name, res.error) for res in results if res.error]
     if problems or errors:
@@ -821,6 +909,42 @@ def report(results: list[CaseResult], gltf_available: bool, seconds: float) -> s
         lines.append(f"- {res.case.name}: " + ", ".join(f"{k} {v:.1f}" for k, v in res.seconds.items()))
     lines.append(f"- total {seconds:.1f}")
     return "\n".join(lines) + "\n"
+
+
+def live_report(results: list[CaseResult]) -> list[str]:
+    lines = ["", "## Live rig: psdbake export-blender, opened with Python auto-run off, posed at every frame", "",
+             f"Criteria: every shape-key value within {LIVE_WEIGHT_ATOL:g} of eval's weight (max |Δw|); the evaluated "
+             f"mesh within plain + {CRITERION:g} of the corrected stack's BakeSkinning (live err, as corrected err "
+             "above); every driver a valid simple expression, no Python blocked; a driver bone turned by a Copy "
+             f"Rotation constraint gives the weights of the same turn keyed on it within {LIVE_WEIGHT_ATOL:g} "
+             "(constraint \\|Δw\\|: every driver bone, 3 turns each).", "",
+             "| case | mesh | frames | channels | drivers (simple, valid) | max \\|Δw\\| | plain err | live err | "
+             "constraint \\|Δw\\| | criterion |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
+    for res in results:
+        live = res.live
+        if not live:
+            continue
+        d = live["drivers"]
+        for path, m in live["meshes"].items():
+            lines.append(f"| {res.case.name} | `{path}` | {len(res.frames)} | {m.get('channels', '—')} | "
+                         f"{d['drivers']} ({d['simple']}, {d['valid']}) | {fmt(m.get('max_abs_dw', math.nan))} | "
+                         f"{fmt(m.get('plain', math.nan))} | {fmt(m.get('error', math.nan))} | "
+                         f"{fmt(live.get('constraints', {}).get('max_abs_dw', math.nan))} | "
+                         f"{'PASS' if m.get('passed') and live.get('passed') else 'FAIL'} |")
+    lines += ["", "Per-frame cost in Blender (`scene.frame_set`: animation, drivers, armature deform; median over "
+              f"{SPEED_ROUNDS} interleaved rounds in one process, each playing the shot 3 times per variant):", "",
+              "| case | vertices | plain rig | baked shot (shape keys keyed) | live rig | live / plain | live / baked |",
+              "|---|---|---|---|---|---|---|"]
+    for res in results:
+        sp = res.live.get("speed") if res.live else None
+        if not sp:
+            continue
+        v = sp["variants"]
+        p, b, li = (v[k]["median"] for k in ("plain", "baked", "live"))
+        lines.append(f"| {res.case.name} | {v['live']['vertices']} | {p * 1e3:.3f} ms | {b * 1e3:.3f} ms | {li * 1e3:.3f} ms | "
+                     f"{li / p:.2f}x | {li / b:.2f}x |")
+    return lines
 
 
 def weights_report(results: list[CaseResult]) -> str:
@@ -844,7 +968,7 @@ def to_json(results: list[CaseResult]) -> list[dict]:
         out.append({
             "case": res.case.name, "note": res.case.note, "passed": res.passed, "error": res.error,
             "frames": res.frames, "conversion": res.conversion, "conversion_evidence": res.conversion_evidence,
-            "seconds": res.seconds, "commands": res.commands, "gltf": res.gltf,
+            "seconds": res.seconds, "commands": res.commands, "gltf": res.gltf, "live": res.live,
             "meshes": [{k: v for k, v in vars(m).items()} for m in res.meshes],
         })
     return out
@@ -852,7 +976,7 @@ def to_json(results: list[CaseResult]) -> list[dict]:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--cases", nargs="*", help="subset of: humanoid arm character cesiumman long_path")
+    parser.add_argument("--cases", nargs="*", help="subset of: humanoid humanoid_mirrored arm character cesiumman long_path")
     parser.add_argument("--out", default=os.path.join(ROOT, os.environ.get("OUT", "out"), "interop"),
                         help="folder for report.md, weights.md, results.json (default: out/interop)")
     parser.add_argument("--keep", help="build in this folder (kept) instead of a temporary one")

@@ -19,14 +19,16 @@ __version__ = "0.1.0"
 #: view below are derived from it; tests/test_layering.py checks they agree).
 _EXPORTS = {
     "api": (
-        "correctives_layer", "describe", "evaluate", "export_gltf", "files_read", "fit", "mirror", "mirror_reads",
-        "points_cache_layer", "pose", "weights_layer", "write_correctives", "write_mirror", "write_points_cache",
-        "write_pose", "write_stack", "write_weights",
+        "correctives_layer", "describe", "edit_groups", "evaluate", "export_blender", "export_gltf", "files_read", "fit",
+        "list_groups", "mirror", "mirror_reads", "points_cache_layer", "pose", "sculpts", "weights_layer",
+        "write_correctives", "write_mirror", "write_points_cache", "write_pose", "write_sculpts", "write_stack",
+        "write_weights",
     ),
     "settings": ("FitSettings", "MirrorSettings"),
     "results": ("AnimWeights", "Example", "FitResult", "GltfResult", "MeshFit", "MirroredGroup", "MirrorResult",
-                "PoseResult", "Progress", "WeightsResult"),
-    "frames": ("parse_frames",),
+                "PoseResult", "WeightsResult"),
+    "arrays": ("Progress",),
+    "shot.frames": ("parse_frames",),
     "farm": ("Batch", "BatchResult", "JobResult", "load_jobs", "run_batch"),
     "farm.chunked": ("ChunkedWeights", "evaluate_chunks", "write_chunks"),
     "farm.plan": ("ChunkPlan", "plan_chunks"),
@@ -34,11 +36,13 @@ _EXPORTS = {
         "DeformerError", "FitError", "InputError", "OutputError", "PsdError", "PsdWarning", "SettingError",
         "StrictError", "UsdDataError",
     ),
-    "inverse": ("InverseResult", "invert_example"),
-    "powell": ("PowellResult", "minimize_lockstep"),
-    "rbf": ("KERNELS", "CardinalRbf", "fit_cardinal"),
-    "posespace": ("POSE_SPACES",),
-    "usd.schema": ("DriverData", "PSD_VERSION"),
+    "solver.inverse": ("InverseResult", "invert_example"),
+    "solver.powell": ("PowellResult", "minimize_lockstep"),
+    "model.rbf": ("KERNELS", "CardinalRbf"),
+    "fitting.rbf_fit": ("fit_cardinal",),
+    "model.posespace": ("POSE_SPACES",),
+    "model.data": ("DriverData", "PSD_VERSION"),
+    "export.blender.export": ("BlenderRigResult",),
 }
 _WHERE = {name: module for module, names in _EXPORTS.items() for name in names}
 
@@ -62,22 +66,28 @@ if TYPE_CHECKING:  # for type checkers and IDEs: the same names, eagerly
     from .api import (  # noqa: F401
         correctives_layer,
         describe,
+        edit_groups,
         evaluate,
+        export_blender,
         export_gltf,
         files_read,
         fit,
+        list_groups,
         mirror,
         mirror_reads,
         points_cache_layer,
         pose,
+        sculpts,
         weights_layer,
         write_correctives,
         write_mirror,
         write_points_cache,
         write_pose,
+        write_sculpts,
         write_stack,
         write_weights,
     )
+    from .arrays import Progress  # noqa: F401
     from .errors import (  # noqa: F401
         DeformerError,
         FitError,
@@ -89,14 +99,14 @@ if TYPE_CHECKING:  # for type checkers and IDEs: the same names, eagerly
         StrictError,
         UsdDataError,
     )
+    from .export.blender.export import BlenderRigResult  # noqa: F401
     from .farm import Batch, BatchResult, JobResult, load_jobs, run_batch  # noqa: F401
     from .farm.chunked import ChunkedWeights, evaluate_chunks, write_chunks  # noqa: F401
     from .farm.plan import ChunkPlan, plan_chunks  # noqa: F401
-    from .frames import parse_frames  # noqa: F401
-    from .inverse import InverseResult, invert_example  # noqa: F401
-    from .posespace import POSE_SPACES  # noqa: F401
-    from .powell import PowellResult, minimize_lockstep  # noqa: F401
-    from .rbf import KERNELS, CardinalRbf, fit_cardinal  # noqa: F401
+    from .fitting.rbf_fit import fit_cardinal  # noqa: F401
+    from .model.data import PSD_VERSION, DriverData  # noqa: F401
+    from .model.posespace import POSE_SPACES  # noqa: F401
+    from .model.rbf import KERNELS, CardinalRbf  # noqa: F401
     from .results import (  # noqa: F401
         AnimWeights,
         Example,
@@ -106,8 +116,9 @@ if TYPE_CHECKING:  # for type checkers and IDEs: the same names, eagerly
         MirroredGroup,
         MirrorResult,
         PoseResult,
-        Progress,
         WeightsResult,
     )
     from .settings import FitSettings, MirrorSettings  # noqa: F401
-    from .usd.schema import PSD_VERSION, DriverData  # noqa: F401
+    from .shot.frames import parse_frames  # noqa: F401
+    from .solver.inverse import InverseResult, invert_example  # noqa: F401
+    from .solver.powell import PowellResult, minimize_lockstep  # noqa: F401

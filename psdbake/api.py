@@ -9,48 +9,114 @@ prints. ``write_*`` export layers atomically.
 
 The machinery of fit, mirror and the OBJ round trip (SciPy's interpolation and spatial
 modules among it) is imported by the functions that run it, so ``eval`` loads only what it
-uses (issue 16: every farm chunk pays its start-up).
+uses (every farm chunk pays its start-up).
 """
 
 from __future__ import annotations
 
+import contextlib
+import dataclasses
 import os
 import time as _time
 import warnings
-from collections.abc import Sequence
+from collections.abc import Iterator, Mapping, Sequence
+from typing import TYPE_CHECKING, Any
 
-from . import __version__, atomic
+import numpy as np
+
+from . import __version__, atomic, outputs
+from .arrays import Progress
 from .deformers import deformer_files, load_deformers
-from .errors import InputError, PsdWarning, where
-from .evaluation import animation_weights, correctives_by_animation, posed_points
-from .frames import frames_of
-from .groups import correctives_layer, read_correctives, updated_layer
-from .results import FitResult, GltfResult, MirrorResult, PoseResult, Progress, SculptsResult, WeightsResult
+from .errors import FitError, InputError, OutputError, PsdWarning, where
+from .fitting.groups import (
+    GroupChanges,
+    Groups,
+    changes_between,
+    check_name_case,
+    check_not_doubled,
+    cross_talk,
+    fitted_groups,
+    groups_layer,
+    is_sculpted,
+    merged_groups,
+    names_of,
+    origin_text,
+    read_correctives,
+    renamed_group,
+    without_groups,
+)
+from .lookup import did_you_mean, matches
+from .model.posespace import active_joints
+from .results import FitResult, GltfResult, MirrorResult, PoseResult, SculptsResult, WeightsResult
 from .settings import FitSettings, MirrorSettings, SettingError
+from .shot.evaluation import animation_weights, correctives_by_animation, posed_points
+from .shot.frames import check_authored, frames_of
+from .usd import provenance
 from .usd import write as usdwrite
 from .usd.author import Layer
 from .usd.bindspace import read_bind_space
-from .usd.compose import compose
+from .usd.compose import compose, open_layer
 from .usd.describe import describe as describe_file
 from .usd.gltf_source import read_gltf_source
 from .usd.read import Scene, animation_components, open_layers
+from .usd.schema import psd_prims
 from .usd.validate import require_finite_time_samples, require_psd_prims_skinned, validate_animation, validate_skinning
 from .usd.valuetypes import Checked
 
-__all__ = [  # noqa: RUF022 - in pipeline order; the public surface is psdbake/__init__.py
-    "fit", "write_correctives", "evaluate", "weights_layer", "write_weights", "points_cache_layer",
-    "write_points_cache", "pose", "write_pose", "write_stack", "describe", "open_asset", "files_read",
-    "correctives_layer", "export_gltf",
-    "mirror", "mirror_reads", "write_mirror",
+if TYPE_CHECKING:
+    from .export.blender.export import BlenderRigResult
+
+__all__ = [  # noqa: RUF022 - in pipeline order; psdbake/__init__.py re-exports exactly these (tests/test_layering.py)
+    "pose", "write_pose", "sculpts", "write_sculpts", "fit", "write_correctives", "correctives_layer", "evaluate",
+    "weights_layer", "write_weights", "points_cache_layer", "write_points_cache", "mirror", "mirror_reads",
+    "write_mirror", "list_groups", "edit_groups", "write_stack", "export_gltf", "export_blender", "describe",
+    "files_read",
 ]
 
 
+# --- provenance: what every output records, and the check it allows ---------------------------
+
+@contextlib.contextmanager
+def _forced(force: bool) -> Iterator[None]:
+    """``--force``: within the block, outputs may replace files that are not their own kind's."""
+    with atomic.forcing() if force else contextlib.nullcontext():
+        yield
 
 
+def stamped(layer: Any, kind: str, output: str, inputs: Mapping[str, str | Sequence[str]], *,
+            rig: Mapping | None = None, deformers: Sequence[str] = (), settings: Mapping | None = None,
+            command: bool = True, **more: Any) -> Any:
+    """layer stamped with its kind and provenance (``usd.provenance``), paths relative to output."""
+    record: dict[str, Any] = {"command": outputs.command_line(output) if command else None,
+                              "inputs": provenance.inputs_record(inputs, output)}
+    if rig:
+        record["rig"] = dict(rig)
+    if deformers:
+        record["deformers"] = list(deformers)
+    if settings is not None:
+        record["settings"] = dict(settings)
+    record.update(more)
+    return provenance.stamp(layer, kind, record)
 
 
-
-
+def check_fitted_on(asset: str, asset_scene: Scene, correctives: str, *, strict: bool = False) -> list[str]:
+    """Warn (or, strict, refuse: exit 3) when the asset's rig is not the one CORRECTIVES were
+    fitted on: another skinning method, other weights, rest points, geomBindTransform or
+    skeleton (``provenance.rig_differences``). A layer from before provenance is not checked."""
+    stamp = provenance.read_stamp(correctives)
+    recorded = provenance.plain(stamp.get("rig", {}))
+    if not recorded:
+        return []
+    differences = provenance.rig_differences(recorded, provenance.rig_record(asset_scene))
+    if not differences:
+        return []
+    fitted_on = provenance.plain(stamp.get("inputs", {})).get("asset", {}).get("path")
+    shown = os.path.normpath(os.path.join(os.path.dirname(correctives), fitted_on)) if fitted_on else "another asset"
+    msg = f"{correctives}: fitted on {shown}, not on {asset} as it is: {'; '.join(differences)}"
+    if strict:
+        raise InputError(f"{msg} (--strict)")
+    warnings.warn(f"{msg}: re-fit the correctives for this asset (--strict refuses)", PsdWarning, stacklevel=3)
+    return [msg]
 
 
 # --- fit: read USD -> pose space -> black-box inverse (Powell) -> RBF -> CORRECTIVES -----------
@@ -80,9 +146,10 @@ def fit(
     jobs: worker processes for the per-example inverses (None: 1, see ``solve.auto_jobs``).
     The output does not depend on it.
     """
-    from .correctives import fit_regions, plan_mesh, plan_systems
-    from .examples import gather_examples
-    from .solve import clear_caches, share_scene, solve_all
+    from .fitting.correctives import fit_regions, plan_mesh, plan_systems
+    from .fitting.examples import gather_examples
+    from .fitting.fitcheck import check_product
+    from .solver.solve import clear_caches, share_scene, solve_all
 
     started = _time.perf_counter()
     if not example_files:
@@ -91,14 +158,21 @@ def fit(
     load_deformers(settings.deformers)  # fail fast on a bad spec; each solve loads its own chain
     asset_scene = open_asset(asset, notes)
     infos = asset_scene.skinned_meshes()
-    meshes = _meshes_to_fit(asset, [m.path for m in infos], settings.meshes)
+    meshes = _meshes_to_fit(asset, infos, settings, notes)
     skipped: list[str] = []
     layout: list[str] = []  # why a mesh's correctives are one global group, when they are
+    left_out: list[str] = []  # groups with no edited example
     try:
         share_scene(asset_scene)  # the solves' rest points and shading come from this stage, not a second one
         per_mesh, tasks = gather_examples(asset, asset_scene, infos, meshes, example_files, settings)  # checked
         plans, systems = {}, {}
         for info in [i for i in infos if i.path in per_mesh]:
+            if not settings.drivers and not any(active_joints(np.array([e.pose for e in per_mesh[info.path]]))):
+                left_out.append(f"<{info.path}>: its skeleton <{info.skeleton}> never leaves its bind pose")
+                _skip(notes, f"{where(asset, info.path)}: every example is at the bind pose of its skeleton "
+                             f"<{info.skeleton}>, so no joint can drive a corrective for it: skipped (an edit at the bind "
+                             "pose belongs in the asset itself)")
+                continue
             regions, unused, why = plan_mesh(asset, info, per_mesh[info.path], settings)  # who drives what
             plans[info.path] = regions
             systems[info.path] = plan_systems(asset, info, per_mesh[info.path], regions, settings, notes)
@@ -116,27 +190,71 @@ def fit(
             mine = {i: solved[(info.path, e.source, e.time)] for i, e in enumerate(examples)
                     if (info.path, e.source, e.time) in solved}
             fits += fit_regions(asset, asset_scene, info, examples, mine, plans[info.path], settings, notes,
-                                systems[info.path])
+                                systems[info.path], left_out)
             _note_normals(asset, info.path, notes)
+        if not fits:
+            raise FitError(f"{', '.join(example_files)}: nothing to correct: {'; '.join(left_out)}")
         # for write_correctives: the asset's layers and the EXAMPLES files still open, so no input is parsed twice
         held = {layer.identifier: layer for layer in [*asset_scene.file_layers(), *open_layers(example_files)]}
     finally:
         clear_caches()  # the example stages die with the fit
-    return FitResult(asset=asset, example_files=tuple(example_files), settings=settings, meshes=tuple(fits),
-                     warnings=tuple(notes), seconds=_time.perf_counter() - started, skipped=tuple(skipped),
-                     layout=tuple(layout), input_layers=tuple(held[k] for k in sorted(held)))
+    result = FitResult(asset=asset, example_files=tuple(example_files), settings=settings, meshes=tuple(fits),
+                       warnings=tuple(notes), skipped=tuple(skipped), layout=tuple(layout),
+                       input_layers=tuple(held[k] for k in sorted(held)), rig=provenance.rig_record(asset_scene))
+    for note in cross_talk(result, fitted_groups(result)):  # why an example may not be reproduced, said before the check
+        notes.append(note)
+        warnings.warn(note, PsdWarning, stacklevel=2)
+    checks = check_product(result, correctives_layer(result), load_deformers(settings.deformers))
+    return dataclasses.replace(result, checks=checks, warnings=tuple(notes), seconds=_time.perf_counter() - started)
 
 
-def _meshes_to_fit(asset: str, skinned: list[str], wanted: Sequence[str]) -> list[str]:
+def _skip(notes: list[str], msg: str) -> None:
+    notes.append(msg)
+    warnings.warn(msg, PsdWarning, stacklevel=3)
+
+
+def resolve_meshes(asset: str, skinned: Sequence[str], wanted: Sequence[str]) -> list[str]:
+    """The skinned meshes ``--mesh`` names (full paths or unambiguous leaf names), in the asset's order."""
+    chosen = set()
     for mesh in wanted:
-        if mesh not in skinned:
-            raise SettingError("meshes", mesh, "is not a skinned mesh of the asset", location=asset)
-    return [m for m in skinned if not wanted or m in wanted]
+        hits = matches(mesh, skinned)
+        if len(hits) != 1:
+            problem = (f"is not a skinned mesh of the asset (skinned: {', '.join(skinned)}){did_you_mean(mesh, skinned)}"
+                       if not hits else f"is ambiguous ({', '.join(hits)}): give its full path")
+            raise SettingError("meshes", mesh, problem, location=asset)
+        chosen.add(hits[0])
+    return [m for m in skinned if not wanted or m in chosen]
+
+
+def _meshes_to_fit(asset: str, infos: Sequence[Any], settings: FitSettings, notes: list[str]) -> list[str]:
+    """The meshes to fit: ``--mesh`` (resolved), and with ``--driver`` only those whose skeleton
+    has the drivers: a file with several skeletons (a head's, each hand's) skins each mesh by one,
+    and a driver of one cannot drive another's meshes. A driver no skeleton has, or one the
+    chosen meshes' skeletons lack, is refused naming the skeletons that have it (--mesh)."""
+    meshes = resolve_meshes(asset, [m.path for m in infos], settings.meshes)
+    if not settings.drivers:
+        return meshes
+    by_path = {m.path: m for m in infos}
+    lacking = {m: [d for d in settings.drivers if not matches(d, by_path[m].joints)] for m in meshes}
+    usable = [m for m in meshes if not lacking[m]]
+    if usable and not settings.meshes:
+        for m in sorted(set(meshes) - set(usable)):
+            _skip(notes, f"{where(asset, m)}: skipped: its skeleton <{by_path[m].skeleton}> has no joint "
+                         f"{lacking[m][0]!r} (--driver)")
+        return usable
+    bad = next(m for m in meshes if lacking[m])
+    name = lacking[bad][0]
+    owners = sorted({i.skeleton for i in infos if matches(name, i.joints)})
+    hint = (f"; it is a joint of <{owners[0]}>, which skins "
+            f"{', '.join(i.path.rsplit('/', 1)[-1] for i in infos if i.skeleton == owners[0])}: choose those with --mesh"
+            if owners else did_you_mean(name, [j for i in infos for j in i.joints]))
+    raise SettingError("drivers", name, f"is not a joint of skeleton <{by_path[bad].skeleton}>, which skins "
+                       f"<{bad}>{hint}", location=asset)
 
 
 def _note_normals(asset: str, mesh: str, notes: list[str]) -> None:
     """Warn when a mesh authors shading normals psdbake cannot give normalOffsets to."""
-    from .solve import cached_shading
+    from .solver.solve import cached_shading
 
     why_not = cached_shading(asset, mesh).why_not  # read once for the solves and this note
     if why_not and not why_not.startswith(("no authored normals", "not a Mesh")):
@@ -153,23 +271,80 @@ def files_read(paths: Sequence[str], deformers: Sequence[str] = ()) -> list[str]
     return sorted(set(usdwrite.files_read(paths)) | set(deformer_files(deformers)))
 
 
-def write_correctives(result: FitResult, path: str, *, update: bool = False,
-                      side_files: Sequence[tuple[str, str]] = ()) -> str:
-    """Export CORRECTIVES atomically; inputs are never overwritten.
+def _existing_groups(asset: str, path: str) -> tuple[Groups, dict[str, dict]]:
+    """The groups of the CORRECTIVES layer at path and their provenance records ({} when path
+    holds no CORRECTIVES layer: nothing there is carried over)."""
+    if not os.path.isfile(path) or provenance.existing_kind(path) != "correctives":
+        return {}, {}
+    records = provenance.plain(provenance.read_stamp(path).get("groups", {}))
+    return read_correctives(asset, path), records if isinstance(records, dict) else {}
 
-    update: when path exists, keep its other groups (``fit --group``); the read, merge and
-    rename happen under a lock, so concurrent group fits into one layer all land.
+
+def _settings_record(settings: FitSettings) -> dict[str, Any]:
+    return {k: v for k, v in dataclasses.asdict(settings).items() if k not in ("deformers", "group")}
+
+
+def write_correctives(result: FitResult, path: str, *, update: bool = False,
+                      side_files: Sequence[tuple[str, str]] = (), force: bool = False) -> GroupChanges:
+    """Export CORRECTIVES atomically; inputs are never overwritten. Returns what happened to
+    the groups already at path.
+
+    update (``fit --group``): keep path's other groups, this fit's groups replacing their
+    namesakes. Without it path is replaced, but only when every group it holds that this fit
+    does not write came from an earlier plain fit: groups from ``--group`` fits or ``mirror``
+    are not dropped without ``force``. Either way the read, the checks and the rename happen
+    under a lock, so concurrent writers of one layer serialise. A group that would double
+    another's correction (the same driver, neither a combination) is refused (exit 4).
     side_files: (path, text) written in the same commit (``fit --report``): both land or neither.
     """
     inputs = files_read([result.asset, *result.example_files], result.settings.deformers)
-    if not update:
-        usdwrite.export_all([(path, correctives_layer(result)), *side_files], inputs)
-        return path
-    atomic.check_output(path, inputs, tuple(usdwrite.FORMATS))
-    with atomic.updating(path):
-        base = path if os.path.exists(path) else None
-        usdwrite.export_all([(path, correctives_layer(result, update=base)), *side_files], inputs)
-        return path
+    written = fitted_groups(result)
+    with _forced(force):
+        atomic.check_output(path, inputs, kind=outputs.CORRECTIVES)
+        with atomic.updating(path):
+            before, records = _existing_groups(result.asset, path)
+            if update:
+                check_name_case(before, written, path)
+                groups = merged_groups(before, written, result.settings.meshes)
+            else:
+                groups = written
+                lost = sorted(g for g in names_of(before) - names_of(written)
+                              if (records.get(g) or {}).get("origin") != "fit")
+                if lost and not atomic.forced():
+                    raise OutputError(
+                        f"{path}: holds groups this fit would drop: "
+                        f"{', '.join(f'{g} ({origin_text(records.get(g))})' for g in lost)}. A fit without --group "
+                        f"replaces the whole layer: fit into it with --group, remove them first (psdbake groups {path} "
+                        "--remove NAME), or give --force to replace the layer")
+            check_not_doubled(groups, written, path)
+            for note in cross_talk(result, groups):  # with the groups carried over (its own: said by fit)
+                if note not in result.warnings:
+                    warnings.warn(note, PsdWarning, stacklevel=2)
+            entry = {"origin": "fit --group" if update else "fit", "command": outputs.command_line(path),
+                     **provenance.inputs_record({"examples": list(result.example_files)}, path),
+                     "settings": _settings_record(result.settings), "deformers": list(result.settings.deformers)}
+            kept = {g: r for g, r in records.items() if g in names_of(groups)}
+            layer = groups_layer(result.asset, groups, f"psdbake {__version__} fit: rest-space correctives (inverse PSD)")
+            stamped(layer, "correctives", path, {"asset": result.asset}, rig=result.rig, command=False,
+                    groups={**kept, **{g: entry for g in names_of(written)}})
+            usdwrite.export_all([(path, layer), *side_files], inputs)
+    return changes_between(before, groups, written, records, routine="fit --group of" if update else "fit of")
+
+
+def write_fit_report(result: FitResult, path: str, text: str, *, force: bool = False) -> str:
+    """The ``--report`` of a fit that wrote no CORRECTIVES (degraded, or refused by ``--strict``):
+    the diagnosis on its own, so the fit need not be run again to read it."""
+    with _forced(force):
+        usdwrite.export_all([(path, text)], files_read([result.asset, *result.example_files], result.settings.deformers))
+    return path
+
+
+def correctives_layer(result: FitResult) -> Any:
+    """CORRECTIVES of one fit as an in-memory layer (BlendShapes, bindings, psd: driver data),
+    stamped with its kind only: ``write_correctives`` adds the provenance of the path it writes."""
+    layer = groups_layer(result.asset, fitted_groups(result), f"psdbake {__version__} fit: rest-space correctives "
+                         "(inverse PSD)")
+    return provenance.stamp(layer, "correctives")
 
 
 # --- eval: CORRECTIVES + ANIM -> pose space -> RBF weights -> WEIGHTS (+ points cache) ---------
@@ -181,17 +356,34 @@ def evaluate(
     *,
     frames: tuple[float, float] | None = None,
     progress: Progress | None = None,
+    strict: bool = False,
+    hold: bool = False,
+    shot: tuple[float, float] | None = None,
+    meshes: Sequence[str] = (),
 ) -> WeightsResult:
-    """RBF weights of every corrective at every frame of ANIM."""
+    """RBF weights of every corrective at every frame of ANIM. Warns when ASSET's rig is not
+    the one CORRECTIVES were fitted on (strict: refuses, exit 3).
+
+    frames: whole frames A..B, within ANIM's authored samples unless ``hold``; ``shot``: the
+    range to check instead (a farm chunk checks the whole shot's, so every chunk agrees);
+    meshes: only these meshes' correctives (full paths or leaf names)."""
     started = _time.perf_counter()
-    open_asset(asset)
+    asset_scene = open_asset(asset)
+    check_fitted_on(asset, asset_scene, correctives, strict=strict)
     scene = Scene([anim, correctives, asset], label=correctives, checked=Checked.NO_SHAPE_VALUES)  # weights read no offsets
     scene.require_skinned()
     require_psd_prims_skinned(scene, correctives, asset)
     per_anim = correctives_by_animation(scene, Scene([anim, asset], label=anim), correctives, anim)
+    if meshes:
+        chosen = set(resolve_meshes(asset, sorted({i.path for e in per_anim.values() for i, _ in e}), meshes))
+        per_anim = {a: kept for a, e in per_anim.items() if (kept := [x for x in e if x[0].path in chosen])}
     if not per_anim:
         raise InputError(f"{correctives}: no psd: driver data on any skinned mesh of {asset}")
-    planned = {a: frames_of(scene, per_anim[a][0][0].path, frames, label=anim) for a in sorted(per_anim)}
+    if frames is not None and shot is not None:
+        for a in sorted(per_anim):
+            check_authored(scene, per_anim[a][0][0].path, shot, anim, hold=hold)
+        hold = True  # checked on the shot's range: a chunk's own frames lie inside it
+    planned = {a: frames_of(scene, per_anim[a][0][0].path, frames, label=anim, hold=hold) for a in sorted(per_anim)}
     total, done = sum(len(planned[a]) * len(per_anim[a]) for a in planned), 0
 
     def tick(mesh: str) -> None:
@@ -202,30 +394,45 @@ def evaluate(
 
     results = tuple(animation_weights(scene, a, per_anim[a], planned[a], correctives, anim, tick) for a in sorted(per_anim))
     fps = scene.stage.GetTimeCodesPerSecond()
-    return WeightsResult(asset, correctives, anim, results, fps, _time.perf_counter() - started)
+    return WeightsResult(asset, correctives, anim, results, fps, _time.perf_counter() - started,
+                         rig=provenance.rig_record(asset_scene))
 
 
 def weights_layer(result: WeightsResult) -> Layer:
-    """WEIGHTS as an in-memory layer."""
-    return usdwrite.weights_layer(
+    """WEIGHTS as an in-memory layer, stamped with its kind only (``stamp_weights`` adds the
+    provenance of the path it is written to)."""
+    return provenance.stamp(usdwrite.weights_layer(
         f"psdbake {__version__} eval: corrective blend-shape weights",
         [(a.animation, a.channels, a.times, a.weights) for a in result.animations],
         result.fps,
         usdwrite.asset_metadata(result.asset),
-    )
+    ), "weights")
+
+
+def stamp_weights(layer: Layer, kind: str, result: WeightsResult, path: str, deformers: Sequence[str] = (), *,
+                  command: bool = True) -> Layer:
+    """A WEIGHTS layer or points cache of ``eval`` stamped for path (``provenance``)."""
+    contained = bool(provenance.stamp_of(layer).get("selfContained"))
+    return stamped(layer, kind, path, {"asset": result.asset, "correctives": result.correctives, "anim": result.anim},
+                   rig=result.rig, deformers=deformers if kind == "points_cache" else (), command=command,
+                   selfContained=contained or None)
 
 
 def write_weights(result: WeightsResult, path: str, *, points_cache: tuple[str, Layer] | None = None,
-                  deformers: Sequence[str] = ()) -> str:
+                  deformers: Sequence[str] = (), force: bool = False) -> str:
     """Export WEIGHTS (and, given as (path, layer), the points cache in the same commit:
     both land or neither)."""
-    outputs = [(path, weights_layer(result)), *([points_cache] if points_cache else [])]
-    usdwrite.export_all(outputs, files_read([result.asset, result.correctives, result.anim], deformers))
+    written = [(path, stamp_weights(weights_layer(result), "weights", result, path))]
+    if points_cache:
+        written.append((points_cache[0], stamp_weights(points_cache[1], "points_cache", result, points_cache[0],
+                                                       deformers)))
+    with _forced(force):
+        usdwrite.export_all(written, files_read([result.asset, result.correctives, result.anim], deformers))
     return path
 
 
-def points_cache_layer(result: WeightsResult, deformers: Sequence[str] = (), *, progress: Progress | None = None
-                       ) -> Layer:
+def points_cache_layer(result: WeightsResult, deformers: Sequence[str] = (), *, progress: Progress | None = None,
+                       self_contained: bool = False) -> Layer:
     """Final posed points per frame (correctives, existing shapes, skinning, deformers),
     as a layer that needs no UsdSkel: the SkelRoots become Xforms, like BakeSkinning.
     The asset's authored shading normals are blocked (they are rest normals), so renderers
@@ -233,6 +440,10 @@ def points_cache_layer(result: WeightsResult, deformers: Sequence[str] = (), *, 
 
     The points come from UsdSkel evaluating the stack ASSET + CORRECTIVES + ANIM + WEIGHTS
     (the correctives are ordinary blend shapes there), then the deformer chain.
+
+    The layer holds overrides only (points, extents, the retyping), to be stacked over the asset;
+    ``self_contained``: the cache over the asset flattened into one layer (topology, transforms,
+    materials and all), which opens on its own.
     """
     chain = load_deformers(deformers)
     # WEIGHTS only drives UsdSkel here: without the asset's metadata, which would open the
@@ -244,90 +455,124 @@ def points_cache_layer(result: WeightsResult, deformers: Sequence[str] = (), *, 
                   checked=Checked.SHAPE_VALUES)
     times = sorted({float(t) for a in result.animations for t in a.times})
     meshes = scene.skinned_meshes()
-    return usdwrite.points_layer(
-        f"psdbake {__version__} eval: points cache (no UsdSkel needed)",
+    layer = usdwrite.points_layer(
+        f"psdbake {__version__} eval: points cache ("
+        + ("self-contained, no UsdSkel needed)" if self_contained else "no UsdSkel needed; overrides to stack over ASSET)"),
         scene.skel_roots, posed_points(scene, scene, meshes, times, chain, progress), times, result.fps,
         usdwrite.asset_metadata(result.asset),
         blocked=[(m.path, name) for m in meshes for name in ("normals", "primvars:normals")
                  if scene.prim(m.path).GetAttribute(name).HasAuthoredValue()],
     )
+    if self_contained:
+        layer = usdwrite.flattened(layer, result.asset)
+    return provenance.stamp(layer, "points_cache", {"selfContained": True} if self_contained else {})
 
 
 def write_points_cache(result: WeightsResult, path: str, deformers: Sequence[str] = (), *,
-                       progress: Progress | None = None) -> str:
-    return usdwrite.export_atomic(
-        points_cache_layer(result, deformers, progress=progress), path,
-        files_read([result.asset, result.correctives, result.anim], deformers),
-    )
+                       progress: Progress | None = None, force: bool = False) -> str:
+    layer = stamp_weights(points_cache_layer(result, deformers, progress=progress), "points_cache", result, path,
+                          deformers)
+    with _forced(force):
+        return usdwrite.export_atomic(layer, path, files_read([result.asset, result.correctives, result.anim], deformers))
 
 
 # --- export-gltf: ASSET + CORRECTIVES + ANIM + eval's weights -> one .glb for game engines ---
 
 def export_gltf(asset: str, correctives: str, anim: str, output: str, *, frames: tuple[float, float] | None = None,
-                progress: Progress | None = None) -> GltfResult:
+                progress: Progress | None = None, strict: bool = False, force: bool = False, hold: bool = False
+                ) -> GltfResult:
     """Write the shot as a skinned glTF 2.0 binary: meshes, skins, joint animation (one
     key per time code), every BlendShape channel of the composed stack as a morph target
     and eval's weights animating them. Skinned in glTF (linear blend), it gives
     ``UsdSkel.BakeSkinning``'s world-space points of ASSET + CORRECTIVES + ANIM + WEIGHTS,
     in glTF's Y-up meters."""
-    from . import gltf  # pygltflib loads only for this command
+    from .export import gltf  # pygltflib loads only for this command
 
     inputs = files_read([asset, correctives, anim])
-    atomic.check_output(output, inputs, (".glb",))  # before the work, so a bad output fails at once
-    weights = evaluate(asset, correctives, anim, frames=frames, progress=progress)
+    with _forced(force):
+        atomic.check_output(output, inputs, kind=outputs.GLTF)  # before the work, so a bad output fails at once
+    weights = evaluate(asset, correctives, anim, frames=frames, progress=progress, strict=strict, hold=hold)
     scene = Scene([anim, correctives, asset], label=correctives)
     source = read_gltf_source(scene, asset, {a.animation: (a.channels, a.times, a.weights) for a in weights.animations})
     for msg in gltf.differences(source, asset):
         warnings.warn(msg, PsdWarning, stacklevel=2)
     name = os.path.splitext(os.path.basename(anim))[0] or "animation"
     glb = gltf.build_glb(source, name, f"psdbake {__version__} export-gltf")
-    gltf.write_glb(glb.data, output, inputs)
+    with _forced(force):
+        gltf.write_glb(glb.data, output, inputs)
     return GltfResult(output, weights, tuple(m.path for m in source.meshes), glb.morph_targets, glb.sparse_targets,
                       max((len(s.times) for s in source.skeletons), default=0), len(glb.data))
 
 
+def export_blender(asset: str, correctives: str, output: str, *, anim: str | None = None, blender: str | None = None,
+                   strict: bool = False, force: bool = False) -> BlenderRigResult:
+    """Write a .blend with the correctives driven live by the armature's pose: Blender's USD
+    import of ASSET + CORRECTIVES (+ ANIM), one shape key per channel, drivers computing the
+    ``psd:`` formula in simple expressions (``psdbake.blender``). ``blender``: a Blender
+    executable or a Python with the bpy module (default: $PSDBAKE_BLENDER, else ``blender``)."""
+    from .export.blender.export import export_blender as build  # the compiler loads only for this command
+
+    inputs = files_read([asset, correctives, *([anim] if anim else [])])
+    check_fitted_on(asset, open_asset(asset), correctives, strict=strict)
+    with _forced(force):
+        return build(asset, correctives, output, anim=anim, blender=blender, inputs=inputs)
+
+
 # --- pose: ASSET + POSES -> plain UsdSkel skinning per time code -> EXAMPLES to sculpt on -------
 
-def pose(asset: str, poses: str, deformers: Sequence[str] = (), *, progress: Progress | None = None) -> PoseResult:
-    """EXAMPLES to sculpt on: skinned points per time code of POSES, with the pose itself."""
+def pose(asset: str, poses: str, deformers: Sequence[str] = (), *, progress: Progress | None = None,
+         frames: tuple[float, float] | None = None, hold: bool = False, meshes: Sequence[str] = ()) -> PoseResult:
+    """EXAMPLES to sculpt on: skinned points per time code of POSES, with the pose itself.
+
+    frames: whole frames A..B of POSES instead of its time codes (the frames of a shot to fix),
+    within its authored samples unless ``hold``; meshes: only these (full paths or leaf names)."""
     chain = load_deformers(deformers)
     asset_scene = open_asset(asset)
     scene = Scene([poses, asset], label=poses)
-    meshes = scene.skinned_meshes()
-    for info in meshes:
+    wanted = set(resolve_meshes(asset, [m.path for m in scene.skinned_meshes()], meshes))
+    posed = [m for m in scene.skinned_meshes() if m.path in wanted]
+    for info in posed:
         validate_animation(scene, info.path)
         if (anim_path := scene.animation_prim(info.path)) is not None:
             require_finite_time_samples(scene, anim_path, poses)
-    anims = sorted({a for m in meshes if (a := scene.animation_prim(m.path))})
+    anims = sorted({a for m in posed if (a := scene.animation_prim(m.path))})
     if not anims:
         raise InputError(f"{poses}: no SkelAnimation is bound to the skeleton (skel:animationSource)")
-    times = sorted({t for m in meshes for t in scene.animation_times(m.path)})
+    times = sorted({t for m in posed for t in scene.animation_times(m.path)})
+    if frames is not None:
+        animated = [m for m in posed if scene.animation_prim(m.path) is not None]
+        times = sorted({float(t) for m in animated for t in frames_of(scene, m.path, frames, poses, hold=hold)})
     if not times:
-        raise InputError(f"{where(poses, anims[0])}: the animation has no time samples: nothing to pose")
+        raise InputError(f"{where(poses, anims[0])}: the animation has no time samples: nothing to pose (give --frames "
+                         "to pose its static pose)")
     animations, seen = [], set()
-    for info in meshes:
+    for info in posed:
         if scene.animation_prim(info.path) is None or info.skeleton in seen:
             continue
         seen.add(info.skeleton)
         path, joints, channels, anim_samples = animation_components(scene, info.path, times)
         animations.append((info.skeleton, path, joints, channels, anim_samples))
-    layer = usdwrite.examples_layer(
+    layer = provenance.stamp(usdwrite.examples_layer(
         f"psdbake {__version__} pose: skinned examples to sculpt on", animations,
-        posed_points(asset_scene, scene, meshes, times, chain, progress), times, scene.stage.GetTimeCodesPerSecond(),
+        posed_points(asset_scene, scene, posed, times, chain, progress), times, scene.stage.GetTimeCodesPerSecond(),
         usdwrite.asset_metadata(asset),
-    )
-    return PoseResult(asset, poses, tuple(times), tuple(m.path for m in meshes), layer, tuple(deformers))
+    ), "examples")
+    return PoseResult(asset, poses, tuple(times), tuple(m.path for m in posed), layer, tuple(deformers),
+                      rig=provenance.rig_record(asset_scene))
 
 
-def write_pose(result: PoseResult, path: str, obj_dir: str | None = None) -> str:
+def write_pose(result: PoseResult, path: str, obj_dir: str | None = None, *, force: bool = False) -> str:
     """Export EXAMPLES atomically; with obj_dir, also one OBJ per skinned mesh and time code
     plus ``manifest.json`` there, all in the same commit (``objloop``)."""
-    from . import objloop
+    from .sculpting import loop as objloop
 
     inputs = files_read([result.asset, result.poses], result.deformers)
-    if obj_dir is None:
-        return usdwrite.export_atomic(result.layer, path, inputs)
-    objloop.write_pose_objs(result, path, obj_dir, inputs)
+    stamped(result.layer, "examples", path, {"asset": result.asset, "poses": result.poses}, rig=result.rig,
+            deformers=result.deformers)
+    with _forced(force):
+        if obj_dir is None:
+            return usdwrite.export_atomic(result.layer, path, inputs)
+        objloop.write_pose_objs(result, path, obj_dir, inputs)
     return path
 
 
@@ -335,53 +580,64 @@ def write_pose(result: PoseResult, path: str, obj_dir: str | None = None) -> str
 
 def check_obj_dir(obj_dir: str, inputs: Sequence[str] = ()) -> None:
     """Refuse an OBJ folder pose cannot fill (before the work; exit 6)."""
-    from .obj.folder import check_obj_dir as check_obj_folder
+    from .sculpting.obj.folder import check_obj_dir as check_obj_folder
 
     check_obj_folder(obj_dir, inputs)
 
 
 def obj_files(result: PoseResult) -> list[str]:
     """The OBJ file names ``write_pose(..., obj_dir)`` writes for result."""
-    from . import objloop
+    from .sculpting import loop as objloop
 
     return objloop.obj_files(result)
 
 
 def sculpts(asset: str, examples: str, obj_dir: str, *, scale: float | None = None,
-            up_axis: str | None = None) -> SculptsResult:
+            up_axis: str | None = None, fixes: Mapping[str, Mapping[str, Any]] | None = None) -> SculptsResult:
     """Read back the sculpted OBJs of obj_dir (listed in its manifest) over EXAMPLES, the layer
     ``pose`` wrote with them: each file checked (vertex count, faces, finite, near its posed
-    mesh), ``scale`` and ``up_axis`` applied first."""
-    from . import objloop
+    mesh), ``scale`` and ``up_axis`` applied first, or per file (``fixes``: OBJ file name ->
+    {"scale": S, "up_axis": "Z"}). Every bad file is named in one refusal."""
+    from .sculpting import loop as objloop
 
-    return objloop.read_sculpts(asset, examples, obj_dir, scale=scale, up_axis=up_axis)
+    return objloop.read_sculpts(asset, examples, obj_dir, scale=scale, up_axis=up_axis, fixes=fixes)
 
 
-def write_sculpts(result: SculptsResult, path: str) -> str:
+def write_sculpts(result: SculptsResult, path: str, *, force: bool = False) -> str:
     """Export SCULPTED_EXAMPLES (EXAMPLES with the sculpted points) atomically; no input, OBJ
     or manifest may be the output."""
-    from . import objloop
+    from .sculpting import loop as objloop
 
-    usdwrite.export_all([(path, objloop.sculpts_layer(result))], [result.asset, result.examples],
-                        other_inputs=result.read)
+    layer = stamped(objloop.sculpts_layer(result), "sculpted_examples", path,
+                    {"asset": result.asset, "examples": result.examples, "sculpts": sorted(result.read)},
+                    settings={"scale": result.scale, "up_axis": result.up_axis})
+    with _forced(force):
+        usdwrite.export_all([(path, layer)], [result.asset, result.examples], other_inputs=result.read)
     return path
 
 
 # --- mirror: one side's correctives groups -> the other side's, in CORRECTIVES ------------------
 
-def mirror(asset: str, correctives: str, settings: MirrorSettings) -> MirrorResult:
+def mirror(asset: str, correctives: str, settings: MirrorSettings, *, strict: bool = False,
+           meshes: Sequence[str] = ()) -> MirrorResult:
     """The other side's correctives groups, made from CORRECTIVES's groups (``settings.group``,
     or every group whose drivers all have partners) by reflecting the rig's bind space
-    (``psdbake/mirroring.py``); refuses a rig or mesh that is not mirror-symmetric."""
-    from .mirroring import mirror_groups
+    (``psdbake/mirroring/groups.py``); refuses a rig or mesh that is not mirror-symmetric. Warns (or,
+    strict, refuses) when ASSET's rig is not the one CORRECTIVES were fitted on."""
+    from .mirroring.groups import mirror_groups
 
     started = _time.perf_counter()
     scene = open_asset(asset)
+    check_fitted_on(asset, scene, correctives, strict=strict)
     groups = read_correctives(asset, correctives)
-    meshes = {m.path: m for m in scene.skinned_meshes() if m.path in groups}
-    binds = {path: read_bind_space(scene, info) for path, info in meshes.items()}
-    made, skipped = mirror_groups(asset, correctives, groups, binds, meshes, settings)
-    return MirrorResult(asset, correctives, settings, tuple(made), tuple(skipped), _time.perf_counter() - started)
+    if meshes:
+        chosen = set(resolve_meshes(asset, sorted(groups), meshes))
+        groups = {m: g for m, g in groups.items() if m in chosen}
+    infos = {m.path: m for m in scene.skinned_meshes() if m.path in groups}
+    binds = {path: read_bind_space(scene, info) for path, info in infos.items()}
+    made, skipped = mirror_groups(asset, correctives, groups, binds, infos, settings)
+    return MirrorResult(asset, correctives, settings, tuple(made), tuple(skipped), _time.perf_counter() - started,
+                        rig=provenance.rig_record(scene))
 
 
 def mirror_reads(asset: str, correctives: str, output: str) -> list[str]:
@@ -393,32 +649,197 @@ def mirror_reads(asset: str, correctives: str, output: str) -> list[str]:
     return [f for f in reads if os.path.realpath(f) != os.path.realpath(correctives)]
 
 
-def write_mirror(result: MirrorResult, path: str) -> str:
+def write_mirror(result: MirrorResult, path: str, *, force: bool = False, replace_sculpted: bool = False
+                 ) -> GroupChanges:
     """Export CORRECTIVES's groups with the mirrored ones written in (each replacing its
-    namesake) atomically to path. When path is CORRECTIVES itself, it is re-read and
-    replaced under the update lock, so concurrent group updates all land."""
+    namesake) atomically to path; returns what happened to the groups. When path is
+    CORRECTIVES itself, it is re-read and replaced under the update lock, so concurrent group
+    updates all land.
+
+    A group fitted from sculpts is not replaced by a mirrored one unless ``replace_sculpted``:
+    one named group (``--group``) is refused (exit 6); in whole-layer mode it is left alone and
+    reported (``GroupChanges.protected``)."""
     inputs = mirror_reads(result.asset, result.correctives, path)
-    new: dict = {}
-    for g in result.groups:
-        new.setdefault(g.mesh, {})[g.group] = (g.driver_data, list(g.shapes))
+    in_place = os.path.realpath(path) == os.path.realpath(result.correctives)
     doc = f"psdbake {__version__} mirror: rest-space correctives (inverse PSD), groups mirrored"
-    if os.path.realpath(path) != os.path.realpath(result.correctives):
-        usdwrite.export_all([(path, updated_layer(result.asset, result.correctives, new, doc))], inputs)
-        return path
-    atomic.check_output(path, inputs, tuple(usdwrite.FORMATS))
-    with atomic.updating(path):
-        usdwrite.export_all([(path, updated_layer(result.asset, path, new, doc))], inputs)
-    return path
+    with _forced(force):
+        atomic.check_output(path, inputs, kind=outputs.CORRECTIVES)
+        with atomic.updating(path) if in_place else contextlib.nullcontext():
+            base = path if in_place else result.correctives
+            before = read_correctives(result.asset, base)
+            records = provenance.plain(provenance.read_stamp(base).get("groups", {}))
+            sources = {g.group: g.source for g in result.groups}
+            protected = sorted(g for g in sources if g in names_of(before) and is_sculpted(records.get(g))
+                               and not replace_sculpted)
+            if protected and result.settings.group:
+                raise OutputError(
+                    f"{path}: group {protected[0]!r} there was fitted from sculpts ({origin_text(records.get(protected[0]))}): "
+                    "mirror does not replace it unless asked (--replace-sculpted), or name the mirror otherwise (--as)")
+            written: Groups = {}
+            for g in result.groups:
+                if g.group not in protected:
+                    written.setdefault(g.mesh, {})[g.group] = (g.driver_data, list(g.shapes))
+            groups = merged_groups(before, written)
+            entries = {name: {"origin": "mirror", "source": sources[name], "command": outputs.command_line(path),
+                              "plane": result.settings.plane, "joints": list(result.settings.joints)}
+                       for name in names_of(written)}
+            layer = groups_layer(result.asset, groups, doc)
+            stamped(layer, "correctives", path, {"asset": result.asset}, rig=result.rig, command=False,
+                    groups={**{g: r for g, r in records.items() if g in names_of(groups)}, **entries})
+            usdwrite.export_all([(path, layer)], inputs)
+    return dataclasses.replace(changes_between(before, groups, written, records, routine="mirrored from"),
+                               protected=tuple(protected))
+
+
+# --- groups: list, remove, rename the groups of a CORRECTIVES layer -------------------------------
+
+def recorded_asset(correctives: str) -> str | None:
+    """The asset a CORRECTIVES layer records it was fitted on (its provenance), as a path from
+    here, or None."""
+    rel = provenance.plain(provenance.read_stamp(correctives).get("inputs", {})).get("asset", {}).get("path")
+    return os.path.normpath(os.path.join(os.path.dirname(correctives), rel)) if rel else None
+
+
+def list_groups(correctives: str) -> list[dict[str, Any]]:
+    """Every group of a CORRECTIVES layer, per mesh (``psdbake groups``): drivers, RBF settings,
+    channels, examples, gates, and where it came from (its provenance record)."""
+    from .usd.describe import describe as describe_file
+
+    open_layer(correctives)
+    if provenance.existing_kind(correctives) != "correctives" and not describe_file(correctives)["correctives"]:
+        raise InputError(f"{correctives}: not a CORRECTIVES layer (it holds no psd: correctives groups)")
+    records = provenance.plain(provenance.read_stamp(correctives).get("groups", {}))
+    out = []
+    for c in describe_file(correctives)["correctives"]:
+        record = records.get(c["group"]) if isinstance(records, dict) else None
+        out.append({**c, "origin": origin_text(record), "record": record or {}})
+    return sorted(out, key=lambda c: (c["group"], c["mesh"]))
+
+
+def edit_groups(correctives: str, *, remove: Sequence[str] = (), rename: Mapping[str, str] | None = None,
+                output: str | None = None, asset: str | None = None, force: bool = False) -> GroupChanges:
+    """CORRECTIVES without the groups in ``remove`` and with those in ``rename`` (old -> new)
+    renamed, written to output (default: in place, re-read and replaced under the update lock).
+    ASSET defaults to the one the layer records it was fitted on. Renaming changes the groups'
+    channel names, so WEIGHTS evaluated before must be evaluated again."""
+    if asset is None:
+        asset = recorded_asset(correctives)
+        if asset is None:
+            raise InputError(f"{correctives}: records no asset it was fitted on (older psdbake): give --asset")
+        if not os.path.isfile(asset):
+            raise InputError(f"{correctives}: records it was fitted on {asset}, which is not there (the layer was moved "
+                             "without it?): give --asset")
+    output = output or correctives
+    in_place = os.path.realpath(output) == os.path.realpath(correctives)
+    inputs = [f for f in files_read([asset, correctives]) if not in_place or os.path.realpath(f) != os.path.realpath(correctives)]
+    with _forced(force):
+        atomic.check_output(output, inputs, kind=outputs.CORRECTIVES)
+        with atomic.updating(output) if in_place else contextlib.nullcontext():
+            before = read_correctives(asset, correctives)
+            records = provenance.plain(provenance.read_stamp(correctives).get("groups", {}))
+            groups = without_groups(before, list(remove), correctives)
+            for old, new in (rename or {}).items():
+                groups = renamed_group(groups, old, new, correctives)
+                if old in records:
+                    records[new] = {**records.pop(old), "renamed_from": old}
+            layer = groups_layer(asset, groups, f"psdbake {__version__} groups: rest-space correctives (inverse PSD)")
+            stamped(layer, "correctives", output, {"asset": asset}, rig=provenance.plain(
+                provenance.read_stamp(correctives).get("rig", {})), command=False,
+                groups={g: r for g, r in records.items() if g in names_of(groups)})
+            usdwrite.export_all([(output, layer)], inputs)
+    rename = dict(rename or {})
+    return GroupChanges(removed=tuple(sorted(remove)), renamed=tuple(f"{a} -> {b}" for a, b in sorted(rename.items())),
+                        kept=tuple(sorted(names_of(groups) - set(rename.values()))),
+                        origins={g: origin_text(r) for g, r in records.items()})
 
 
 # --- views and descriptions --------------------------------------------------------------
 
-def write_stack(path: str, layers: Sequence[str]) -> str:
-    """A viewable stack: sublayers ``layers`` (weakest first: ASSET, CORRECTIVES, ANIM, WEIGHTS)."""
-    compose(list(reversed(layers)))  # refuse what no viewer could compose (cycles, unreadable sublayers)
-    return usdwrite.export_atomic(usdwrite.stack_layer(path, layers), path, files_read(layers))
+@dataclasses.dataclass(frozen=True)
+class StackResult:
+    """What ``write_stack`` wrote: the layers in the order composed, weakest first, with roles."""
+
+    output: str
+    layers: tuple[tuple[str, str], ...]  # (path, role), weakest first
+    reordered: bool  # the layers were given in another order than composed
+    warnings: tuple[str, ...] = ()
 
 
-def describe(path: str) -> dict:
-    """What a USD file holds (``psdbake inspect``): JSON-ready, sorted."""
-    return describe_file(path)
+def plan_stack(layers: Sequence[str], *, strict: bool = False) -> StackResult:
+    """The layers in the order a viewer must compose them, weakest first: ASSET < CORRECTIVES <
+    ANIM < WEIGHTS < points cache, by each layer's role (its psdbake kind; the asset is the
+    layer that defines a SkelRoot; any other layer of the user's is an ANIM), whatever the order
+    given. Layers of one role keep the order given, strongest first, as in a USD subLayers list.
+    Refuses contradictions: two CORRECTIVES layers on one mesh, two WEIGHTS layers on one
+    animation. Warns (strict: refuses, exit 3) when CORRECTIVES were fitted on another rig than
+    the asset's, or WEIGHTS were evaluated from other CORRECTIVES than the ones stacked."""
+    notes: list[str] = []
+    unique = list(dict.fromkeys(layers))
+    roles = {path: provenance.layer_role(path) for path in unique}
+    rank = {r: i for i, r in enumerate(provenance.STACK_ROLES)}
+    position = {path: i for i, path in enumerate(unique)}
+    ordered = sorted(unique, key=lambda p: (rank[roles[p]], -position[p]))
+    by_role: dict[str, list[str]] = {}
+    for path in ordered:
+        by_role.setdefault(roles[path], []).append(path)
+    stamps = {p: provenance.read_stamp(p) for p in unique if roles[p] != "asset" and roles[p] != "anim"}
+    claimed: dict[str, str] = {}
+    for path in by_role.get("correctives", []):
+        for mesh in psd_prims(open_layer(path)):
+            if mesh in claimed:
+                raise InputError(f"{path}: CORRECTIVES for <{mesh}>, as {claimed[mesh]} is: the stronger layer's "
+                                 "blend shapes would hide the other's; merge them into one layer (fit --group)")
+            claimed[mesh] = path
+    weights_of: dict[str, str] = {}
+    for path in by_role.get("weights", []):
+        anim = provenance.plain(stamps[path].get("inputs", {})).get("anim", {}).get("sha256", path)
+        if anim in weights_of:
+            raise InputError(f"{path}: WEIGHTS for the same animation as {weights_of[anim]}: the stronger layer's "
+                             "weights would hide the other's; stack one of them")
+        weights_of[anim] = path
+    stacked = {provenance.file_sha256(p): p for p in by_role.get("correctives", [])}
+    for path in by_role.get("weights", []):
+        used = provenance.plain(stamps[path].get("inputs", {})).get("correctives", {})
+        if stacked and used.get("sha256") and used["sha256"] not in stacked:
+            msg = (f"{path}: evaluated from {used.get('path', 'other correctives')} (other bytes than "
+                   f"{', '.join(stacked.values())}): re-run psdbake eval with the stacked CORRECTIVES")
+            if strict:
+                raise InputError(f"{msg} (--strict)")
+            notes.append(msg)
+            warnings.warn(msg, PsdWarning, stacklevel=2)
+    assets = by_role.get("asset", [])
+    if assets:
+        scene = open_asset(assets[-1])
+        for path in by_role.get("correctives", []):
+            notes += check_fitted_on(assets[-1], scene, path, strict=strict)
+    return StackResult("", tuple((p, roles[p]) for p in ordered), ordered != list(reversed(unique)) and
+                       ordered != unique, tuple(notes))
+
+
+def write_stack(path: str, layers: Sequence[str], *, strict: bool = False, force: bool = False) -> StackResult:
+    """A viewable stack of layers, given in any order (``plan_stack``): one layer sublayering
+    them, paths relative to it, written atomically."""
+    plan = dataclasses.replace(plan_stack(layers, strict=strict), output=path)
+    ordered = [p for p, _ in plan.layers]
+    compose(list(reversed(ordered)))  # refuse what no viewer could compose (cycles, unreadable sublayers)
+    layer = stamped(usdwrite.stack_layer(path, ordered), "stack", path,
+                    {role: [p for p, r in plan.layers if r == role] for role in provenance.STACK_ROLES
+                     if any(r == role for _, r in plan.layers)})
+    with _forced(force):
+        usdwrite.export_atomic(layer, path, files_read(ordered))
+    return plan
+
+
+def describe(path: str, asset: str | None = None) -> dict:
+    """What a USD file holds (``psdbake inspect``): JSON-ready, sorted. With the asset (given, or
+    the one the file records it was made from), the example poses are spelled out: per time code,
+    the joints turned from bind and by how many degrees."""
+    from .usd.describe import spelled_poses
+
+    info = describe_file(path)
+    asset = asset or recorded_asset(path)
+    times = sorted({t for e in info["examples"] for t in e["time_codes"]})
+    if asset and os.path.isfile(asset) and times and os.path.realpath(asset) != os.path.realpath(path):
+        info["asset"] = asset
+        info["poses"] = spelled_poses(Scene([path, asset], label=path), times)
+    return info

@@ -10,17 +10,25 @@ An output that is also an input is refused up front: ``inputs`` are compared by 
 path *and* by file identity (device, inode), so a symbolic or hard link to an input is
 refused too. Callers pass every file the command reads (``psdbake.usd.dependencies``
 walks the layers an input reaches), not only the paths typed on the command line.
+
+An existing file is replaced only when it is the command's own earlier output: a file of the
+same kind that psdbake wrote (``outputs.OutputKind``), with a write permission bit set. An
+asset, a sculpt, a WEIGHTS layer given to ``fit -o`` or a published file locked read-only
+(mode 0444) is refused (exit 6) unless the user asks with ``--force`` (``forcing``).
 """
 
 from __future__ import annotations
 
 import contextlib
+import contextvars
 import os
 import signal
+import stat
 import tempfile
 from collections.abc import Iterable, Iterator
 
 from .errors import OutputError
+from .outputs import OutputKind
 
 #: Temporary files are ``.psdbake-XXXXXXXX.tmp.EXT`` beside the destination: short, so a
 #: destination name of any legal length has a legal temporary name, and ``.tmp`` in every
@@ -36,8 +44,45 @@ def _identity(path: str) -> tuple[int, int] | None:
     return st.st_dev, st.st_ino
 
 
-def check_output(path: str, inputs: Iterable[str] = (), extensions: Iterable[str] | None = None) -> str:
-    """Refuse an output that would overwrite an input or cannot be written; return its real path."""
+#: ``--force``: replace an existing output that is not the command's own earlier output, or is read-only.
+_FORCE: contextvars.ContextVar[bool] = contextvars.ContextVar("psdbake_force", default=False)
+
+
+@contextlib.contextmanager
+def forcing(enabled: bool = True) -> Iterator[None]:
+    """Within the block, outputs may replace any regular file (the user's ``--force``)."""
+    token = _FORCE.set(enabled)
+    try:
+        yield
+    finally:
+        _FORCE.reset(token)
+
+
+def forced() -> bool:
+    """Whether ``--force`` is in effect (``forcing``)."""
+    return _FORCE.get()
+
+
+def _check_replace(path: str, real: str, kind: OutputKind | None) -> None:
+    """Refuse to replace a file that is read-only or is not this kind's earlier output, unless forced."""
+    if _FORCE.get() or not os.path.isfile(real):
+        return
+    mode = os.stat(real).st_mode
+    if not mode & (stat.S_IWUSR | stat.S_IWGRP | stat.S_IWOTH) or not os.access(real, os.W_OK):
+        raise OutputError(f"{path}: exists and is read-only (mode {stat.S_IMODE(mode):04o}: a published file?); "
+                          "give --force to replace it")
+    if kind is not None and kind.identify(real) != kind.name:
+        raise OutputError(f"{path}: exists and is {kind.describe(real)}, not a psdbake {kind.label}; "
+                          "give --force to replace it")
+
+
+def check_output(path: str, inputs: Iterable[str] = (), extensions: Iterable[str] | None = None,
+                 kind: OutputKind | None = None) -> str:
+    """Refuse an output that would overwrite an input, cannot be written, or would replace a
+    file that is not ``kind``'s earlier output (or is read-only) without ``--force``; return
+    its real path. ``kind`` gives the extensions when ``extensions`` is None."""
+    if extensions is None and kind is not None:
+        extensions = kind.extensions
     ext = os.path.splitext(path)[1].lower()
     if extensions is not None and ext not in tuple(extensions):
         raise OutputError(f"{path}: output must end in {', '.join(extensions)} (got {ext or 'no extension'!r})")
@@ -57,16 +102,17 @@ def check_output(path: str, inputs: Iterable[str] = (), extensions: Iterable[str
         raise OutputError(f"{path}: is a folder")
     if os.path.exists(real) and not os.path.isfile(real):
         raise OutputError(f"{path}: exists and is not a regular file (a FIFO or device is never replaced)")
+    _check_replace(path, real, kind)
     return real
 
 
-def check_outputs(outputs: Iterable[tuple[str, Iterable[str] | None]], inputs: Iterable[str] = ()) -> list[str]:
-    """``check_output`` for every (path, extensions) of one command, and no two the same
-    file; returns their real paths. Run before any work, so a bad output fails in a second."""
+def check_outputs(outputs: Iterable[tuple[str, OutputKind]], inputs: Iterable[str] = ()) -> list[str]:
+    """``check_output`` for every (path, kind) of one command, and no two the same file;
+    returns their real paths. Run before any work, so a bad output fails in a second."""
     inputs = list(inputs)
     seen: dict[str, str] = {}
-    for path, extensions in outputs:
-        real = check_output(path, inputs, extensions)
+    for path, kind in outputs:
+        real = check_output(path, inputs, kind=kind)
         if real in seen:
             also = "" if seen[real] == path else f" (also as {seen[real]})"
             raise OutputError(f"{path}: names two outputs of this run{also}; each output needs its own file")
@@ -133,8 +179,8 @@ class Transaction:
         self.inputs = [str(p) for p in inputs if p]
         self._planned: list[tuple[str, str, str]] = []  # (shown path, real path, temp path)
 
-    def path(self, dest: str, extensions: Iterable[str] | None = None) -> str:
-        real = check_output(dest, self.inputs, extensions)
+    def path(self, dest: str, extensions: Iterable[str] | None = None, kind: OutputKind | None = None) -> str:
+        real = check_output(dest, self.inputs, extensions, kind)
         for shown, other, _ in self._planned:
             if other == real:
                 raise OutputError(f"{dest}: written twice by this run (also as {shown})")
@@ -211,21 +257,15 @@ class Transaction:
 
 
 @contextlib.contextmanager
-def replacing(path: str, inputs: Iterable[str] = (), extensions: Iterable[str] | None = None) -> Iterator[str]:
+def replacing(path: str, inputs: Iterable[str] = (), extensions: Iterable[str] | None = None,
+              kind: OutputKind | None = None) -> Iterator[str]:
     """Yield a temp path to write; on success it is fsynced and renamed over path."""
     with Transaction(inputs) as tx:
-        tmp = tx.path(path, extensions)
+        tmp = tx.path(path, extensions, kind)
         try:
             yield tmp
         except OSError as exc:
             raise OutputError(f"{path}: cannot write ({exc.strerror or exc})") from None
-
-
-def write_text(path: str, text: str, inputs: Iterable[str] = ()) -> str:
-    """Write a small text file (JSON reports) atomically."""
-    with replacing(path, inputs) as tmp, open(tmp, "w", encoding="utf-8") as fh:
-        fh.write(text)
-    return path
 
 
 @contextlib.contextmanager

@@ -11,16 +11,24 @@ import sys
 import warnings
 from collections.abc import Callable, Iterator
 from typing import TYPE_CHECKING, Any
+from warnings import WarningMessage
 
 import click
 
 from . import __version__
-from .errors import PsdWarning
+from . import tolerances as tol
+from .errors import PsdWarning, StrictError
 
 if TYPE_CHECKING:  # the results are only read here: importing them would load numpy and USD with --help
+    from .arrays import Progress
     from .farm import JobResult
     from .farm.chunked import ChunkedWeights, WrittenChunks
-    from .results import FitResult, MirrorResult, Progress, SculptsResult, WeightsResult
+    from .fitting.groups import GroupChanges
+    from .results import FitResult, MirrorResult, SculptsResult, WeightsResult
+
+
+#: eval -v counts a channel as on in a frame above this weight (a display threshold, not a tolerance).
+_SHOWN_ON = 1e-3
 
 
 class Ui:
@@ -32,6 +40,10 @@ class Ui:
     def say(self, text: str = "") -> None:
         if not self.quiet and not self.as_json:
             click.echo(text)
+
+    def warn(self, text: str) -> None:
+        """A warning: on stderr, even with -q or --json (a farm log must see it)."""
+        click.echo(f"psdbake: warning: {text}", err=True)
 
     def payload(self, data: Any) -> None:
         """The --json summary, on stdout."""
@@ -62,16 +74,24 @@ class Ui:
 
     @contextlib.contextmanager
     def warnings(self) -> Iterator[list[str]]:
-        """psdbake's warnings raised meanwhile, each shown as one ``psdbake: warning:`` line."""
+        """psdbake's warnings raised meanwhile, each shown as one ``psdbake: warning:`` line. A
+        refusal of the inputs stays one line; a result that missed its tolerance (exit 7) keeps
+        its warnings, which say why."""
         found: list[str] = []
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always", PsdWarning)
-            yield found
+            try:
+                yield found
+            except StrictError:
+                self._show(caught, found)
+                raise
+            self._show(caught, found)
+
+    def _show(self, caught: list[WarningMessage], found: list[str]) -> None:
         for w in caught:
             if issubclass(w.category, PsdWarning):
                 found.append(str(w.message))
-                if not self.quiet:
-                    click.echo(f"psdbake: warning: {w.message}", err=True)
+                self.warn(str(w.message))
 
 
 def json_text(payload: dict) -> str:
@@ -82,13 +102,18 @@ def json_text(payload: dict) -> str:
 # --- fit -----------------------------------------------------------------------------------
 
 def fit_report(result: FitResult, output: str) -> dict:
-    """The --report / --json payload: per mesh and example, what was solved and how well."""
+    """The --report / --json payload: per mesh and example, what was solved and how well, and
+    how far the product is from each sculpt through a client's composition."""
+    checks = {(c.mesh, c.source, c.time): c for c in result.checks}
     meshes = []
     for m in result.meshes:
         examples = []
         for ex, inv, channel in zip(m.examples, m.inverses, m.channels, strict=True):
             diag = inv.diagonal or 1.0
+            check = checks.get((m.mesh, ex.source, ex.time))
             examples.append({
+                "product_error_rel": None if check is None else check.error,
+                "reproduced": None if check is None else check.reproduced,
                 "example": ex.label, "source": ex.source, "time": ex.time, "blend_shape": channel or None,
                 "vertices_solved": len(inv.indices), "evaluations": inv.evaluations, "regime": inv.regime,
                 "max_residual": inv.max_residual, "rms_residual": inv.rms_residual,
@@ -111,6 +136,8 @@ def fit_report(result: FitResult, output: str) -> dict:
         "examples": list(result.example_files), "meshes": meshes, "missed": result.missed,
         "warnings": list(result.warnings), "seconds": round(result.seconds, 6),
         "skipped_examples": list(result.skipped), "layout": list(result.layout),
+        "degraded": [f"{c.label} <{c.mesh}>" for c in result.degraded], "written": True,
+        "roundtrip_tolerance": tol.ROUNDTRIP_RTOL,
     }
 
 
@@ -127,11 +154,50 @@ def _unreachable_line(label: str, inv: Any) -> str:
     worst = ", ".join(str(v) for v, _ in _worst(inv, 3))
     verdict = ("at a least-squares optimum: the deformer chain cannot reproduce it" if inv.at_optimum else
                "the solver stopped short of an optimum")
-    return (f"    {label}: {len(inv.missed)} vertices above the tolerance, {inv.unreachable_fraction:.1%} of the sculpt not "
+    return (f"{label}: {len(inv.missed)} vertices above the tolerance, {inv.unreachable_fraction:.1%} of the sculpt not "
             f"reproduced (worst: {worst}); {verdict}")
 
 
-def say_fit(ui: Ui, result: FitResult, output: str) -> None:
+def fit_failure(result: FitResult, output: str, *, strict: bool, allow_degraded: bool) -> str | None:
+    """Why this fit must not be written (exit 7), or None: a degraded product (unless allowed)
+    or, with --strict, any vertex that missed the fit tolerance."""
+    if strict and result.missed:
+        return f"{output}: not written: {result.missed} vertices missed the tolerance (--strict)"
+    if result.degraded and not allow_degraded:
+        worst = max(result.degraded, key=lambda c: c.error)
+        return (f"{output}: not written: the product does not reproduce {len(result.degraded)} of {len(result.checks)} "
+                f"example(s) within {tol.ROUNDTRIP_RTOL:g} of the diagonal (worst {worst.label} <{worst.mesh}>: "
+                f"{worst.error:.2g}, vertex {worst.worst_vertex}); see the warnings above, or give --allow-degraded to "
+                "write it anyway")
+    return None
+
+
+def changes_payload(changes: GroupChanges) -> dict:
+    """What a write did to the groups already in its CORRECTIVES layer (--json, --report)."""
+    return {"added": list(changes.added), "replaced": list(changes.replaced), "kept": list(changes.kept),
+            "removed": list(changes.removed), "protected": list(changes.protected), "renamed": list(changes.renamed),
+            "origins": {g: changes.origins[g] for g in (*changes.replaced, *changes.removed, *changes.protected)
+                        if g in changes.origins}}
+
+
+def say_changes(ui: Ui, changes: GroupChanges, output: str) -> None:
+    """One line per kind of change to the groups of output; removals and protections always shown."""
+    parts = [f"added {', '.join(changes.added)}"] if changes.added else []
+    parts += [f"{what} {changes.shown(names)}" for what, names in (("replaced", changes.replaced),
+                                                                  ("removed", changes.removed)) if names]
+    parts += [f"renamed {', '.join(changes.renamed)}"] if changes.renamed else []
+    if changes.kept:
+        parts.append(f"kept {len(changes.kept)}" + (f" ({', '.join(changes.kept)})" if ui.verbose else ""))
+    if parts:
+        ui.say(f"  groups: {'; '.join(parts)}")
+    if changes.protected:
+        kept = ", ".join(f"{g} ({changes.origins.get(g, 'origin not recorded')})" for g in changes.protected)
+        ui.warn(f"{output}: kept {len(changes.protected)} group(s) fitted from sculpts instead of their mirror: {kept} "
+                "(--replace-sculpted replaces them)")
+
+
+def say_fit(ui: Ui, result: FitResult, output: str, changes: GroupChanges | None = None, *, written: bool = True
+            ) -> None:
     n_ex = sum(len(m.examples) for m in result.meshes)
     solved = sum(len(inv.indices) for m in result.meshes for inv in m.inverses)
     ui.say(f"psdbake fit: {len(result.meshes)} mesh(es), {n_ex} example(s), {solved} vertices solved in {result.seconds:.2f} s")
@@ -163,13 +229,23 @@ def say_fit(ui: Ui, result: FitResult, output: str) -> None:
                 for name, count in inv.missed_statuses.items():
                     why[name] = why.get(name, 0) + count
         detail = ", ".join(f"{name} {count}" for name, count in sorted(why.items()))
-        ui.say(f"  DEGRADED: {result.missed} vertices missed the tolerance ({detail}; see --report; --strict makes "
-               "this fatal)")
+        ui.warn(f"{output}: {result.missed} vertices missed the fit tolerance ({detail}; see --report; --strict makes "
+                "this fatal)")
         for m in result.meshes:
             for ex, inv in zip(m.examples, m.inverses, strict=True):
                 if len(inv.missed) and inv.regime != "per-vertex":
-                    ui.say(_unreachable_line(ex.label, inv))
-    ui.say(f"wrote {output}")
+                    ui.warn(f"{output}: {_unreachable_line(ex.label, inv)}")
+    if result.settings.smoothing > 0 and result.checks:
+        worst = max(result.checks, key=lambda c: c.error)
+        ui.warn(f"{output}: --smoothing {result.settings.smoothing:g}: the product approximates the examples "
+                f"(worst {worst.label} <{worst.mesh}>: {worst.error:.2g} of the diagonal)")
+    for c in result.degraded:
+        ui.warn(f"{output}: DEGRADED: the product misses example {c.label} of <{c.mesh}> by {c.error:.2g} of the "
+                f"diagonal (vertex {c.worst_vertex}), more than the round-trip tolerance {tol.ROUNDTRIP_RTOL:g}")
+    if changes is not None:
+        say_changes(ui, changes, output)
+    if written:
+        ui.say(f"wrote {output}")
 
 
 # --- mirror --------------------------------------------------------------------------------
@@ -189,7 +265,7 @@ def mirror_report(result: MirrorResult, output: str) -> dict:
     }
 
 
-def say_mirror(ui: Ui, result: MirrorResult, output: str) -> None:
+def say_mirror(ui: Ui, result: MirrorResult, output: str, changes: GroupChanges | None = None) -> None:
     ui.say(f"psdbake mirror: {len(result.groups)} group(s) mirrored about the {result.settings.plane} plane, "
            f"{sum(g.vertices for g in result.groups)} vertices paired in {result.seconds:.2f} s")
     for g in result.groups:
@@ -200,6 +276,8 @@ def say_mirror(ui: Ui, result: MirrorResult, output: str) -> None:
         ui.say(f"  skipped {len(result.skipped)} group(s):")
         for line in result.skipped:
             ui.say(f"    {line}")
+    if changes is not None:
+        say_changes(ui, changes, output)
     ui.say(f"wrote {output}")
 
 
@@ -218,6 +296,13 @@ def say_eval(ui: Ui, result: WeightsResult, output: str, points_cache: str | Non
     ui.say(f"psdbake eval: {frames_n} frame(s) on {len(result.animations)} animation(s) in {result.seconds:.2f} s")
     for a in result.animations:
         ui.say(f"  <{a.animation}>  {a.psd_channels} corrective channel(s), frames {a.times[0]:g}..{a.times[-1]:g}")
+        if ui.verbose:  # which correctives fire, how strongly and where
+            first = len(a.channels) - a.psd_channels
+            for c in range(first, len(a.channels)):
+                peak = int(a.weights[:, c].argmax())
+                active = int((a.weights[:, c] > _SHOWN_ON).sum())
+                ui.say(f"    {a.channels[c]:<48} max {a.weights[peak, c]:.3f} at frame {a.times[peak]:g}, "
+                       f"on in {active} of {len(a.times)} frame(s)")
     ui.say(f"wrote {output}" + (f" and {points_cache}" if points_cache else ""))
 
 
@@ -241,9 +326,27 @@ def say_chunks(ui: Ui, ev: ChunkedWeights, written: WrittenChunks) -> None:
            + ": open it once every chunk is written")
 
 
+# --- groups ------------------------------------------------------------------------------
+
+def say_groups(ui: Ui, file: str, groups: list[dict]) -> None:
+    meshes = sorted({g["mesh"] for g in groups})
+    ui.say(f"{file}: {len({g['group'] for g in groups})} group(s) on {len(meshes)} mesh(es)")
+    width = max((len(g["group"]) for g in groups), default=5)
+    for g in groups:
+        drivers = ", ".join(d.split("/")[-1] for d in g["drivers"])
+        gates = f"  gated by {', '.join(g['gate_groups'])}" if g.get("gate_groups") else ""
+        ui.say(f"  {g['group']:<{width}}  <{g['mesh']}>  drivers {drivers}  {len(g['channels'])} channel(s), "
+               f"{g['examples']} example(s), {g['kernel']} sigma {g['sigma']:.4g}{gates}  [{g['origin']}]")
+
+
 # --- inspect and batch -----------------------------------------------------------------------
 
-def say_inspect(file: str, info: dict) -> None:
+def _joint_tree(paths: list[str]) -> list[str]:
+    """Joint paths as an indented tree of leaf names, in the skeleton's order."""
+    return [f"{'  ' * p.count('/')}{p.split('/')[-1]}" for p in paths]
+
+
+def say_inspect(file: str, info: dict, verbose: int = 0) -> None:
     for warning in info.get("warnings", []):
         click.echo(f"psdbake: warning: {warning}", err=True)
     click.echo(f"{file}")
@@ -251,21 +354,32 @@ def say_inspect(file: str, info: dict) -> None:
         click.echo(f"  SkelRoot <{root}>")
     for skel in info["skeletons"]:
         click.echo(f"  Skeleton <{skel['path']}>: {skel['joints']} joints, animation {skel['animation'] or '-'}")
+        for line in _joint_tree(skel.get("joint_paths", [])):
+            click.echo(f"      {line}")
     for m in info["meshes"]:
         shapes = f", blend shapes: {', '.join(m['blend_shapes'])}" if m["blend_shapes"] else ""
         click.echo(f"  skinned <{m['path']}>: {m['points']} points, {m['influences']} influences, "
                    f"{m['skinning_method'] or 'classicLinear'}{shapes}")
     for a in info["animations"]:
         span = f"{a['first']:g}..{a['last']:g}" if a["samples"] else "static"
-        click.echo(f"  SkelAnimation <{a['path']}>: {a['joints']} joints, {a['samples']} samples ({span})")
+        parts = [f"{a['joints']} joints ({a.get('joint_samples', a['samples'])} samples)"]
+        if a["blend_shapes"]:
+            parts.append(f"{len(a['blend_shapes'])} blend shapes ({a.get('blend_shape_samples', 0)} weight samples)")
+        click.echo(f"  SkelAnimation <{a['path']}>: {', '.join(parts)}, {span}")
     for e in info["examples"]:
         click.echo(f"  examples of <{e['mesh']}> at time codes {', '.join(f'{t:g}' for t in e['time_codes'])}")
+    for pose in info.get("poses", []):
+        turned = ", ".join(f"{j['joint'].split('/')[-1]} {j['degrees']:g}°" for j in pose["joints"]) or "bind pose"
+        click.echo(f"    t={pose['time']:g}: {turned}")
+    if info["examples"] and "poses" not in info:
+        click.echo("    (give --asset ASSET to spell out each example's pose)")
     for c in info["correctives"]:
         click.echo(f"  correctives on <{c['mesh']}> group {c['group']} (psd: v{c['version']}): {len(c['shapes'])} shapes from "
                    f"{c['examples']} examples; drivers {', '.join(d.split('/')[-1] for d in c['drivers'])}; "
                    f"{c['pose_space']}, {c['kernel']}, sigma {c['sigma']:.4g}, degree {c['degree']}")
-        for name, count in sorted(c["offsets"].items()):
-            click.echo(f"    BlendShape {name}: {count} points")
+        if verbose:
+            for name, count in sorted(c["offsets"].items()):
+                click.echo(f"    BlendShape {name}: {count} points")
 
 
 def batch_lines(jobs_file: str, quiet: bool, verbose: int) -> Callable[[JobResult, int, int], None]:
@@ -278,9 +392,8 @@ def batch_lines(jobs_file: str, quiet: bool, verbose: int) -> Callable[[JobResul
         elif not quiet:
             extra = f" ({r.error})" if r.status == "skipped" else f" {r.seconds:.2f} s" + (f" on {r.worker}" if verbose else "")
             click.echo(f"psdbake batch: [{n}/{total}] {r.status:<7} {r.label}{extra}", err=True)
-        if not quiet:
-            for w in r.warnings:
-                click.echo(f"psdbake: warning: {jobs_file} {r.label}: {w}", err=True)
+        for w in r.warnings:  # even when quiet: a farm log must see them
+            click.echo(f"psdbake: warning: {jobs_file} {r.label}: {w}", err=True)
 
     return done
 

@@ -15,7 +15,7 @@ The rest mesh is the mesh's authored points (mesh local space, default time) and
 edges; the deformer runs after skinning, in mesh local space (``psdbake.deformers``). An
 identity pose (posed == rest) returns rest to float64 round-off. Every output vertex depends
 on its ``iterations``-ring of input vertices: the deformer couples vertices, and ``fit``
-detects that and uses its coupled inverse (``psdbake.coupled``).
+detects that and uses its coupled inverse (``psdbake.solver.coupled``).
 
 Parameters: ``delta_mush`` uses 10 iterations and step 0.5. For others, a file of your own::
 
@@ -38,7 +38,7 @@ from numpy.typing import NDArray
 from .arrays import Points
 from .deformers import DeformerFactory, PointFn
 from .normals import Topology, vertex_normals
-from .smoothbasis import edge_adjacency
+from .solver.smoothbasis import edge_adjacency
 
 DEFAULT_ITERATIONS = 10
 DEFAULT_STEP = 0.5

@@ -56,9 +56,65 @@ class OutputError(PsdError):
 
 
 class StrictError(PsdError):
-    """``--strict``: some vertices missed tolerance; nothing was written."""
+    """The result missed its tolerance, so nothing was written: a degraded fit (the product does
+    not reproduce an example within the round-trip tolerance; ``--allow-degraded`` writes it
+    anyway), or ``--strict`` and some vertex missed the fit tolerance."""
 
     exit_code = 7
+
+
+# --- raised by one stage ------------------------------------------------------------------------
+
+
+class ReportError(PsdError):
+    """The report cannot be drawn (matplotlib missing)."""
+
+    exit_code = 1
+
+
+class ChunkUsageError(PsdError):
+    """A chunk option that makes no sense (size below 1, chunk number out of range)."""
+
+    exit_code = 2
+
+
+class BatchUsageError(PsdError):
+    """A batch option that cannot be honoured here (e.g. ``--scheduler`` without dask)."""
+
+    exit_code = 2
+
+
+class BatchError(PsdError):
+    """Some jobs failed; the exit code is the first failed job's (file order)."""
+
+    def __init__(self, message: str, exit_code: int) -> None:
+        super().__init__(message)
+        self.exit_code = exit_code
+
+
+class SculptOutOfRangeError(ValueError):
+    """A sculpted vertex lies absurdly far from its skinned position (``solver.solve`` turns it
+    into an ``InputError`` naming the file and the example)."""
+
+    def __init__(self, vertex: int, distance: float, diagonal: float) -> None:
+        super().__init__(f"vertex {vertex} is {distance:.3g} away from its skinned position, far outside the mesh "
+                         f"({distance / max(diagonal, 1e-300):.3g} times its size): broken data or a unit mix-up")
+        self.vertex, self.distance, self.diagonal = vertex, distance, diagonal
+
+
+# the live Blender rig's compiler (export/blender): defects or data it cannot express, raised
+# and caught inside the compiler and its tests
+
+class SimpleExpressionError(ValueError):
+    """A text outside Blender's simple subset, or an operation that would fail the driver."""
+
+
+class LayoutError(ValueError):
+    """An expression that no layout fits in Blender's limit (a compiler defect, not bad data)."""
+
+
+class CompileError(ValueError):
+    """``psd:`` data the compiler has no building block for (a new pose space or kernel)."""
 
 
 class PsdWarning(UserWarning):

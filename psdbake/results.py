@@ -2,18 +2,16 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
 
-from .inverse import InverseResult
+from . import tolerances as tol
+from .model.data import DEFAULT_GROUP, BlendShapeData, DriverData
 from .normals import CorrectiveNormals
 from .settings import FitSettings, MirrorSettings
-from .usd.schema import DEFAULT_GROUP, BlendShapeData, DriverData
-
-Progress = Callable[[int, int, str], None]  # (done, total, what)
+from .solver.inverse import InverseResult
 
 
 @dataclass(frozen=True)
@@ -50,6 +48,23 @@ class MeshFit:
 
 
 @dataclass(frozen=True)
+class ExampleCheck:
+    """One example of one mesh after the fit, through the composition a client uses
+    (``fitcheck``): how far the product is from the sculpt."""
+
+    mesh: str
+    label: str
+    source: str
+    time: float
+    error: float  # largest distance of a product point to the sculpt, fraction of the sculpt's diagonal
+    worst_vertex: int
+
+    @property
+    def reproduced(self) -> bool:
+        return self.error <= tol.ROUNDTRIP_RTOL
+
+
+@dataclass(frozen=True)
 class FitResult:
     asset: str
     example_files: tuple[str, ...]
@@ -62,10 +77,22 @@ class FitResult:
     #: the input files' layers (``Sdf.Layer``), kept open so that writing CORRECTIVES reads
     #: no input again: a 1M-point .usda asset took seconds to parse each time
     input_layers: tuple[object, ...] = field(default=(), repr=False, compare=False)
+    #: the asset's rig as fitted on (``usd.provenance.rig_record``), stamped in CORRECTIVES
+    rig: dict = field(default_factory=dict, repr=False, compare=False)
+    #: every fitted example through the client's composition (``fitcheck.check_product``)
+    checks: tuple[ExampleCheck, ...] = ()
 
     @property
     def missed(self) -> int:
         return int(sum(len(inv.missed) for m in self.meshes for inv in m.inverses))
+
+    @property
+    def degraded(self) -> tuple[ExampleCheck, ...]:
+        """The examples the product does not reproduce within ``tol.ROUNDTRIP_RTOL``. With RBF
+        smoothing the product approximates the examples by request, so none is degraded."""
+        if self.settings.smoothing > 0:
+            return ()
+        return tuple(c for c in self.checks if not c.reproduced)
 
 
 @dataclass(frozen=True)
@@ -87,6 +114,7 @@ class WeightsResult:
     animations: tuple[AnimWeights, ...]
     fps: float | None
     seconds: float = 0.0
+    rig: dict = field(default_factory=dict, repr=False, compare=False)  # the asset's, stamped in WEIGHTS
 
 
 @dataclass(frozen=True)
@@ -110,6 +138,7 @@ class PoseResult:
     meshes: tuple[str, ...]
     layer: object  # Sdf.Layer
     deformers: tuple[str, ...] = ()
+    rig: dict = field(default_factory=dict, repr=False, compare=False)  # the asset's, stamped in EXAMPLES
 
 
 @dataclass(frozen=True)
@@ -165,3 +194,4 @@ class MirrorResult:
     groups: tuple[MirroredGroup, ...]
     skipped: tuple[str, ...] = ()  # whole-layer mode: groups left out, each with why
     seconds: float = 0.0
+    rig: dict = field(default_factory=dict, repr=False, compare=False)  # the asset's, stamped in CORRECTIVES

@@ -13,9 +13,9 @@ import numpy as np
 
 from . import tolerances as tol
 from .errors import SettingError
-from .posespace import POSE_SPACES
-from .rbf_model import KERNELS
-from .usd.schema import RESERVED_GROUP_NAMES
+from .model.data import RESERVED_GROUP_NAMES
+from .model.posespace import POSE_SPACES
+from .model.rbf import KERNELS
 
 
 @dataclass(frozen=True)

@@ -4,7 +4,7 @@ Lengths are relative to the mesh's bounding-box diagonal unless stated, so the
 same defaults work for a 2 cm eyebrow and a 20 m dragon.
 
 Plain numbers, no numpy at import: the CLI reads its defaults from here while it parses
-options, and ``psdbake --help`` loads no numerics (issue 16).
+options, and ``psdbake --help`` loads no numerics.
 """
 
 from __future__ import annotations
@@ -23,6 +23,12 @@ EPS32 = 2.0**-23
 #: skinned point is ~1e-7 of its magnitude, so 1e-6 is reachable yet ten times
 #: tighter than the 1e-5 round-trip guarantee.
 INVERSE_RTOL = 1e-6
+
+#: The product's guarantee (fraction of the diagonal): UsdSkel evaluating ASSET + CORRECTIVES +
+#: ANIM + WEIGHTS at an example's pose reproduces its sculpt within this. Ten times the inverse
+#: tolerance, for the float32 round-off the offsets, blend shapes and skinning add in a client.
+#: A fit whose product misses an example by more is degraded (``fitcheck``): exit 7 by default.
+ROUNDTRIP_RTOL = 1e-5
 
 #: The inverse can never beat float32 round-off of the black box's output: the
 #: absolute floor is this many float32 ulps of the largest coordinate.
@@ -48,9 +54,16 @@ POWELL_MAX_CYCLES = 30
 #: bracket uses a grow limit of 110; 8 keeps a bad model from flinging a vertex).
 LINE_SEARCH_GROW_LIMIT = 8.0
 
-#: A Jacobian with |det J| below this fraction of |J|_F^3 is treated as singular (e.g. a
-#: zero-scale joint): Powell then starts from the identity directions instead of the
-#: linearised guess. (For a rotation the ratio is 3^-1.5 ~ 0.19.)
+#: A matrix M (n x n) is singular when |det M| <= rcond |M|_F^n (``arrays.is_singular``: scale-
+#: free, so a rig in millimetres and one in metres agree; for a rotation the ratio is n^(-n/2),
+#: 0.19 for n = 3). Inputs (bind and geomBind transforms, world transforms, joint frames) are
+#: refused below this: 1e-12 is a zero-scale axis or a frame collapsed to a plane, far below any
+#: real rig (a 1000:1 non-uniform scale is 1e-3 at n = 3).
+SINGULAR_RCOND = 1e-12
+
+#: The solver's own threshold, by the same measure: a per-vertex Jacobian with |det J| below
+#: this fraction of |J|_F^3 is treated as singular (e.g. a zero-scale joint): Powell then starts
+#: from the identity directions instead of the linearised guess.
 JACOBIAN_RCOND = 1e-6
 
 #: Two example poses closer than this (radians, Euclidean in pose coordinates)
@@ -158,6 +171,13 @@ MIRROR_JOINT_RTOL = 1e-4
 #: changes no offset, only where it applies, by less than the sculpts are reproduced to), and
 #: thousands of times below any mesh's edge length, so the nearest vertex is never a neighbour.
 MIRROR_VERTEX_RTOL = 1e-5
+
+#: ``export-blender``: a driver's stored bind rotation and the joint's bind rotation in the
+#: asset (where Blender's bones rest) are the same rotation when the vector part of
+#: q_stored^-1 q_rest is below this (an angle of 2e-12 rad): psdbake writes both from the same
+#: bindTransforms, equal to float64 round-off; the driver then reads the bone's rotation as is.
+#: Anything larger is composed into the driver (a layer fitted against other bind transforms).
+BLENDER_REST_MATCH = 1e-12
 
 #: Most whole frames one ``--frames START:END`` may name (eval, compare, batch chunk plans).
 #: 1,000,000 frames is 11.5 hours at 24 fps, 4.6 at 60: longer than any shot or film, so a

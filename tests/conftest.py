@@ -230,8 +230,8 @@ def baked_normal_errors(layers: list[str], mesh: str, time: float, sculpt_points
 def corrective_weights(asset: str, correctives: str, weights: str, anim_prim: str, times) -> dict[str, np.ndarray]:
     """Each corrective's weight b_s over times (psd:shapes name -> (f,)), from WEIGHTS as
     written: its client-safe channels' weights times their scales, summed (channels.py)."""
-    from psdbake.channels import column_weights
-    from psdbake.groups import read_correctives
+    from psdbake.fitting.groups import read_correctives
+    from psdbake.model.channels import column_weights
 
     layer = Sdf.Layer.FindOrOpen(str(weights))
     names = list(layer.GetAttributeAtPath(Sdf.Path(anim_prim).AppendProperty("blendShapes")).default)
@@ -244,3 +244,13 @@ def corrective_weights(asset: str, correctives: str, weights: str, anim_prim: st
             b = column_weights(data, w[:, [names.index(c) for c in channels]])
             out.update({name: b[:, s] for s, name in enumerate(data.shapes)})
     return out
+
+
+def without_provenance(path) -> str:
+    """A layer's text without the provenance psdbake records in it (its command line and
+    inputs), for comparing what two differently invoked commands wrote."""
+    layer = Sdf.Layer.OpenAsAnonymous(str(path))
+    custom = dict(layer.customLayerData)
+    custom.pop("psdbake", None)
+    layer.customLayerData = custom
+    return layer.ExportToString()

@@ -72,6 +72,7 @@ FILE_DEFECTS = {
 @pytest.mark.parametrize(("defect", "role"), [
     pytest.param(defect, role, id=f"{defect}-{role.replace(' ', '_')}") for defect in FILE_DEFECTS for role in ROLES
 ])
+@pytest.mark.slow
 def test_unusable_file(defect, role, cli, tmp_path):
     name, says = FILE_DEFECTS[defect]
     argv, outputs = _roles(bad(name), tmp_path)[role]

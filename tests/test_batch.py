@@ -21,47 +21,53 @@ from psdbake import farm
 from psdbake.cli import cli
 from psdbake.errors import InputError, PsdError
 
+pytestmark = pytest.mark.slow  # make test-fast leaves this module out (make test runs it)
+
+
 ASSET, EXAMPLES = fixture("arm_lbs.usda"), fixture("arm_lbs_examples.usda")
 POSES, ANIM = fixture("arm_poses.usda"), fixture("arm_anim.usda")
 UNSCULPTED = fixture("bad", "examples_unsculpted.usda")
+HUMANOID, HUMANOID_EXAMPLES = fixture("humanoid", "humanoid.usda"), fixture("humanoid", "humanoid_examples.usda")
+HUMANOID_ANIM = fixture("humanoid", "humanoid_anim.usda")
 
 # pose (independent) | two correctives groups fitted into one layer (read-modify-write, in file order)
-# -> eval cut into 3 chunk tasks (600 frames and a points cache: the slowest tasks) -> stack
+# -> eval cut into 3 chunk tasks (the shot's 100 frames and a points cache: the slowest tasks) -> stack
 PIPELINE = f"""
 [defaults]
-asset = "{ASSET}"
+asset = "{HUMANOID}"
 
 [[pose]]
-anim = "{POSES}"
+anim = "{HUMANOID_EXAMPLES}"
 output = "out/to_sculpt.usda"
 
 [[fit]]
-examples = ["{EXAMPLES}"]
-group = "elbow"
-driver = ["Elbow"]
+examples = ["{HUMANOID_EXAMPLES}"]
+group = "L_Elbow"
+driver = ["L_Elbow"]
 output = "out/correctives.usda"
 
 [[fit]]
-examples = ["{EXAMPLES}"]
-group = "arm"
+examples = ["{HUMANOID_EXAMPLES}"]
+group = "R_Elbow"
+driver = ["R_Elbow"]
 output = "out/correctives.usda"
 
 [[eval]]
 correctives = "out/correctives.usda"
-anim = "{ANIM}"
-frames = "1:600"
-chunk_size = 200
+anim = "{HUMANOID_ANIM}"
+frames = "1:100"
+chunk_size = 34
 output = "out/weights.usda"
 points_cache = "out/cache.usda"
 
 [[stack]]
 output = "out/shot.usda"
-layers = ["{ASSET}", "out/correctives.usda", "{ANIM}", "out/weights.usda"]
+layers = ["{HUMANOID}", "out/correctives.usda", "{HUMANOID_ANIM}", "out/weights.usda"]
 """
 OUTPUTS = (
     "to_sculpt.usda", "correctives.usda", "shot.usda",
     *(f"{name}{part}.usda" for name in ("weights", "cache")
-      for part in ("", ".clipmanifest", ".f0001-0200", ".f0201-0400", ".f0401-0600")),
+      for part in ("", ".clipmanifest", ".f0001-0034", ".f0035-0068", ".f0069-0100")),
 )
 TASKS = 7  # pose, 2 fits, 3 eval chunks, stack
 COMMANDS = {name: cli.commands[name] for name in farm.COMMANDS}  # what psdbake batch passes: the CLI is the schema

@@ -26,6 +26,9 @@ from conftest import FIXTURES, digest, fixture, refused
 from psdbake import farm
 from psdbake import tolerances as tol
 
+pytestmark = pytest.mark.slow  # make test-fast leaves this module out (make test runs it)
+
+
 BAD = os.path.join(FIXTURES, "bad")
 ASSET, EXAMPLES = os.path.join(BAD, "good_asset.usda"), os.path.join(BAD, "good_examples.usda")
 CORRECTIVES, ANIM = os.path.join(BAD, "good_correctives.usda"), fixture("arm_anim.usda")
@@ -137,7 +140,7 @@ def test_chunked_eval_allocates_its_chunk_only(cli, tmp_path):
     tracemalloc.start()
     try:
         code, _, err = cli("eval", ASSET, CORRECTIVES, "--anim", ANIM, "-o", out, "--frames", f"1:{tol.MAX_FRAMES}",
-                           "--chunk-size", "100", "--chunk", "5000", "-q")
+                           "--chunk-size", "100", "--chunk", "5000", "--hold", "-q")
         peak = tracemalloc.get_traced_memory()[1]
     finally:
         tracemalloc.stop()

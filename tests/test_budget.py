@@ -5,7 +5,7 @@ sculpted) in its three variants: LBS and DQS are affine per vertex, so the linea
 start meets tolerance after 1 detection + 3 Jacobian + 1 check calls; LBS followed by
 the twist-and-bulge deformer is non-linear but uncoupled, and the Broyden refresh of the
 per-vertex Jacobian finishes it in a handful of calls where Powell alone spent ~70. LBS
-followed by Delta Mush couples vertices: the coupled inverse (``psdbake.coupled``) on the
+followed by Delta Mush couples vertices: the coupled inverse (``psdbake.solver.coupled``) on the
 same coarse rig, where LBS folds the elbow.
 """
 
@@ -16,8 +16,8 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from benchmarks import rigs
-from psdbake import coupled, powell
-from psdbake.inverse import invert_example, invert_example_with
+from psdbake.solver import coupled, powell
+from psdbake.solver.inverse import invert_example, invert_example_with
 
 #: Calls per example: exact for the affine skinning methods, a ceiling for the non-linear chain.
 BUDGET = {"lbs": 5, "dqs": 5}
@@ -55,6 +55,7 @@ def test_affine_skinning_takes_exactly_five_calls(bench, variant):
         assert res.qn_steps == 0 and res.cycles == 0
 
 
+@pytest.mark.slow
 def test_nonlinear_uncoupled_chain_within_twelve_calls(bench):
     rig = bench["lbs+bulge"]
     calls = []
@@ -155,7 +156,7 @@ def test_coupled_chain_on_a_coarse_folded_rig_within_forty_calls(bench, time):
 
 
 def _adjacency(rig):
-    from psdbake.smoothbasis import edge_adjacency
+    from psdbake.solver.smoothbasis import edge_adjacency
     from psdbake.usd.meshrest import rest_mesh
 
     return edge_adjacency(rest_mesh(rig.scene().stage, rigs.MESH)[1])

@@ -1,4 +1,4 @@
-"""Client-safe channels (psdbake/channels.py): written weights in [0, 1], names of at most 63
+"""Client-safe channels (psdbake/model/channels.py): written weights in [0, 1], names of at most 63
 bytes, and the same shape as the unclamped design."""
 
 from __future__ import annotations
@@ -11,10 +11,10 @@ from conftest import ROOT, bake, diagonal, fixture, generate, points, stage_of
 from scipy.spatial.transform import Rotation
 
 from psdbake import api
-from psdbake.channels import MAX_NAME_BYTES, short_name, weight_range
-from psdbake.rbf_model import MIN_DEGREE
+from psdbake.model.channels import MAX_NAME_BYTES, short_name, weight_range
+from psdbake.model.rbf import MIN_DEGREE
+from psdbake.model.weights import group_weights
 from psdbake.settings import FitSettings
-from psdbake.weights import group_weights
 
 ASSET, EXAMPLES = fixture("bad", "good_asset.usda"), fixture("bad", "good_examples.usda")
 ANIM = fixture("arm_anim.usda")
@@ -35,6 +35,7 @@ def _random_rotations(n: int, seed: int) -> Rotation:
     ("multiquadric", None, "rotationVector"), ("inverse_quadratic", 1, "rotationVector"),
     ("inverse_multiquadric", 1, "rotationVector"), ("linear", None, "rotationVector"),
 ])
+@pytest.mark.slow
 def test_weight_bounds_hold_over_every_pose(kernel, degree, space):
     """weight_range bounds each corrective's weight over the whole rotation group: no sampled
     pose (20,000 uniform rotations per driver and turns of nearly pi) leaves it. The scales
@@ -59,6 +60,7 @@ def test_weight_bounds_hold_over_every_pose(kernel, degree, space):
     assert np.all(lo >= 1000 * np.minimum(b.min(axis=0), -1e-3))
 
 
+@pytest.mark.slow
 def test_scales_keep_sampled_poses_in_range_and_examples_well_above_zero(tmp_path):
     """The channel scales (channels.channel_scales): over 20,000 other sampled poses per driver
     (another seed than the fit's) every channel weight stays within [0, 1], and at each
@@ -69,8 +71,8 @@ def test_scales_keep_sampled_poses_in_range_and_examples_well_above_zero(tmp_pat
     asset, examples = fixture("humanoid", "humanoid.usda"), fixture("humanoid", "humanoid_examples.usda")
     result = api.fit(asset, [examples])
     groups = [(m.group, m.driver_data) for m in result.meshes]
-    from psdbake.channels import channel_weights
-    from psdbake.weights import sampled_ranges
+    from psdbake.model.channels import channel_weights
+    from psdbake.model.weights import sampled_ranges
 
     joints = result.meshes[0].joints
     poses = np.array([e.pose for m in result.meshes for e in m.examples])
@@ -87,7 +89,8 @@ def test_scales_keep_sampled_poses_in_range_and_examples_well_above_zero(tmp_pat
     from psdbake.errors import PsdWarning
 
     for settings in (FitSettings(), FitSettings(group="main")):
-        corr = api.write_correctives(api.fit(asset, [examples], settings), str(tmp_path / "c.usda"))
+        corr = str(tmp_path / "c.usda")
+        api.write_correctives(api.fit(asset, [examples], settings), corr)
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always", PsdWarning)
             (anim,) = api.evaluate(asset, corr, fixture("humanoid", "humanoid_anim.usda")).animations
@@ -95,6 +98,7 @@ def test_scales_keep_sampled_poses_in_range_and_examples_well_above_zero(tmp_pat
         assert anim.weights[:, -anim.psd_channels:].max() <= 1.0
 
 
+@pytest.mark.slow
 def test_an_ill_conditioned_group_keeps_usable_channels(tmp_path):
     """32 examples on the 13k bench rig: the RBF system's condition number is ~4e7 and the
     interval bound of its weights ~3e6; far from its examples the RBF does reach +-170 (the
@@ -111,7 +115,8 @@ def test_an_ill_conditioned_group_keeps_usable_channels(tmp_path):
     _lo, hi = weight_range(m.driver_data, {m.group: m.driver_data})
     assert hi.max() > 1e4  # the loose bound this test is about
     assert np.abs(m.driver_data.channel_scales).max() < 1e3
-    corr = api.write_correctives(result, str(tmp_path / "c.usda"))
+    corr = str(tmp_path / "c.usda")
+    api.write_correctives(result, corr)
     cache = api.points_cache_layer(api.evaluate(rig.asset, corr, poses_layer))
     from pxr import Sdf
 
@@ -129,7 +134,8 @@ def test_a_pose_beyond_the_scales_is_written_as_is_and_warned(tmp_path, cli):
     from pxr import Sdf, Vt
 
     result = api.fit(ASSET, [EXAMPLES])
-    corr = api.write_correctives(result, str(tmp_path / "c.usda"))
+    corr = str(tmp_path / "c.usda")
+    api.write_correctives(result, corr)
     layer = Sdf.Layer.FindOrOpen(corr)
     attr = layer.GetAttributeAtPath(Sdf.Path(generate.MESH).AppendProperty("psd:main:channelScales"))
     attr.default = Vt.DoubleArray([v / 100.0 for v in attr.default])
@@ -185,7 +191,8 @@ def test_channels_bake_like_the_unclamped_design():
 
     folder = tempfile.mkdtemp()
     result = api.fit(ASSET, [EXAMPLES], FitSettings(group="main"))
-    v4 = api.write_correctives(result, os.path.join(folder, "v4.usda"))
+    v4 = os.path.join(folder, "v4.usda")
+    api.write_correctives(result, v4)
     v2 = os.path.join(ROOT, "tests", "data", "correctives_v2.usda")
     out = {}
     for name, corr in (("v2", v2), ("v4", v4)):

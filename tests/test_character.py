@@ -22,7 +22,8 @@ import pytest
 from conftest import ROOT, bake, diagonal, fixture, points, pose_only, run_cli, sculpt
 from pxr import Sdf, Usd
 
-ROUNDTRIP_RTOL = 1e-5
+from psdbake.tolerances import ROUNDTRIP_RTOL
+
 ASSET = fixture("character", "character.usda")
 ANIM = fixture("character", "character_anim.usda")
 
@@ -116,10 +117,15 @@ def test_refitting_a_group_leaves_the_others_untouched(fitted, run, tmp_path):
     assert before.GetAttributeAtPath(f"{character.BODY}.psd:neck:kernel").default == "gaussian"
 
 
-def test_fit_without_group_replaces_the_layer(fitted, run, tmp_path):
+def test_fit_without_group_replaces_the_layer_only_when_asked(fitted, run, tmp_path):
+    """The layer holds groups of --group fits: a plain fit would drop them, so it is refused
+    (exit 6, naming them, the file unchanged) until --force says to replace the layer."""
     out = tmp_path / "correctives.usda"
     out.write_bytes(fitted.read_bytes())
-    assert run("fit", ASSET, *examples_of("neck"), "-o", out, "-q")[0] == 0
+    code, _, err = run("fit", ASSET, *examples_of("neck"), "-o", out, "-q")
+    assert code == 6 and "would drop: l_elbow (fit --group of" in err and "--force" in err, err
+    assert out.read_bytes() == fitted.read_bytes()
+    assert run("fit", ASSET, *examples_of("neck"), "-o", out, "-q", "--force")[0] == 0
     stage = Usd.Stage.Open(str(out))
     groups = stage.GetPrimAtPath(character.BODY).GetAttribute("psd:groups").Get()
     assert list(groups) == ["Neck"]  # the neck examples move one joint: one local group, the others dropped
@@ -136,15 +142,18 @@ def test_mesh_restricted_group_fit_keeps_the_group_on_other_meshes(fitted, run, 
     assert stage.GetPrimAtPath(character.BODY).GetAttribute("psd:l_elbow:kernel").Get() == "gaussian"
 
 
-def test_overlapping_groups_are_reported(fitted, run, tmp_path):
-    """A second group driven by the same joint is on at the first group's examples: warned."""
+def test_a_group_that_would_double_another_is_refused(fitted, run, tmp_path):
+    """A second group driven by the same joint would add its correction to the first's at every
+    pose of that joint: refused (exit 4) naming both, the layer unchanged."""
     out = tmp_path / "correctives.usda"
     out.write_bytes(fitted.read_bytes())
     code, _, err = run("fit", ASSET, *examples_of("r_elbow"), "--group", "r_elbow_again", "-o", out)
-    assert code == 0
-    assert "group 'r_elbow' moves points" in err and "'r_elbow_again'" in err
+    assert code == 4, err
+    assert "group 'r_elbow_again'" in err and "double the correction of group 'r_elbow'" in err
+    assert out.read_bytes() == fitted.read_bytes()
 
 
+@pytest.mark.slow
 def test_concurrent_group_fits_all_land(tmp_path):
     """Two processes updating one CORRECTIVES layer: the update is locked, both groups land."""
     out = tmp_path / "correctives.usda"
@@ -180,7 +189,8 @@ def test_group_update_of_a_file_that_is_not_correctives_is_refused(run, tmp_path
         out.write_bytes(fh.read())
     before = out.read_bytes()
     rc, _, err = run("fit", ASSET, *examples_of("neck"), "--group", "neck", "-o", out)
-    assert rc == 3 and "not a CORRECTIVES layer" in err and str(out) in err
+    assert rc == 6 and "is a USD animation layer" in err and "not a psdbake CORRECTIVES layer" in err, err
+    assert str(out) in err and "--force" in err
     assert out.read_bytes() == before
 
 
@@ -197,8 +207,8 @@ def test_psd_v1_layers_still_evaluate(run, tmp_path):
 
     w1 = api.evaluate(asset, v1, anim).animations[0]
     w2 = api.evaluate(asset, str(v2), anim).animations[0]
-    from psdbake.channels import column_weights
-    from psdbake.groups import read_correctives
+    from psdbake.fitting.groups import read_correctives
+    from psdbake.model.channels import column_weights
 
     ((data, _),) = next(iter(read_correctives(asset, str(v2)).values())).values()
     assert w1.channels == tuple(c.replace("psd_main_", "psd_") for c in data.shapes)

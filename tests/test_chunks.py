@@ -6,6 +6,7 @@ from __future__ import annotations
 import filecmp
 import json
 import os
+import shutil
 import subprocess
 import sys
 
@@ -14,8 +15,8 @@ import pytest
 from conftest import ROOT, bake, fixture, generate, points, run_cli, stage_of
 from pxr import Sdf, Usd, UsdValidation
 
-from psdbake import rbf
 from psdbake.farm import plan as chunks
+from psdbake.fitting import rbf_fit as rbf
 
 ASSET, EXAMPLES = fixture("arm_lbs.usda"), fixture("arm_lbs_examples.usda")
 FRAMES, SIZE = 1000, 100
@@ -46,6 +47,7 @@ def _bake_all(layers) -> np.ndarray:
     return np.stack([points(stage, generate.MESH, float(t), np.float32) for t in range(1, FRAMES + 1)])
 
 
+@pytest.mark.slow
 def test_ten_chunks_bake_exactly_like_one_eval(shot):
     names = sorted(os.listdir(shot["manifest"].parent))
     weights_chunks = [n for n in names if n.startswith("weights.f")]
@@ -80,13 +82,18 @@ def test_points_cache_manifest_gives_the_single_cache(shot):
             assert np.array_equal(np.array(a.Get(t)), np.array(b.Get(t))), (name, t)
 
 
+@pytest.mark.slow
 def test_farm_tasks_write_the_same_bytes(shot, tmp_path):
     """Chunks by their own processes (at once, racing on the manifests) = the one-run files.
     Three of the ten tasks (first, middle, last): each process spends ~1 s importing USD."""
     env = {**os.environ, "PYTHONPATH": ROOT}
+    # the inputs where the shot has them relative to its outputs: each layer records its inputs' relative paths
+    corr, anim = shutil.copy(shot["corr"], tmp_path), shutil.copy(shot["anim"], tmp_path)
+    tmp_path = tmp_path / "farm"
+    tmp_path.mkdir()
     out, cache = tmp_path / "weights.usda", tmp_path / "cache.usda"
     procs = [
-        subprocess.Popen([sys.executable, "-m", "psdbake", "eval", ASSET, str(shot["corr"]), "--anim", str(shot["anim"]),
+        subprocess.Popen([sys.executable, "-m", "psdbake", "eval", ASSET, str(corr), "--anim", str(anim),
                           "-o", str(out), "--points-cache", str(cache), "--frames", f"1:{FRAMES}",
                           "--chunk-size", str(SIZE), "--chunk", str(k), "-q"], env=env, stderr=subprocess.PIPE)
         for k in (1, 6, 10)
@@ -138,7 +145,7 @@ def test_manifests_validate(shot, run, tmp_path):
         assert errors(Sdf.Layer.FindOrOpen(str(folder / name))) == [], name
         assert errors(Usd.Stage.Open(str(folder / name))) == [], name
     view = tmp_path / "shot.usda"  # stacked over the asset, the manifest adds no error to the asset's own
-    assert run("stack", view, ASSET, shot["corr"], shot["anim"], shot["manifest"])[0] == 0
+    assert run("stack", ASSET, shot["corr"], shot["anim"], shot["manifest"], "-o", view)[0] == 0
     assert set(errors(Usd.Stage.Open(str(view)))) <= set(errors(Usd.Stage.Open(ASSET)))
 
 

@@ -52,11 +52,13 @@ def test_fit_report_and_summary(run, tmp_path):
     assert data["meshes"][0]["drivers"] == ["Shoulder/Elbow", "Shoulder/Elbow/Wrist"]
 
 
+@pytest.mark.slow
 def test_outputs_are_byte_identical_across_runs(run, tmp_path):
     for ext in ("usda", "usdc"):
         outs = []
-        for k in range(2):
-            corr, weights = tmp_path / f"c{k}.{ext}", tmp_path / f"w{k}.{ext}"
+        for k in range(2):  # the same command line in two folders (the output records its command)
+            (tmp_path / f"run{k}").mkdir(exist_ok=True)
+            corr, weights = tmp_path / f"run{k}" / f"c.{ext}", tmp_path / f"run{k}" / f"w.{ext}"
             assert run("fit", ASSET, EXAMPLES, "-o", corr, "-q")[0] == 0
             assert run("eval", ASSET, corr, "--anim", ANIM, "-o", weights, "-q")[0] == 0
             outs.append((corr.read_bytes(), weights.read_bytes()))
@@ -138,6 +140,7 @@ def test_deformer_chain_in_pose_fit_eval(run, tmp_path):
         assert ex["missed"] == 0 and ex["max_residual_rel"] <= 1e-5
 
 
+@pytest.mark.slow
 def test_console_script_and_module_entry_points():
     exe = os.path.join(os.path.dirname(sys.executable), "psdbake")
     for cmd in ([exe, "--help"], [sys.executable, "-m", "psdbake", "--version"]):
@@ -157,12 +160,13 @@ def test_inputs_are_never_modified(run, tmp_path):
     assert {p: Path(p).read_bytes() for p in before} == before
 
 
-
+@pytest.mark.slow
 def test_jobs_do_not_change_the_output(run, tmp_path):
     """Examples solved in worker processes give byte-identical CORRECTIVES."""
     outs = []
     for jobs in ("1", "2"):
-        out = tmp_path / f"c{jobs}.usdc"
+        (tmp_path / jobs).mkdir()
+        out = tmp_path / jobs / "c.usdc"
         code, _, err = run("fit", ASSET, EXAMPLES, fixture("arm_lbs_examples.usda"), "-o", out, "-j", jobs, "-q")
         assert code == 4 and "same pose" in err  # the same file twice: duplicate poses, named
         code, _, err = run("fit", ASSET, EXAMPLES, "-o", out, "-j", jobs, "-q")
@@ -278,6 +282,7 @@ def _assert_bars(text: str, bars: dict[str, int], lines: tuple[str, ...]) -> Non
     assert text.rfind(HIDE_CURSOR) < text.rfind(SHOW_CURSOR), f"the cursor is left hidden: {text[-200:]!r}"
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("command", ["eval", "eval --points-cache", "eval --chunk-size", "fit (warning)"])
 def test_progress_bars_on_a_terminal(command, run, tmp_path):
     corr = tmp_path / "c.usda"

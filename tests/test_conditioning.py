@@ -14,9 +14,12 @@ import warnings
 import numpy as np
 import pytest
 
-from psdbake import rbf
 from psdbake import tolerances as tol
 from psdbake.errors import FitError, PsdWarning
+from psdbake.fitting import rbf_fit as rbf
+
+pytestmark = pytest.mark.slow  # make test-fast leaves this module out (make test runs it)
+
 
 #: Exactness at the examples: b_s(c_i) = [i == s] within this (float32 weights: see tolerances).
 ATOL = tol.CARDINAL_ATOL

@@ -14,11 +14,12 @@ import pytest
 from conftest import fixture, generate
 from pxr import Usd, UsdGeom, Vt
 
-from psdbake import powell, tolerances
+from psdbake import tolerances
 from psdbake.arrays import row_norms
 from psdbake.errors import InputError
-from psdbake.inverse import _conjugate_start
-from psdbake.quaternions import Rotations, _atan2, _canonical
+from psdbake.model.quaternions import Rotations, _atan2, _canonical
+from psdbake.solver import powell
+from psdbake.solver.inverse import _conjugate_start
 from psdbake.usd.blackbox import SkinningBlackBox
 from psdbake.usd.inplace import numbers as _numbers
 from psdbake.usd.normalbox import read_mesh_shading

@@ -251,6 +251,7 @@ def test_deformer_output_or_exit(case, command, cli, tmp_path):
             inputs=before)
 
 
+@pytest.mark.slow
 def test_deformer_exit_in_a_worker_process(cli, tmp_path):
     """--jobs 2: the example solves run in worker processes; sys.exit there is the same exit 5."""
     out = tmp_path / "corr.usda"

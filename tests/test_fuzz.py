@@ -9,6 +9,9 @@ import pytest
 
 from tests import fuzz
 
+pytestmark = pytest.mark.slow  # make test-fast leaves this module out (make test runs it)
+
+
 # cases per mode: together under a minute on two cores (a usdc case costs most: psdbake
 # reads every crate input in a probe process of its own)
 BOUNDED = {"text": 150, "sdf": 500, "usdc": 80}

@@ -35,7 +35,7 @@ COMMANDS = {
                              "--points-cache", "{out}"], ["asset", "correctives", "anim"]),
     "eval --chunk-size -o": (["eval", "{asset}", "{correctives}", "--anim", "{anim}", "-o", "{out}",
                               "--chunk-size", "10", "--frames", "1:20"], ["asset", "correctives", "anim"]),
-    "stack OUT": (["stack", "{out}", "{asset}", "{correctives}", "{anim}"], ["asset", "correctives", "anim"]),
+    "stack OUT": (["stack", "{asset}", "{correctives}", "{anim}", "-o", "{out}"], ["asset", "correctives", "anim"]),
 }
 
 

@@ -21,6 +21,9 @@ from conftest import fixture, refused
 from psdbake.errors import InputError
 from psdbake.usd import integrity
 
+pytestmark = pytest.mark.slow  # make test-fast leaves this module out (make test runs it)
+
+
 BAD = fixture("bad")
 PSDBAKE = os.path.join(os.path.dirname(sys.executable), "psdbake")
 EXIT_INPUT = 3

@@ -11,7 +11,7 @@ from conftest import CESIUM, CESIUM_EXAMPLES, ROOT, fixture, generate, sculpt
 
 from benchmarks import references
 from psdbake.deformers import load_deformers
-from psdbake.inverse import invert_example
+from psdbake.solver.inverse import invert_example
 from psdbake.usd.blackbox import SkinningBlackBox
 from psdbake.usd.read import Scene
 

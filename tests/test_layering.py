@@ -1,7 +1,9 @@
 """The package's layering, checked from its source: who may import what.
 
 - Only ``psdbake/usd/`` imports ``pxr``: USD stays at the edge, the numerics are testable
-  without it.
+  without it. And not only directly: importing the pure modules (``PURE``: the psd: model,
+  settings, results, farm planning, the OBJ format) in a fresh interpreter loads no ``pxr``
+  at all, so a third party can evaluate the weights formula without usd-core.
 - No import cycles between psdbake's modules, counting imports inside functions too (a cycle
   held together by a function-level import is still a cycle); only ``if TYPE_CHECKING:``
   blocks are left out, since they never run.
@@ -14,6 +16,7 @@ from __future__ import annotations
 import ast
 import os
 
+import pytest
 from conftest import ROOT
 
 PACKAGE = os.path.join(ROOT, "psdbake")
@@ -80,6 +83,77 @@ def test_only_psdbake_usd_imports_pxr():
     assert not offenders, "\n".join(offenders)
 
 
+#: Modules (and packages, every module under them) that must not load pxr, even transitively.
+PURE = ("psdbake.model", "psdbake.settings", "psdbake.results", "psdbake.errors", "psdbake.tolerances",
+        "psdbake.names", "psdbake.lookup", "psdbake.shot.frames", "psdbake.farm.plan", "psdbake.farm.jobs",
+        "psdbake.sculpting.obj", "psdbake.fitting.regions", "psdbake.solver.powell", "psdbake.solver.inverse",
+        "psdbake.export.blender.compiler", "psdbake.outputs", "psdbake.atomic")
+
+
+def test_the_pure_modules_load_no_pxr_transitively():
+    import subprocess
+    import sys
+
+    wanted = sorted(m for m in MODULES if any(m == p or m.startswith(p + ".") for p in PURE))
+    code = ("import importlib, sys\n"
+            f"for m in {wanted!r}:\n"
+            "    importlib.import_module(m)\n"
+            "    assert 'pxr' not in sys.modules, m\n")
+    done = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert len(wanted) >= 20  # the model and its neighbours are all here
+
+
+def test_registries_are_keyed_by_their_names():
+    """A registry is a dictionary keyed by the literal names the CLI offers (names.py), so
+    reordering one table can never rebind an entry to another name."""
+    from psdbake import names
+    from psdbake.model.posespace import POSE_SPACES
+    from psdbake.model.rbf import KERNELS
+    from psdbake.usd.write import FORMATS
+
+    assert tuple(POSE_SPACES) == names.POSE_SPACE_NAMES
+    assert tuple(KERNELS) == names.KERNEL_NAMES
+    assert tuple(FORMATS) == names.LAYER_FORMATS
+
+
+#: The layers, lowest first: a module imports only from its own layer or lower ones. The tree
+#: reads as the pipeline: read USD -> pose space -> black-box skinning -> inverse -> RBF -> write.
+LAYERS = (
+    ("base", ("errors", "names", "tolerances", "arrays", "lookup", "outputs", "atomic")),
+    ("model", ("model",)),
+    ("geometry", ("normals", "deformers")),
+    ("usd", ("usd",)),
+    ("solver", ("solver", "delta_mush")),
+    ("data", ("settings", "results")),
+    ("stages", ("fitting", "shot", "mirroring", "sculpting")),
+    ("clients", ("export",)),
+    ("api", ("api",)),
+    ("report", ("report",)),
+    ("farm", ("farm",)),
+    ("shell", ("console", "cli", "_entry", "__main__")),
+)
+#: The imports that point up, each for a reason (docs/contributing.md):
+UPWARD = {
+    ("psdbake.farm.job", "psdbake._entry"),  # a farm task is the psdbake command in a process of its own
+    ("psdbake.outputs", "psdbake.usd.provenance"),  # an existing layer's kind is read with USD, lazily
+    ("psdbake.usd.meshfaces", "psdbake.sculpting.obj.faces"),  # USD's faces read into the OBJ format's class
+}
+
+
+def _layer(module: str) -> int:
+    top = module.split(".")[1]
+    return next(i for i, (_, members) in enumerate(LAYERS) if top in members)
+
+
+def test_imports_point_down_the_layers():
+    """Every module (the public facade psdbake/__init__.py aside) imports from its own layer or
+    lower ones, but for the few ``UPWARD`` imports, each with its reason."""
+    up = {(m, t) for m, edges in GRAPH.items() if m != "psdbake" and "rig_script" not in m
+          for t, _ in edges if t in MODULES and t != "psdbake" and t != m and _layer(t) > _layer(m)}
+    assert up == UPWARD, f"imports pointing up the layers: {sorted(up - UPWARD)}; gone: {sorted(UPWARD - up)}"
+
+
 def test_the_cli_is_imported_by_no_library_module():
     offenders = [f"{MODULES[m]}:{line}" for m, edges in GRAPH.items() if m not in ENTRY_POINTS
                  for target, line in edges if target == "psdbake.cli"]
@@ -129,7 +203,7 @@ def test_no_import_cycles():
 def test_the_checks_see_the_package():
     """The checks above are only as good as the graph: it must hold the pipeline's modules and
     resolve relative imports to them (a parser regression would make every check pass)."""
-    assert {"psdbake.api", "psdbake.cli", "psdbake.usd.read", "psdbake.usd.blackbox", "psdbake.powell"} <= set(MODULES)
+    assert {"psdbake.api", "psdbake.cli", "psdbake.usd.read", "psdbake.usd.blackbox", "psdbake.solver.powell"} <= set(MODULES)
     assert "psdbake.api" in {t for t, _ in GRAPH["psdbake.cli"]}
     assert "psdbake.usd.read" in {t for t, _ in GRAPH["psdbake.api"]}
     assert any(t.startswith("pxr") for t, _ in GRAPH["psdbake.usd.read"])
@@ -149,6 +223,14 @@ def test_one_public_surface():
     assert eager == set(psdbake.__all__) - {"__version__"}
 
 
+def test_api_and_the_package_export_the_same_pipeline():
+    """``psdbake.api.__all__`` and the names psdbake re-exports from it are one list."""
+    import psdbake
+    import psdbake.api
+
+    assert set(psdbake.api.__all__) == set(psdbake._EXPORTS["api"])
+
+
 def test_no_public_name_is_also_a_submodule():
     """``psdbake.evaluate`` and ``psdbake.mirror`` once named both api functions and modules of
     the package: importing the module (api does, on first use) rebinds the package attribute,
@@ -160,6 +242,7 @@ def test_no_public_name_is_also_a_submodule():
     assert not submodules & set(psdbake.__all__)
 
 
+@pytest.mark.slow
 def test_the_public_functions_stay_functions_after_every_module_loads():
     """In a fresh interpreter: every public name, read after the whole package is imported,
     is what its defining module says (a function, not a module of the same name)."""

@@ -33,7 +33,7 @@ def _roles(path: str, tmp) -> dict[str, tuple[list, list]]:
         "eval --anim": (["eval", ASSET, CORRECTIVES, "--anim", path, "-o", w], [w]),
         "pose ASSET": (["pose", path, "--anim", POSES, "-o", e], [e]),
         "pose --anim": (["pose", ASSET, "--anim", path, "-o", e], [e]),
-        "stack LAYER": (["stack", s, ASSET, path], [s]),
+        "stack LAYER": (["stack", ASSET, path, "-o", s], [s]),
         "inspect": (["inspect", path], []),
         "compare ASSET": (["compare", path, EXAMPLES, "--anim", ANIM, "-o", tmp / "report"], [tmp / "report"]),
     }
@@ -43,6 +43,7 @@ ROLES = ["fit ASSET", "fit EXAMPLES", "eval CORRECTIVES", "eval --anim", "pose A
          "inspect", "compare ASSET"]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("where", ["given", "sublayer"])
 @pytest.mark.parametrize("role", ROLES)
 def test_fifo_never_blocks(role, where, tmp_path):
@@ -111,6 +112,7 @@ CRATES = {
 }
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("role", ["fit ASSET", "pose ASSET", "stack LAYER", "inspect"])
 @pytest.mark.parametrize("name", list(CRATES))
 def test_corrupt_crate_file(name, role, cli, tmp_path):

@@ -173,7 +173,6 @@ def test_rest_points_made_once_are_rounded_as_usdskel_takes_them():
     assert isinstance(made.vt(), Vt.Vec3fArray)
 
 
-
 @pytest.mark.parametrize("moving", ["/Arm/Geo", "/Arm/Skel"])
 def test_points_cache_follows_time_varying_transforms(moving, shot, tmp_path):
     """A static skel -> mesh transform is worked out once per mesh (the points cache's speed);

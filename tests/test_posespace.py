@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from pxr import Gf
 
-from psdbake import posespace
+from psdbake.model import posespace
 
 
 def _gf(m: Gf.Matrix4d) -> np.ndarray:
@@ -40,7 +40,7 @@ def test_stored_quaternions_give_the_same_coordinates():
     posed[:, :3, :3] = np.transpose(posed_r.as_matrix(), (0, 2, 1))
     posed[:, 3, :3] = rng.normal(size=(4, 3))
     a = posespace.pose_coordinates(bind, posed)
-    b = posespace.pose_coordinates_from_quaternions(bind_r.as_quat(), posed)
+    b = posespace.features(posespace.relative_from_quaternions(bind_r.as_quat(), posed))
     np.testing.assert_allclose(a, b, atol=1e-12)
 
 

@@ -7,8 +7,8 @@ import pytest
 from scipy.optimize import minimize
 from scipy.spatial.transform import Rotation
 
-from psdbake import powell
 from psdbake import tolerances as tol
+from psdbake.solver import powell
 
 
 def _affine_problems(m: int, seed: int):
@@ -124,7 +124,7 @@ def _blocks(m: int, seed: int) -> np.ndarray:
     return np.concatenate([np.einsum("kab,kb,kcb->kac", u, s, v), rng.normal(size=(m, 3, 3))])
 
 
-def test_inverse3_matches_numpy_inv_on_the_blocks_well_conditioned_accepts():
+def test_conditioned_inverses_match_numpy_inv_on_the_blocks_they_accept():
     """The adjugate over the determinant against LU (np.linalg.inv). Their difference is rounding:
     the cofactors carry ~eps |J|^2 and the determinant ~eps |J|^3 of absolute error, so relative to
     J^-1 ~eps |J|_F^3 / |det J|, which the rcond test bounds by 1/rcond (measured: at most 0.46 of
@@ -134,7 +134,7 @@ def test_inverse3_matches_numpy_inv_on_the_blocks_well_conditioned_accepts():
     ok = powell.well_conditioned(jac, 1e-6)
     assert 0 < ok.sum() < len(jac)  # both kinds present
     jac = jac[ok]
-    ours, lu = powell.inverse3(jac), np.linalg.inv(jac)
+    ours, lu = powell.conditioned_inverses(jac)[1], np.linalg.inv(jac)
     ratio = np.einsum("kab,kab->k", jac, jac) ** 1.5 / np.abs(np.linalg.det(jac))
     assert ratio.max() < 1e6 * (1 + 1e-9)
     rel = np.abs(ours - lu).max(axis=(1, 2)) / np.abs(lu).max(axis=(1, 2))
@@ -158,20 +158,20 @@ def test_det3_and_the_rcond_decision_match_numpy():
 
 def test_singular_and_nonfinite_blocks_are_refused_not_raised():
     """A zero-scale joint (a zero column), rank-one blocks, NaN and inf: never well conditioned,
-    and inverse3 returns non-finite values for them instead of raising as np.linalg.inv does."""
+    and refused without raising, as np.linalg.inv would."""
     jac = np.stack([np.diag([1.0, 1.0, 0.0]), np.outer([1.0, 2.0, 3.0], [0.5, -1.0, 2.0]), np.zeros((3, 3)),
                     np.full((3, 3), np.nan), np.diag([np.inf, 1.0, 1.0]), np.diag([1e200, 1e200, 1e200]),
                     np.eye(3)])
     np.testing.assert_array_equal(powell.well_conditioned(jac, 1e-6), [False] * 6 + [True])
     with np.errstate(all="raise"):
-        inv = powell.inverse3(jac)
-    assert not np.isfinite(inv[:5]).all(axis=(1, 2)).any()
-    np.testing.assert_array_equal(inv[-1], np.eye(3))
+        ok, inv = powell.conditioned_inverses(jac, 1e-6)
+    np.testing.assert_array_equal(ok, [False] * 6 + [True])
+    np.testing.assert_array_equal(inv, [np.eye(3)])
 
 
-def test_conditioned_inverses_are_well_conditioned_and_inverse3_at_once():
-    """One set of cofactors for both answers: the same mask and the same bits as the two calls,
-    on blocks spread over conditioning from a rotation to singular, with non-finite ones."""
+def test_conditioned_inverses_are_well_conditioned_and_inverses_at_once():
+    """One set of cofactors for both answers: the same mask as well_conditioned and inverses to
+    rounding, on blocks spread over conditioning from a rotation to singular, with non-finite ones."""
     rng = np.random.default_rng(7)
     jac = rng.normal(size=(5000, 3, 3)) * np.logspace(0, -14, 5000)[:, None, None] ** rng.integers(0, 2, (5000, 1, 1))
     jac[:50, 2] = jac[:50, 0]  # singular
@@ -180,4 +180,5 @@ def test_conditioned_inverses_are_well_conditioned_and_inverse3_at_once():
     ok, inv = powell.conditioned_inverses(jac, tol.JACOBIAN_RCOND)
     np.testing.assert_array_equal(ok, powell.well_conditioned(jac, tol.JACOBIAN_RCOND))
     assert 0 < ok.sum() < len(jac) and not ok[:70].any()
-    np.testing.assert_array_equal(inv, powell.inverse3(jac[ok]))
+    np.testing.assert_allclose(np.einsum("kab,kbc->kac", jac[ok], inv), np.broadcast_to(np.eye(3), inv.shape),
+                               atol=1e-6)

@@ -1,4 +1,4 @@
-"""``psdbake.quaternions`` and ``rbf_model.distances`` against SciPy, to the last bits.
+"""``psdbake.model.quaternions`` and ``rbf_model.distances`` against SciPy, to the last bits.
 
 eval computes pose coordinates and RBF distances without SciPy (its import cost ~0.3 s of
 every start-up, issue 16), and its outputs must keep their bytes: so each operation is held
@@ -15,9 +15,9 @@ import pytest
 from scipy.spatial.distance import cdist
 from scipy.spatial.transform import Rotation
 
-from psdbake import posespace
-from psdbake.quaternions import Rotations
-from psdbake.rbf_model import distances
+from psdbake.model import posespace
+from psdbake.model.quaternions import Rotations
+from psdbake.model.rbf import distances
 
 #: SciPy is not pinned, and a later release may reorder a few floating-point operations: the
 #: comparison allows 4 ulps of values of order one (measured with SciPy 1.17: 0, every bit the
@@ -114,7 +114,7 @@ def test_pose_coordinates_keep_their_bits(space):
     local[: n // 10, :3, :3] *= -1.0  # mirrored joints
     local[:, 3, 3] = 1.0
     axis = [0.3, 1.0, -0.2] if space == "swingTwist" else None
-    ours = posespace.pose_coordinates_from_quaternions(bind, local, space, axis)
+    ours = posespace.features(posespace.relative_from_quaternions(bind, local), space, axis)
     _same_bits(ours, _reference_features(bind, local, space, axis))
     _same_bits(posespace.features(Rotation.from_quat(bind), space, axis),  # SciPy rotations still accepted
                posespace.features(Rotations.from_quat(bind), space, axis))

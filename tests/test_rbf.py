@@ -6,8 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from psdbake import rbf
 from psdbake.errors import FitError
+from psdbake.fitting import rbf_fit as rbf
 
 CENTERS = np.array([[0.0, 0.0, 0.0], [1.5, 0.0, 0.0], [0.0, 1.2, 0.3], [0.7, 0.7, -0.4]])
 LABELS = ["bind", "a@1", "b@2", "c@3"]

@@ -39,6 +39,7 @@ class _Links(HTMLParser):
         self.links += [v for k, v in attrs if k in ("src", "href") and v]
 
 
+@pytest.mark.slow
 def test_compare_writes_the_report(arm_report):
     folder, code, out, err = arm_report
     assert code == 0, err
@@ -110,6 +111,7 @@ def test_stats_have_one_row_per_frame(arm_report):
     assert stats["command"] == "compare" and stats["vertex_turn"]
 
 
+@pytest.mark.slow
 def test_rerun_replaces_its_own_files_and_drops_stale_views(run, tmp_path):
     asset, examples, anim = _single_joint_rig(tmp_path)
     out = tmp_path / "report"
@@ -122,6 +124,7 @@ def test_rerun_replaces_its_own_files_and_drops_stale_views(run, tmp_path):
     assert (out / "index.html").read_text(encoding="utf-8").startswith("<!DOCTYPE html>")
 
 
+@pytest.mark.slow
 def test_correction_angle_data_single_joint(run, tmp_path):
     """The figure's data on a quad bound to one joint: the inverse correction turns exactly by
     the joint's angle, the forward one not at all."""
@@ -183,7 +186,7 @@ def test_helpers():
     assert [report.frame_token(t) for t in (12.0, 12.5, -3.0)] == ["12", "12.5", "-3"]
 
 
-
+@pytest.mark.slow
 def test_failed_rerun_leaves_the_previous_report_whole(run, tmp_path, monkeypatch):
     """The folder's files are one commit (atomic.Transaction): a run that fails after some
     files are drawn changes none of the previous report's files and leaves no temporaries."""

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from conftest import CESIUM, CESIUM_EXAMPLES, bake, diagonal, fixture, generate, points, pose_only, sculpt
 
-ROUNDTRIP_RTOL = 1e-5
+from psdbake.tolerances import ROUNDTRIP_RTOL
 
 RIGS = {
     "lbs_4_influences_transforms_geombind": ("arm_lbs.usda", "arm_lbs_examples.usda", generate.MESH),

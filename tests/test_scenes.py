@@ -205,7 +205,7 @@ def test_writing_over_an_instance_is_refused(arm, run, tmp_path):
     _one_line_error(*run("fit", shot, examples, "-o", out)[::2], *needles)
     corr, corrected = tmp_path / "corr.usda", str(tmp_path / "arm_corrected.usda")
     assert run("fit", arm.asset, arm.examples, "-o", corr, "-q")[0] == 0
-    assert run("stack", corrected, arm.asset, corr)[0] == 0
+    assert run("stack", arm.asset, corr, "-o", corrected)[0] == 0
     shot = scenes.instanced_shot(str(tmp_path), corrected, name="corrected_shot.usda")
     cache = tmp_path / "cache.usda"
     code, _, err = run("eval", shot, corr, "--anim", shot, "-o", out, "--points-cache", cache)
@@ -222,7 +222,7 @@ def test_an_animation_inside_an_instance_is_refused(arm, run, tmp_path):
     proxy (or, worse, at the prototype's path): refused, naming the instance's animation."""
     corr, posed = str(tmp_path / "corr.usda"), str(tmp_path / "posed_arm.usda")
     assert run("fit", arm.asset, arm.examples, "-o", corr, "-q")[0] == 0
-    assert run("stack", posed, arm.asset, corr, arm.anim)[0] == 0  # the animation comes with the asset
+    assert run("stack", arm.asset, corr, arm.anim, "-o", posed)[0] == 0  # the animation comes with the asset
     shot = scenes.instanced_shot(str(tmp_path), posed, animate=False)
     out = tmp_path / "weights.usda"
     code, _, err = run("eval", shot, tmp_path / "corr.usda", "--anim", shot, "-o", out)
@@ -237,7 +237,7 @@ def test_instanced_characters_show_their_corrected_shape(arm, run, tmp_path):
     SkelAnimation. Instancing is kept; each instance shows the sculpt of the pose it plays."""
     corr, corrected = str(tmp_path / "corr.usda"), str(tmp_path / "arm_corrected.usda")
     assert run("fit", arm.asset, arm.examples, "-o", corr, "-q")[0] == 0
-    assert run("stack", corrected, arm.asset, corr)[0] == 0
+    assert run("stack", arm.asset, corr, "-o", corrected)[0] == 0
     shot = scenes.instanced_shot(str(tmp_path), corrected)
     weights = str(tmp_path / "weights.usda")
     code, _, err = run("eval", shot, corr, "--anim", shot, "-o", weights, "-q")
@@ -286,7 +286,7 @@ def test_an_anim_at_30_fps_keeps_its_time_codes(run, tmp_path):
     times = list(Sdf.Layer.FindOrOpen(str(weights)).ListTimeSamplesForPath(
         Sdf.Path(generate.ANIM).AppendProperty("blendShapeWeights")))
     assert times == [1.0, 2.0, 3.0]
-    assert run("stack", shot, asset, corr, anim, weights)[0] == 0
+    assert run("stack", asset, corr, anim, weights, "-o", shot)[0] == 0
     stage = bake(Usd.Stage.Open(str(shot)), 1.0, 3.0)  # as a viewer opens it: its own rate
     for t in (1.0, 2.0, 3.0):
         target = sculpt(examples, generate.MESH, t)

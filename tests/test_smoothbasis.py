@@ -1,4 +1,4 @@
-"""The smooth fields the coupled inverse starts from (``psdbake.smoothbasis``): the low end of a
+"""The smooth fields the coupled inverse starts from (``psdbake.solver.smoothbasis``): the low end of a
 sculpted region's graph-Laplacian spectrum, from the mesh's edges only."""
 
 from __future__ import annotations
@@ -10,9 +10,9 @@ import pytest
 import scipy.sparse as sp
 from conftest import ROOT
 
-from psdbake import smoothbasis
 from psdbake.normals import Topology
-from psdbake.smoothbasis import edge_adjacency, smooth_basis
+from psdbake.solver import smoothbasis
+from psdbake.solver.smoothbasis import edge_adjacency, smooth_basis
 
 sys.path.insert(0, ROOT)
 from benchmarks import rigs
@@ -36,6 +36,7 @@ def test_edge_adjacency_of_a_quad_tube():
     assert degree[:8].tolist() == [3] * 8 and degree[8:16].tolist() == [4] * 8
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("rings", [20, 70])  # 320 vertices: dense path; 1,120: ARPACK's
 def test_the_basis_is_the_regions_smoothest_orthonormal_fields(rings):
     adj = _tube_adjacency(rings, 16)

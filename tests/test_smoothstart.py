@@ -1,4 +1,4 @@
-"""The smooth start's model of a coupled chain (``psdbake.smoothstart``): the chain's smoothing
+"""The smooth start's model of a coupled chain (``psdbake.solver.smoothstart``): the chain's smoothing
 measured by one probe, the model's columns and Gram matrix, and Levenberg-Marquardt over the
 span, on synthetic chains whose Jacobian is known."""
 
@@ -11,10 +11,10 @@ import pytest
 import scipy.sparse as sp
 from conftest import ROOT
 
-from psdbake import coupled, smoothstart
-from psdbake.inverse import Counted
 from psdbake.normals import Topology
-from psdbake.smoothbasis import edge_adjacency, smooth_bases
+from psdbake.solver import coupled, smoothstart
+from psdbake.solver.inverse import Counted
+from psdbake.solver.smoothbasis import edge_adjacency, smooth_bases
 
 sys.path.insert(0, ROOT)
 from benchmarks import rigs

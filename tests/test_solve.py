@@ -1,4 +1,4 @@
-"""Per-fit reading (``psdbake.solve``, ``api.fit``): each input read once, nothing kept after.
+"""Per-fit reading (``psdbake.solver.solve``, ``api.fit``): each input read once, nothing kept after.
 
 A mesh's rest points and shading are read once per fit, not once per example (at 1M points
 the topology behind the shading took 0.13 s an example), and the fit's result keeps the input
@@ -14,7 +14,8 @@ import numpy as np
 from conftest import fixture
 from pxr import Sdf
 
-from psdbake import api, solve
+from psdbake import api
+from psdbake.solver import solve
 
 ASSET, EXAMPLES = fixture("arm_lbs.usda"), fixture("arm_lbs_examples.usda")
 
@@ -49,7 +50,8 @@ def test_the_result_keeps_the_inputs_open_until_it_is_dropped(tmp_path):
     result = api.fit(asset, [examples])
     assert {asset, examples} <= {layer.realPath for layer in result.input_layers}
     assert Sdf.Layer.Find(asset) is not None  # write_correctives finds it open: no second parse
-    out = api.write_correctives(result, str(tmp_path / "corr.usda"))
+    out = str(tmp_path / "corr.usda")
+    api.write_correctives(result, out)
     del result
     gc.collect()
     assert Sdf.Layer.Find(asset) is None and Sdf.Layer.Find(examples) is None

@@ -17,8 +17,10 @@ import click
 import pytest
 from conftest import ROOT, fixture
 
-from psdbake import names, posespace, rbf_model
+from psdbake import names
 from psdbake.cli import cli
+from psdbake.model import posespace
+from psdbake.model import rbf as rbf_model
 from psdbake.usd import write as usdwrite
 
 HEAVY = ("numpy", "scipy", "pxr")
@@ -68,8 +70,9 @@ def test_importing_the_cli_loads_no_numerics_and_no_usd():
     assert proc.stdout.strip() == "[]"
 
 
+@pytest.mark.slow
 def test_eval_loads_no_scipy(run, tmp_path):
-    """eval evaluates the stored formula with numpy (pose space: ``psdbake.quaternions``,
+    """eval evaluates the stored formula with numpy (pose space: ``psdbake.model.quaternions``,
     distances: ``rbf_model.distances``); SciPy's interpolation and spatial modules are the fit's."""
     corr = tmp_path / "correctives.usda"
     assert run("fit", fixture("arm_lbs.usda"), fixture("arm_lbs_examples.usda"), "-o", corr, "-q")[0] == 0

@@ -20,9 +20,10 @@ import importlib
 from typing import TYPE_CHECKING, Any
 
 _EXPORTS = {
-    "tasks": ("Batch", "BatchError", "BatchResult", "BatchUsageError", "JobResult", "OnDone", "Task"),
+    "tasks": ("Batch", "BatchResult", "JobResult", "OnDone", "Task"),
+    "psdbake.errors": ("BatchError", "BatchUsageError", "ChunkUsageError"),
     "jobs": ("COMMANDS", "MAX_JOBS_FILE_BYTES", "load_jobs"),
-    "plan": ("MAX_CHUNKS", "Chunk", "ChunkPlan", "ChunkUsageError", "eval_chunks", "plan_chunks", "plan_frames"),
+    "plan": ("MAX_CHUNKS", "Chunk", "ChunkPlan", "eval_chunks", "plan_chunks", "plan_frames"),
     "chunked": ("ChunkedWeights", "WrittenChunks", "evaluate_chunks", "write_chunks"),
     "backends": ("Backend", "run_batch"),
 }
@@ -35,7 +36,7 @@ def __getattr__(name: str) -> Any:
     module = _WHERE.get(name)
     if module is None:
         raise AttributeError(f"module 'psdbake.farm' has no attribute {name!r}")
-    value = getattr(importlib.import_module(f".{module}", __name__), name)
+    value = getattr(importlib.import_module(module if module.startswith("psdbake.") else f"{__name__}.{module}"), name)
     globals()[name] = value
     return value
 
@@ -45,8 +46,9 @@ def __dir__() -> list[str]:
 
 
 if TYPE_CHECKING:  # for type checkers and IDEs: the same names, eagerly
+    from ..errors import BatchError, BatchUsageError, ChunkUsageError  # noqa: F401
     from .backends import Backend, run_batch  # noqa: F401
     from .chunked import ChunkedWeights, WrittenChunks, evaluate_chunks, write_chunks  # noqa: F401
     from .jobs import COMMANDS, MAX_JOBS_FILE_BYTES, load_jobs  # noqa: F401
-    from .plan import MAX_CHUNKS, Chunk, ChunkPlan, ChunkUsageError, eval_chunks, plan_chunks, plan_frames  # noqa: F401
-    from .tasks import Batch, BatchError, BatchResult, BatchUsageError, JobResult, OnDone, Task  # noqa: F401
+    from .plan import MAX_CHUNKS, Chunk, ChunkPlan, eval_chunks, plan_chunks, plan_frames  # noqa: F401
+    from .tasks import Batch, BatchResult, JobResult, OnDone, Task  # noqa: F401

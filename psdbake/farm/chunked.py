@@ -23,9 +23,11 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .. import __version__, api, atomic
+from ..arrays import Progress
 from ..errors import InputError, where
-from ..results import Progress, WeightsResult
-from ..usd import clips
+from ..outputs import CLIP_MANIFEST, POINTS_CACHE, WEIGHTS
+from ..results import WeightsResult
+from ..usd import clips, provenance
 from ..usd import write as usdwrite
 from .plan import Chunk, ChunkPlan, chunk_path, clip_manifest_path, plan_chunks, plan_frames
 
@@ -76,6 +78,9 @@ def evaluate_chunks(
     frames: tuple[float, float] | None = None,
     chunk: int | None = None,
     progress: Progress | None = None,
+    strict: bool = False,
+    hold: bool = False,
+    meshes: Sequence[str] = (),
 ) -> ChunkedWeights:
     """Weights of every chunk, or of chunk number ``chunk`` (1-based) only.
 
@@ -89,13 +94,14 @@ def evaluate_chunks(
         wanted = [plan.chunk(chunk)] if chunk is not None else list(plan.chunks)
         results = []
         for c in wanted:
-            r = api.evaluate(asset, correctives, anim, frames=(c.first, c.last), progress=progress)
+            r = api.evaluate(asset, correctives, anim, frames=(c.first, c.last), progress=progress, strict=strict,
+                             hold=hold, shot=(plan.first, plan.last), meshes=meshes)
             for a in r.animations:
                 if not np.array_equal(a.times, c.times):
                     raise RuntimeError(f"chunk {c.index}: api.evaluate's frames differ from the plan's")
             results.append((c, r))
     else:
-        full = api.evaluate(asset, correctives, anim, progress=progress)
+        full = api.evaluate(asset, correctives, anim, progress=progress, strict=strict, meshes=meshes)
         plan = plan_chunks(_shared_times(full, anim), size)
         wanted = [plan.chunk(chunk)] if chunk is not None else list(plan.chunks)
         results = [(c, _slice(full, c)) for c in wanted]
@@ -171,19 +177,29 @@ def write_chunks(
     written, and a failure leaves every old file in place."""
     inputs = api.files_read([ev.asset, ev.correctives, ev.anim], deformers)
     files, targets = _targets(ev, output, points_cache)
-    atomic.check_outputs([(t, FORMATS) for t in targets], inputs)
+    kinds = {output: WEIGHTS, clip_manifest_path(output): CLIP_MANIFEST, **{f.weights: WEIGHTS for f in files}}
+    if points_cache:
+        kinds |= {points_cache: POINTS_CACHE, clip_manifest_path(points_cache): CLIP_MANIFEST,
+                  **{f.points_cache: POINTS_CACHE for f in files if f.points_cache}}
+    atomic.check_outputs([(t, kinds[t]) for t in targets], inputs)
     layers = []
     for (_, result), f in zip(ev.results, files, strict=True):
-        layers.append((f.weights, api.weights_layer(result)))
+        layers.append((f.weights, api.stamp_weights(api.weights_layer(result), "weights", result, f.weights)))
         if f.points_cache:
-            layers.append((f.points_cache, api.points_cache_layer(result, deformers, progress=progress)))
-    # The manifests from the first chunk computed here: any chunk gives the same bytes.
+            cache = api.points_cache_layer(result, deformers, progress=progress)
+            layers.append((f.points_cache, api.stamp_weights(cache, "points_cache", result, f.points_cache, deformers)))
+    # The manifests from the first chunk computed here, stamped without the command line (which
+    # names the chunk): any chunk gives the same bytes.
+    first = ev.results[0][1]
     manifest, clip_manifest = manifest_layers(layers[0][1], ev.plan, output, "corrective blend-shape weights")
-    layers += [(clip_manifest_path(output), clip_manifest), (output, manifest)]
+    api.stamp_weights(manifest, "weights", first, output, command=False)
+    layers += [(clip_manifest_path(output), provenance.stamp(clip_manifest, "clip_manifest")), (output, manifest)]
     if points_cache:
         cache_manifest, cache_clip_manifest = manifest_layers(layers[1][1], ev.plan, points_cache,
                                                               "points cache (no UsdSkel needed)")
-        layers += [(clip_manifest_path(points_cache), cache_clip_manifest), (points_cache, cache_manifest)]
+        api.stamp_weights(cache_manifest, "points_cache", first, points_cache, deformers, command=False)
+        layers += [(clip_manifest_path(points_cache), provenance.stamp(cache_clip_manifest, "clip_manifest")),
+                   (points_cache, cache_manifest)]
     usdwrite.export_all(layers, inputs)
     return WrittenChunks(
         manifest=output, clip_manifest=clip_manifest_path(output), points_cache=points_cache,

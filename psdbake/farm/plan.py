@@ -21,15 +21,8 @@ from typing import overload
 import numpy as np
 from numpy.typing import NDArray
 
-from ..errors import InputError, PsdError
-from ..frames import frame_count, parse_frames
-
-
-class ChunkUsageError(PsdError):
-    """A chunk option that makes no sense (size below 1, chunk number out of range)."""
-
-    exit_code = 2
-
+from ..errors import ChunkUsageError, InputError
+from ..shot.frames import frame_count, frame_label, parse_frames
 
 #: Most chunks one plan may cut: each chunk is a file and a farm task, and the manifest lists
 #: every chunk in its value clips, so 10,000 (a 1,000,000-frame range in chunks of 100) is
@@ -135,13 +128,6 @@ class ChunkPlan:
         return self._make(index - 1)
 
 
-def whole_frames(frames: tuple[float, float]) -> NDArray[np.float64]:
-    """Whole frames A..B inclusive: the rule of ``frames_of`` for ``--frames`` (at most
-    ``tolerances.MAX_FRAMES``, refused before anything is allocated)."""
-    count = frame_count(frames)
-    return np.ceil(float(frames[0])) + np.arange(count, dtype=np.float64)
-
-
 def _check_size(size: int, count: int) -> int:
     if int(size) < 1:
         raise ChunkUsageError(f"--chunk-size {size}: must be at least 1 frame")
@@ -170,14 +156,6 @@ def plan_chunks(times: Sequence[float] | NDArray[np.float64], size: int,
     if not np.all(np.isfinite(codes)):
         raise InputError(f"time code {codes[~np.isfinite(codes)][0]!r} is not a finite number: cannot cut it into chunks")
     return ChunkPlan(_check_size(size, len(codes)), len(codes), frames, samples=codes)
-
-
-def frame_label(t: float, width: int) -> str:
-    """A time code in a file name: zero-padded, ``m`` for minus, ``p`` for the decimal point
-    (-12.5 -> m0012p5): no characters that shells or USD asset paths treat specially."""
-    text = np.format_float_positional(abs(float(t)), trim="-")  # shortest text that reads back exactly
-    whole, _, frac = text.partition(".")
-    return ("m" if t < 0 else "") + whole.zfill(width) + (f"p{frac}" if frac else "")
 
 
 def chunk_path(output: str, plan: ChunkPlan, chunk: Chunk) -> str:

@@ -11,22 +11,6 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-from ..errors import PsdError
-
-
-class BatchUsageError(PsdError):
-    """A batch option that cannot be honoured here (e.g. ``--scheduler`` without dask)."""
-
-    exit_code = 2
-
-
-class BatchError(PsdError):
-    """Some jobs failed; the exit code is the first failed job's (file order)."""
-
-    def __init__(self, message: str, exit_code: int) -> None:
-        super().__init__(message)
-        self.exit_code = exit_code
-
 
 @dataclass(frozen=True)
 class Task:

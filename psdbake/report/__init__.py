@@ -25,11 +25,10 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import InputError
+from ..errors import InputError, ReportError
 from . import figures, page
 from .choose import frame_index
 from .comparison import Comparison, MeshComparison, compare, correction_turn, most_corrected_vertex
-from .figures import ReportError
 from .folder import MARKER, Writer, check_report_dir, text_writer, write_folder
 from .prepare import ANGLE_FIGURE, PAGE, STATS_CSV, Prepared, frame_token, prepare, view_file
 from .stats import METRICS, VertexTurn, labels

@@ -11,6 +11,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from ..errors import InputError
+from ..lookup import matches
 from ..usd.meshview import MeshView
 from .comparison import Comparison, MeshComparison, most_corrected_vertex
 from .stats import VertexTurn, same_story, vertex_turn
@@ -23,8 +24,9 @@ FRAME_ATOL = 1e-6
 def choose_mesh(comparison: Comparison, mesh: str | None) -> MeshComparison:
     """--mesh, else the mesh whose inverse correction is largest relative to its size."""
     if mesh is not None:
+        hits = matches(mesh, [m.mesh for m in comparison.meshes])
         for m in comparison.meshes:
-            if m.mesh == mesh:
+            if hits and m.mesh == hits[0]:
                 return m
         raise InputError(f"{comparison.fit.asset} <{mesh}>: --mesh was not fitted (fitted: "
                          + ", ".join(f"<{m.mesh}>" for m in comparison.meshes) + ")")

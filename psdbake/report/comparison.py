@@ -23,19 +23,20 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from .. import api, posespace
+from .. import api
 from .. import tolerances as tol
-from ..arrays import Points
+from ..arrays import Points, Progress
 from ..deformers import DeformerFactory, load_deformers
 from ..errors import InputError, where
-from ..frames import frames_of
+from ..model import posespace
+from ..model.data import DEFAULT_GROUP
+from ..model.weights import check_driver_transforms, driver_weights
 from ..results import FitResult, MeshFit
 from ..settings import FitSettings
+from ..shot.frames import check_authored, frames_of
 from ..usd.blackbox import SkinningBlackBox
 from ..usd.compose import open_layer
 from ..usd.read import Scene
-from ..usd.schema import DEFAULT_GROUP
-from ..weights import check_driver_transforms, driver_weights
 
 
 @dataclass(frozen=True)
@@ -83,18 +84,25 @@ def compare(
     *,
     frames: tuple[float, float] | None = None,
     fit_result: FitResult | None = None,
+    hold: bool = False,
+    progress: Progress | None = None,
 ) -> Comparison:
     """Fit (unless given) and evaluate SSD, forward PSD and inverse PSD at every frame.
 
     The comparison is the paper's set-up: one RBF over the drivers (one correctives group,
     ``main`` unless ``settings.group`` names another), so forward and inverse PSD share
-    exactly the same weights; ``psdbake fit``'s local, additive groups are not used here."""
+    exactly the same weights; ``psdbake fit``'s local, additive groups are not used here.
+    ``frames`` is checked against ANIM's authored samples before the fit (``hold``)."""
     settings = settings or FitSettings()
     settings = dataclasses.replace(settings, group=settings.group or DEFAULT_GROUP)
-    result = fit_result or api.fit(asset, example_files, settings)
-    chain = load_deformers(result.settings.deformers)
     scene = Scene([anim, asset], label=anim)
     infos = {i.path: i for i in scene.skinned_meshes()}
+    if frames is not None:
+        for info in infos.values():
+            if scene.animation_prim(info.path) is not None:
+                check_authored(scene, info.path, frames, anim, hold=hold)
+    result = fit_result or api.fit(asset, example_files, settings, progress=progress)
+    chain = load_deformers(result.settings.deformers)
     meshes = [_compare_mesh(scene, result, m, infos[m.mesh].joints, anim, frames, chain) for m in result.meshes]
     if not meshes:
         raise InputError(f"{asset}: nothing was fitted, nothing to compare")
@@ -124,7 +132,7 @@ def _compare_mesh(scene: Scene, result: FitResult, m: MeshFit, joints: Sequence[
     """SSD, forward and inverse PSD of one fitted mesh at every frame, with the same weights."""
     data = m.driver_data
     idx = [joints.index(d) for d in data.drivers]
-    times = frames_of(scene, m.mesh, frames)
+    times = frames_of(scene, m.mesh, frames, hold=True)  # checked by compare
     rest = scene.rest_points(m.mesh)
     outputs = [j for j, ch in enumerate(m.channels) if ch]
     d_rest, d_posed, corrected = _offsets(result, m, rest, outputs)

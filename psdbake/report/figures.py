@@ -22,7 +22,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .. import __version__
-from ..errors import PsdError
+from ..errors import ReportError
 from ..usd.meshview import MeshView
 from .camera import Camera, choose_camera, face_normals, plot_space
 from .comparison import MeshComparison
@@ -32,12 +32,6 @@ from .stats import VertexTurn
 #: the angle figure: a vanishing vector has no meaningful direction (float32 noise).
 FAINT = 0.02
 DEG = 180.0 / math.pi
-
-
-class ReportError(PsdError):
-    """The report cannot be drawn (matplotlib missing)."""
-
-    exit_code = 1
 
 
 def require_matplotlib() -> tuple[Any, Any, Any]:

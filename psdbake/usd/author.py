@@ -67,9 +67,5 @@ def int_array(values: Any) -> Vt.IntArray:
     return Vt.IntArray.FromNumpy(np.ascontiguousarray(values, dtype=np.int32).reshape(-1))
 
 
-def float_array(values: Any) -> Vt.FloatArray:
-    return Vt.FloatArray.FromNumpy(np.ascontiguousarray(values, dtype=np.float32).reshape(-1))
-
-
 def quatd_array(xyzw: NDArray[np.float64]) -> Vt.QuatdArray:
     return Vt.QuatdArray([Gf.Quatd(float(q[3]), Gf.Vec3d(float(q[0]), float(q[1]), float(q[2]))) for q in xyzw])

@@ -9,28 +9,12 @@ convention (p' = p . M), as ``read`` returns them.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
-from numpy.typing import NDArray
 
+from ..arrays import is_singular
 from ..errors import InputError, where
-from .read import Scene, SkinnedMesh, matrices
-
-
-@dataclass(frozen=True)
-class BindSpace:
-    """One skinned mesh and its skeleton at the bind pose, in skeleton space (row-vector matrices)."""
-
-    mesh: str
-    skeleton: str
-    skel_root: str
-    joints: tuple[str, ...]  # skeleton order
-    parents: NDArray[np.int64]  # (J,) parent index, -1 for a root
-    bind_world: NDArray[np.float64]  # (J, 4, 4) bindTransforms: each joint's skeleton-space bind transform
-    bind_local: NDArray[np.float64]  # (J, 4, 4) bind local transforms (local_j = bind_j . bind_parent^-1)
-    geom_bind: NDArray[np.float64]  # (4, 4) geomBindTransform: mesh points -> skeleton space
-    rest: NDArray[np.float64]  # (n, 3) rest points in skeleton space (through geom_bind)
+from ..model.rig import BindSpace, SkinnedMesh
+from .read import Scene, matrices
 
 
 def read_bind_space(scene: Scene, info: SkinnedMesh) -> BindSpace:
@@ -44,9 +28,7 @@ def read_bind_space(scene: Scene, info: SkinnedMesh) -> BindSpace:
     world = matrices(skel.GetBindTransformsAttr().Get() or [])
     parents = np.array(skel_query.GetTopology().GetParentIndices(), dtype=np.int64)
     geom = matrices([query.GetGeomBindTransform()])[0]
-    with np.errstate(all="ignore"):
-        det = float(np.linalg.det(geom[:3, :3])) if np.all(np.isfinite(geom)) else float("nan")
-    if not (np.isfinite(det) and abs(det) > 1e-12):
+    if is_singular(geom[:3, :3]):
         raise InputError(f"{where(scene.label, mesh, 'primvars:skel:geomBindTransform')}: not a finite, invertible "
                          "transform: the mesh's points cannot be taken to skeleton space")
     rest = scene.rest_points(mesh)

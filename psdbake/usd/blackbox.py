@@ -24,7 +24,7 @@ import numpy as np
 from numpy.typing import NDArray
 from pxr import Usd, UsdGeom, UsdSkel, Vt
 
-from ..arrays import Points
+from ..arrays import Points, is_singular
 from ..deformers import DeformerFactory, PointFn
 from ..errors import DeformerError, InputError, where
 from .posedpoints import PosedPoints, RestPoints, writable
@@ -204,8 +204,7 @@ def _skel_to_local(scene: Scene, mesh: str, skel: Usd.Prim, time: float) -> tupl
     skel_to_world = _matrix(UsdGeom.Xformable(skel).ComputeLocalToWorldTransform(tc))
     mesh_to_world = _matrix(UsdGeom.Xformable(mesh_prim).ComputeLocalToWorldTransform(tc))
     for prim_path, m in ((str(skel.GetPath()), skel_to_world), (mesh, mesh_to_world)):
-        det = np.linalg.det(m[:3, :3]) if np.all(np.isfinite(m)) else np.nan
-        if not (np.isfinite(det) and abs(det) > 1e-12 * max(np.abs(m[:3, :3]).max(), 1e-300) ** 3):
+        if is_singular(m[:3, :3]):
             raise InputError(f"{where(scene.label, prim_path)}: its world transform at time {time:g} is singular "
                              "or not finite (a zero, NaN or infinite xformOp)")
     try:

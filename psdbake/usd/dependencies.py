@@ -130,7 +130,7 @@ def _walk(layer: Sdf.Layer, referrer: str | None) -> Walk:
 
 def _file_walk(path: str, referrer: str | None, kind: str) -> Walk | None:
     """The walk of the layer file at path (None when it is not a layer psdbake follows),
-    remembered while the file stays as it was (same identity, size, mtime and ctime)."""
+    remembered while the file is unchanged (same identity, size, mtime and ctime)."""
     try:
         st = os.stat(_outer(path))
     except OSError:

@@ -4,10 +4,13 @@ CORRECTIVES layer on its own (overs included)."""
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 from pxr import Sdf, Usd, UsdGeom, UsdSkel
 
 from .compose import compose, open_layer
+from .read import Scene
 from .schema import read_groups
 
 #: Two world matrices are the same transform when no entry differs by more than this
@@ -26,17 +29,22 @@ def describe(path: str) -> dict:
         if prim.IsA(UsdSkel.Root):
             out["skel_roots"].append(ppath)
         elif prim.IsA(UsdSkel.Skeleton):
-            joints = UsdSkel.Skeleton(prim).GetJointsAttr().Get() or []
+            joints = [str(j) for j in UsdSkel.Skeleton(prim).GetJointsAttr().Get() or []]
             anim = UsdSkel.BindingAPI(prim).GetAnimationSourceRel()
             targets = [str(t) for t in anim.GetTargets()] if anim else []
-            out["skeletons"].append({"path": ppath, "joints": len(joints), "animation": targets[0] if targets else None})
+            out["skeletons"].append({"path": ppath, "joints": len(joints), "animation": targets[0] if targets else None,
+                                     "joint_paths": joints})
         elif prim.IsA(UsdSkel.Animation):
             anim = UsdSkel.Animation(prim)
-            times = sorted(set(anim.GetRotationsAttr().GetTimeSamples()) | set(anim.GetTranslationsAttr().GetTimeSamples()))
+            joint_times = set(anim.GetRotationsAttr().GetTimeSamples()) | set(anim.GetTranslationsAttr().GetTimeSamples()) \
+                | set(anim.GetScalesAttr().GetTimeSamples())
+            shape_times = set(anim.GetBlendShapeWeightsAttr().GetTimeSamples())
+            times = sorted(joint_times | shape_times)
             out["animations"].append({
                 "path": ppath, "joints": len(anim.GetJointsAttr().Get() or []),
                 "blend_shapes": [str(c) for c in anim.GetBlendShapesAttr().Get() or []],
-                "samples": len(times), "first": times[0] if times else None, "last": times[-1] if times else None,
+                "samples": len(times), "joint_samples": len(joint_times), "blend_shape_samples": len(shape_times),
+                "first": times[0] if times else None, "last": times[-1] if times else None,
             })
         if prim.IsA(UsdGeom.PointBased) and prim.HasAPI(UsdSkel.BindingAPI):
             binding = UsdSkel.BindingAPI(prim)
@@ -62,6 +70,29 @@ def describe(path: str) -> dict:
     layer.Traverse(Sdf.Path.absoluteRootPath, visit)
     out["examples"] = [{"mesh": m, "time_codes": t} for m, t in sorted(found)]
     out["warnings"] = client_layout_warnings(stage, path)
+    return out
+
+
+def spelled_poses(scene: Scene, times: Sequence[float]) -> list[dict]:
+    """Per time code, the joints turned from bind (beyond ``tol.ACTIVE_JOINT_ANGLE``) and by how
+    much, largest first: what a TD means by "t=4: L_Elbow 90°". Per skeleton, over its first
+    skinned mesh (every mesh it skins shares its pose)."""
+    from ..model import posespace
+    from ..model.posespace import active_joints
+
+    out = []
+    seen: set[str] = set()
+    for info in scene.skinned_meshes():
+        if info.skeleton in seen or scene.animation_prim(info.path) is None:
+            continue
+        seen.add(info.skeleton)
+        bind = scene.bind_local_transforms(info.path)
+        for t in times:
+            q = posespace.relative_rotations(bind, scene.joint_local_transforms(info.path, float(t))).as_quat()
+            angles = np.degrees(2.0 * np.arctan2(np.linalg.norm(q[:, :3], axis=1), np.abs(q[:, 3])))
+            turned = sorted(active_joints(q.reshape(1, -1, 4))[0], key=lambda j: -angles[j])
+            out.append({"skeleton": info.skeleton, "time": float(t),
+                        "joints": [{"joint": info.joints[j], "degrees": round(float(angles[j]), 1)} for j in turned]})
     return out
 
 
@@ -117,6 +148,6 @@ def _correctives(prim: Usd.Prim, label: str) -> list[dict]:
             "mesh": str(prim.GetPath()), "group": group, "version": version, "drivers": list(data.drivers),
             "pose_space": data.pose_space, "kernel": data.kernel, "sigma": data.sigma, "degree": data.degree,
             "shapes": list(data.shapes), "channels": written, "examples": len(data.example_times),
-            "offsets": offsets,
+            "offsets": offsets, "gate_groups": list(data.gate_groups),
         })
     return out

@@ -189,6 +189,21 @@ def _store(entry: str | None) -> None:
         pass
 
 
+def verdict_of_written(tmp: str) -> str | None:
+    """The content verdict entry of a crate file psdbake has just written (its temporary file,
+    before the commit renames it): USD wrote these very bytes, so they need no probe."""
+    return _verdict_entry(tmp) if is_crate(tmp) else None
+
+
+def vouch_written(entries: list[str | None]) -> None:
+    """Store the verdicts ``verdict_of_written`` named, once the commit has renamed the files into
+    place: a later command that reads such an output, or checks what kind of output it is before
+    replacing it, finds it vouched for by content and does not probe it again (every farm re-run
+    of a ``.usdc`` output would otherwise pay a child process)."""
+    for entry in entries:
+        _store(entry)
+
+
 def require_readable_crates(paths: list[str]) -> None:
     """Read every crate file among paths whole in a child process; raise InputError naming
     the first one that cannot be read or crashes USD's reader. A file already read whole in

@@ -17,7 +17,7 @@ from pxr import Sdf, Usd, UsdGeom
 
 from ..errors import InputError, where
 from ..normals import Topology
-from ..obj.faces import MeshFaces, obj_corner_order
+from ..sculpting.obj.faces import MeshFaces, obj_corner_order
 
 
 def read_mesh_faces(prim: Usd.Prim, label: str) -> tuple[MeshFaces, str]:

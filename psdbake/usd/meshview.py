@@ -14,7 +14,7 @@ import numpy as np
 from numpy.typing import NDArray
 from pxr import Usd, UsdGeom, UsdSkel
 
-from .. import posespace
+from ..model import posespace
 from .compose import open_layer
 from .read import Scene
 

@@ -2,11 +2,11 @@
 
 The points cache (``eval --points-cache``) and ``pose``'s examples author, per mesh and time
 code, the black box's output as float32 ``points`` and the ``extent`` [min, max] of them.
-They used to take the float64 (n, 3) array of ``SkinningBlackBox.__call__`` and convert it;
-measured at 100k points per frame that cost 4.5x UsdSkel's whole ``BakeSkinning``: the
-skel -> local transform as an (n, 1) x (3,) broadcast (3-element inner loops), ``min(axis=0)``
-over (n, 3) (also 3-element loops) and ``Vt.Vec3fArray.FromNumpy`` (a conversion per element).
-Here the same numbers are computed axis by axis over contiguous rows and written straight
+Converting the float64 (n, 3) array of ``SkinningBlackBox.__call__`` would cost several times
+UsdSkel's whole ``BakeSkinning`` at 100k points (docs/decisions/speed.md): the skel -> local
+transform as an (n, 1) x (3,) broadcast (3-element inner loops), ``min(axis=0)`` over (n, 3)
+(also 3-element loops) and ``Vt.Vec3fArray.FromNumpy`` (a conversion per element). Here the
+same numbers are computed axis by axis over contiguous rows and written straight
 into the VtArray USD keeps, so the output is byte for byte what the float64 path gives:
 
 - the transform does the same float64 products and sums in the same order, each rounded

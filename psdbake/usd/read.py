@@ -12,43 +12,22 @@ Gf convention: matrices are row-vector (p' = p . M); they are converted to numpy
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
 from pxr import Sdf, Usd, UsdGeom, UsdSkel
 
 from ..errors import InputError, where
-from ..posespace import undefined_rotations
+from ..model.posespace import undefined_rotations
+from ..model.rig import SkinnedMesh
 from .compose import compose
 from .schema import BlendShapeData, DriverData, read_blend_shape, read_groups
 from .valuetypes import Checked, check_value_types
 
 
-@dataclass(frozen=True)
-class SkinnedMesh:
-    """A skinned point-based prim and the skeleton that deforms it."""
-
-    path: str
-    skeleton: str
-    skel_root: str
-    joints: tuple[str, ...]  # skeleton joint order (full joint paths)
-    point_count: int
-
-
-
-
-
-
 def matrices(values) -> NDArray[np.float64]:
     """Vt.Matrix4dArray (or a list of Gf.Matrix4d) -> (n, 4, 4) float64, row-vector convention."""
     return np.array(values, dtype=np.float64).reshape(-1, 4, 4)
-
-
-
-
-
-
 
 
 class Scene:
@@ -316,28 +295,6 @@ class Scene:
             ) from None
 
 
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
 def corrective_targets(scene: Scene, mesh: str, channels: Sequence[str]) -> list[Usd.Prim]:
     """The BlendShape prim behind each of the given channels of mesh, in order."""
     names, targets = existing_blend_shapes(scene, mesh)
@@ -363,8 +320,6 @@ def read_corrective_shapes(scene: Scene, mesh: str, channels: Sequence[str]) -> 
     touch into the updated CORRECTIVES layer unchanged)."""
     return [read_blend_shape(prim, channel)
             for prim, channel in zip(corrective_targets(scene, mesh, channels), channels, strict=True)]
-
-
 
 
 def stray_point_prims(layer: Sdf.Layer, skinned: set[str]) -> list[str]:

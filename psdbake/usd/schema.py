@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
 from math import comb
 from typing import Any
 
@@ -20,82 +19,26 @@ from numpy.typing import NDArray
 from pxr import Gf, Sdf, Usd, UsdSkel, Vt
 
 from ..errors import InputError, where
-from ..names import DEFAULT_GROUP
-from ..posespace import POSE_SPACES
-from ..rbf_model import KERNELS
+from ..model.data import (
+    DEFAULT_GROUP,
+    PSD_ATTRIBUTES,
+    PSD_OPTIONAL_SETS,
+    PSD_VERSION,
+    READABLE_PSD_VERSIONS,
+    BlendShapeData,
+    DriverData,
+)
+from ..model.posespace import POSE_SPACES
+from ..model.rbf import KERNELS
 from .author import attribute, double_array, int_array, over, quatd_array
 
-#: Version of the psd: attribute schema written by this psdbake.
-PSD_VERSION = 4
-#: psd: schema versions this psdbake reads (1: one flat group, read as group "main"; 2: groups;
-#: 3: groups with optional joint gates; 4: combinations gated by the groups they sit on).
-READABLE_PSD_VERSIONS = (1, 2, 3, 4)
-#: Group names become attribute namespaces: identifiers, and not the schema's own names.
-RESERVED_GROUP_NAMES = ("version", "groups")
+
+def _type_names(names: dict[str, tuple[str, str, bool]]) -> dict[str, Sdf.ValueTypeName]:
+    return {name: getattr(Sdf.ValueTypeNames, t) for name, (t, _, _) in names.items()}
 
 
-def _type_names(**names: str) -> dict[str, Sdf.ValueTypeName]:
-    return {name: getattr(Sdf.ValueTypeNames, t) for name, t in names.items()}
-
-
-#: Every psd: attribute and its value type (``psd:version``, ``psd:groups``, then per group).
-PSD_TYPES = _type_names(
-    version="Int", groups="TokenArray", poseSpace="Token", twistAxis="Double3", clampWeights="Bool",
-    normalizeWeights="Bool", drivers="TokenArray", driverBindRotations="QuatdArray", kernel="Token", sigma="Double",
-    degree="Int", smoothing="Double", centers="DoubleArray", centerLabels="StringArray", shapes="TokenArray",
-    coefficients="DoubleArray", polyPowers="IntArray", dimensions="IntArray", polyShift="DoubleArray",
-    polyScale="DoubleArray", exampleTimes="DoubleArray", exampleSources="StringArray", gates="TokenArray",
-    gatePoses="DoubleArray", gateGroups="TokenArray", gateDirections="DoubleArray",
-    channels="TokenArray", channelColumns="IntArray", channelScales="DoubleArray",
-)
-
-
-@dataclass(frozen=True)
-class BlendShapeData:
-    """One corrective BlendShape: sparse rest-space offsets in the mesh's point space."""
-
-    name: str  # prim name under the mesh
-    channel: str  # skel:blendShapes token (SkelAnimation channel)
-    indices: NDArray[np.int64]
-    offsets: NDArray[np.float64]  # (k, 3)
-    normal_offsets: NDArray[np.float64] | None = None  # (k, 3) when the shading normals change too
-
-
-@dataclass(frozen=True)
-class DriverData:
-    """The RBF driver data of one correctives group on one mesh, as stored in the psd:
-    namespace (README: psd schema)."""
-
-    drivers: Sequence[str]  # joint paths, skeleton joint tokens
-    bind_rotations: NDArray[np.float64]  # (d, 4) xyzw, each driver's bind local rotation
-    pose_space: str
-    twist_axis: tuple[float, ...] | None
-    clamp_weights: bool
-    normalize_weights: bool
-    kernel: str
-    sigma: float
-    degree: int
-    smoothing: float
-    centers: NDArray[np.float64]  # (k, m) over dims
-    center_labels: Sequence[str]
-    shapes: Sequence[str]  # channels, one per coefficient column
-    coefficients: NDArray[np.float64]  # (k + p, s)
-    powers: NDArray[np.int64]  # (p, m)
-    shift: NDArray[np.float64]  # (m,)
-    scale: NDArray[np.float64]  # (m,)
-    dims: NDArray[np.int64]  # (m,) pose coordinates used, indices into the 3 d vector
-    example_times: Sequence[float]
-    example_sources: Sequence[str]
-    gates: Sequence[str] = ()  # combination groups: driver joints whose activation multiplies the weights
-    gate_poses: NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, 0)))  # (g, width) coordinates
-    gate_groups: Sequence[str] = ()  # combinations (v4): groups whose activation multiplies the weights
-    #: v4: (shapes, coordinates): per shape, its unit direction in each gate group's pose coordinates
-    gate_directions: NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, 0)))
-    #: v4: the written channels (client-safe, see channels.py): each carries one output column
-    #: times a signed scale, its weight max(0, b_column / scale). Empty: the shapes themselves.
-    channels: Sequence[str] = ()
-    channel_columns: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
-    channel_scales: NDArray[np.float64] = field(default_factory=lambda: np.zeros(0))
+#: Every psd: attribute's USD value type (``model.data.PSD_ATTRIBUTES``, the one table).
+PSD_TYPES = _type_names(PSD_ATTRIBUTES)
 
 
 # --- read ----------------------------------------------------------------------------------
@@ -411,49 +354,48 @@ Put = Callable[[str, Sdf.ValueTypeName, Any], None]
 
 def author_driver_data(layer: Sdf.Layer, mesh: str, groups: Sequence[tuple[str, DriverData]]) -> None:
     """psd: attributes on the mesh prim, every one uniform and custom: ``psd:version``,
-    ``psd:groups`` (sorted names) and each group's data under ``psd:<group>:``."""
+    ``psd:groups`` (sorted names) and each group's data under ``psd:<group>:``, each with the
+    type ``PSD_ATTRIBUTES`` gives it."""
     spec = over(layer, mesh)
 
-    def put(name: str, type_name: Sdf.ValueTypeName, value: Any) -> None:
-        attribute(spec, f"psd:{name}", type_name, value, uniform=True, custom=True)
+    def put(name: str, value: Any) -> None:
+        attribute(spec, f"psd:{name}", PSD_TYPES[name.rpartition(":")[2]], _value(PSD_ATTRIBUTES[
+            name.rpartition(":")[2]][0], value), uniform=True, custom=True)
 
-    put("version", Sdf.ValueTypeNames.Int, PSD_VERSION)
+    put("version", PSD_VERSION)
     ordered = sorted(groups, key=lambda g: g[0])
-    put("groups", Sdf.ValueTypeNames.TokenArray, Vt.TokenArray([name for name, _ in ordered]))
+    put("groups", [name for name, _ in ordered])
     for name, data in ordered:
         _author_group(put, f"{name}:", data)
 
 
-def _author_group(put: Put, prefix: str, data: DriverData) -> None:
-    t = Sdf.ValueTypeNames
-    put(f"{prefix}poseSpace", t.Token, data.pose_space)
-    if data.twist_axis is not None:
-        put(f"{prefix}twistAxis", t.Double3, Gf.Vec3d(*map(float, data.twist_axis)))
-    put(f"{prefix}clampWeights", t.Bool, bool(data.clamp_weights))
-    put(f"{prefix}normalizeWeights", t.Bool, bool(data.normalize_weights))
-    put(f"{prefix}drivers", t.TokenArray, Vt.TokenArray(list(data.drivers)))
-    put(f"{prefix}driverBindRotations", t.QuatdArray, quatd_array(data.bind_rotations))
-    put(f"{prefix}kernel", t.Token, data.kernel)
-    put(f"{prefix}sigma", t.Double, float(data.sigma))
-    put(f"{prefix}degree", t.Int, int(data.degree))
-    put(f"{prefix}smoothing", t.Double, float(data.smoothing))
-    put(f"{prefix}centers", t.DoubleArray, double_array(data.centers))
-    put(f"{prefix}centerLabels", t.StringArray, Vt.StringArray(list(data.center_labels)))
-    put(f"{prefix}shapes", t.TokenArray, Vt.TokenArray(list(data.shapes)))
-    put(f"{prefix}coefficients", t.DoubleArray, double_array(data.coefficients))
-    put(f"{prefix}polyPowers", t.IntArray, int_array(data.powers))
-    put(f"{prefix}dimensions", t.IntArray, int_array(data.dims))
-    put(f"{prefix}polyShift", t.DoubleArray, double_array(data.shift))
-    put(f"{prefix}polyScale", t.DoubleArray, double_array(data.scale))
-    put(f"{prefix}exampleTimes", t.DoubleArray, double_array(np.asarray(data.example_times, dtype=np.float64)))
-    put(f"{prefix}exampleSources", t.StringArray, Vt.StringArray(list(data.example_sources)))
-    if len(data.gates):
-        put(f"{prefix}gates", t.TokenArray, Vt.TokenArray(list(data.gates)))
-        put(f"{prefix}gatePoses", t.DoubleArray, double_array(data.gate_poses))
-    if len(data.gate_groups):
-        put(f"{prefix}gateGroups", t.TokenArray, Vt.TokenArray(list(data.gate_groups)))
-        put(f"{prefix}gateDirections", t.DoubleArray, double_array(data.gate_directions))
-    if len(data.channels):
-        put(f"{prefix}channels", t.TokenArray, Vt.TokenArray(list(data.channels)))
-        put(f"{prefix}channelColumns", t.IntArray, int_array(data.channel_columns))
-        put(f"{prefix}channelScales", t.DoubleArray, double_array(data.channel_scales))
+def _set(value: Any) -> bool:
+    """An optional attribute's field is set: not None and not empty."""
+    return value is not None and (not hasattr(value, "__len__") or len(value) > 0)
+
+
+def _author_group(put: Callable[[str, Any], None], prefix: str, data: DriverData) -> None:
+    optional = {name: names[0] for names in PSD_OPTIONAL_SETS for name in names}
+    for name, (_, field_name, is_optional) in PSD_ATTRIBUTES.items():
+        if not field_name:
+            continue
+        if is_optional and not _set(getattr(data, PSD_ATTRIBUTES[optional[name]][1])):
+            continue
+        put(f"{prefix}{name}", getattr(data, field_name))
+
+
+def _value(type_name: str, value: Any) -> Any:
+    """A DriverData value as the USD value of its psd: type."""
+    if type_name == "TokenArray":
+        return Vt.TokenArray([str(v) for v in value])
+    if type_name == "StringArray":
+        return Vt.StringArray([str(v) for v in value])
+    if type_name == "DoubleArray":
+        return double_array(np.asarray(value, dtype=np.float64))
+    if type_name == "IntArray":
+        return int_array(value)
+    if type_name == "QuatdArray":
+        return quatd_array(value)
+    if type_name == "Double3":
+        return Gf.Vec3d(*map(float, value))
+    return {"Token": str, "Double": float, "Int": int, "Bool": bool}[type_name](value)

@@ -44,3 +44,18 @@ def sculpted_layer(examples: str, doc: str, sculpts: Iterable[tuple[str, float, 
         attr = attribute(over(layer, mesh), "points", Sdf.ValueTypeNames.Point3fArray)
         layer.SetTimeSample(attr.path, float(t), vec3f_array(pts.astype(np.float64)))  # float32 -> 64 -> 32: exact
     return layer
+
+
+def pose_only_layer(examples: str) -> Sdf.Layer:
+    """A copy of an EXAMPLES layer without its points samples: the example's pose alone, as a
+    client composes an ANIM over the asset (over it, the sculpted points would be skinned again)."""
+    layer = Sdf.Layer.CreateAnonymous("psdbake.usda")
+    layer.TransferContent(open_layer(examples))
+    found: list[Sdf.Path] = []
+    layer.Traverse(Sdf.Path.absoluteRootPath,
+                   lambda p: found.append(p) if p.IsPropertyPath() and p.name == "points" else None)
+    for path in found:
+        if layer.GetNumTimeSamplesForPath(path):
+            prim = layer.GetPrimAtPath(path.GetPrimPath())
+            prim.RemoveProperty(prim.properties[path.name])
+    return layer

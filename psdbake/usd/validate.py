@@ -14,6 +14,7 @@ from collections.abc import Sequence
 import numpy as np
 from pxr import Usd, UsdGeom, UsdSkel
 
+from ..arrays import is_singular
 from ..errors import InputError, where
 from .compose import open_layer
 from .inplace import numbers
@@ -134,6 +135,20 @@ def _row_sums(w: np.ndarray) -> np.ndarray:
     return sums
 
 
+def require_static_rest(scene: Scene, mesh: str) -> None:
+    """Refuse an asset whose skinned points are animated (a cached simulation over the rest):
+    UsdSkel skins the points at each time, so correctives fitted on one rest would not give
+    the sculpts in any client."""
+    attr = UsdGeom.PointBased(scene.prim(mesh)).GetPointsAttr()
+    count = attr.GetNumTimeSamples()
+    if count:
+        raise InputError(
+            f"{where(scene.label, mesh, 'points')}: the rest points are animated ({count} time sample(s)): UsdSkel "
+            "skins the points of each time, so correctives fitted on one rest would not reproduce the sculpts; give "
+            "the skinned mesh static points (a default value only) and put any simulation after skinning"
+        )
+
+
 def validate_skinning(scene: Scene, mesh: str) -> list[str]:
     """Refuse influences UsdSkel would mis-skin; return warnings (weights not summing to 1).
 
@@ -141,6 +156,7 @@ def validate_skinning(scene: Scene, mesh: str) -> list[str]:
     size, indices inside the joint list the mesh uses, weights finite, >= 0, not all zero."""
     query, skel_query = scene.query(mesh)
     label = where(scene.label, mesh)
+    require_static_rest(scene, mesh)
     binding = UsdSkel.BindingAPI(scene.prim(mesh))
     ind_pv, w_pv = binding.GetJointIndicesPrimvar(), binding.GetJointWeightsPrimvar()
     if not ind_pv or not ind_pv.HasAuthoredValue() or not w_pv or not w_pv.HasAuthoredValue():
@@ -197,9 +213,7 @@ def _check_skeleton_matrices(scene: Scene, skel_query: UsdSkel.SkeletonQuery) ->
         if value is None or len(value) != len(skel_joints):
             raise InputError(f"{where_attr}: {0 if value is None else len(value)} matrices for {len(skel_joints)} joints")
         mats = matrices(value)
-        finite = np.nan_to_num(mats)
-        singular = (np.abs(np.linalg.det(finite[:, :3, :3])) < 1e-12) | (np.abs(np.linalg.det(finite)) < 1e-12)
-        bad = ~np.all(np.isfinite(mats), axis=(1, 2)) | singular
+        bad = is_singular(mats[:, :3, :3]) | ~np.all(np.isfinite(mats), axis=(1, 2))
         if bad.any():
             raise InputError(f"{where_attr}: joint {str(skel_joints[int(np.argmax(bad))])!r} has a NaN, infinite, "
                              "zero-scale or singular matrix")

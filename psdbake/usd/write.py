@@ -17,15 +17,17 @@ from pxr import Sdf, Tf, Usd, UsdGeom, Vt
 
 from .. import atomic
 from ..errors import InputError, OutputError
-from ..names import LAYER_FORMATS
+from ..outputs import KINDS, OutputKind
+from . import provenance
 from .author import apply_binding_api, attribute, define, int_array, over, relationship, vec3f_array
 from .dependencies import layer_files
 from .diagnostics import first_line
+from .integrity import verdict_of_written, vouch_written
 from .schema import BlendShapeData
 
-#: Output layer formats by extension (``names.LAYER_FORMATS``, in order), with the arguments
+#: Output layer formats by extension (``names.LAYER_FORMATS``), with the arguments
 #: USD's ``Export`` needs for each (``.usd`` is written as a binary crate).
-FORMATS: dict[str, dict[str, str]] = dict(zip(LAYER_FORMATS, ({}, {}, {"format": "usdc"}), strict=True))
+FORMATS: dict[str, dict[str, str]] = {".usda": {}, ".usdc": {}, ".usd": {"format": "usdc"}}
 
 
 def files_read(inputs: Iterable[str | Sdf.Layer]) -> list[str]:
@@ -40,19 +42,39 @@ def export_all(outputs: Sequence[tuple[str, Sdf.Layer | str]], inputs: Iterable[
     given as ``str``), every one to a temporary file first, then all renamed
     (``atomic.Transaction``), so a failure leaves every old output in place. ``inputs``
     are expanded to every file they read; no output may be one of them, nor one of
-    ``other_inputs`` (files read that are not layers: ``sculpts``' OBJ files)."""
+    ``other_inputs`` (files read that are not layers: ``sculpts``' OBJ files). Each layer
+    replaces only an earlier output of the kind it is stamped with (``provenance.stamp``),
+    each text file only an earlier report, unless forced (``atomic.forcing``)."""
+    written: list[str | None] = []
     with atomic.Transaction([*files_read(inputs), *other_inputs]) as tx:
         for path, layer in outputs:
             if isinstance(layer, str):
-                tmp = tx.path(path, (".json",))
+                tmp = tx.path(path, kind=report_kind(layer))
                 try:
                     with open(tmp, "w", encoding="utf-8") as fh:
                         fh.write(layer)
                 except OSError as exc:
                     raise OutputError(f"{path}: cannot write ({exc.strerror or exc})") from None
                 continue
-            export_layer(layer, tx.path(path, FORMATS), path)
+            kind = provenance.layer_kind(layer)
+            if kind not in KINDS:
+                raise RuntimeError(f"{path}: psdbake's layer carries no output kind (provenance.stamp)")
+            tmp = tx.path(path, FORMATS, KINDS[kind])
+            export_layer(layer, tmp, path)
+            written.append(verdict_of_written(tmp))
+    vouch_written(written)
     return [path for path, _ in outputs]
+
+
+def report_kind(text: str) -> OutputKind:
+    """The kind of a JSON side file: the ``--report`` of the command named in it."""
+    import json
+
+    command = json.loads(text).get("command", "")
+    kind = KINDS.get(f"{command}_report")
+    if kind is None:
+        raise RuntimeError(f"no output kind for a {command!r} report")
+    return kind
 
 
 def export_layer(layer: Sdf.Layer, tmp: str, path: str) -> None:
@@ -130,28 +152,6 @@ def new_layer(doc: str, times: Sequence[float] | None = None, fps: float | None 
     return layer
 
 
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
 def author_blend_shapes(
     layer: Sdf.Layer,
     mesh: str,
@@ -177,10 +177,22 @@ def author_blend_shapes(
                       uniform=True)
 
 
+def flattened(layer: Sdf.Layer, asset: str) -> Sdf.Layer:
+    """layer over the asset, flattened into one layer with the layer's metadata (a points cache
+    that opens on its own: the asset's topology, transforms and materials, the cache's points)."""
+    from .compose import compose
 
-
-
-
+    stage = compose([layer, asset])
+    flat = stage.Flatten(addSourceFileComment=False)
+    out = Sdf.Layer.CreateAnonymous("psdbake.usda")
+    out.TransferContent(flat)
+    for key in ("documentation", "startTimeCode", "endTimeCode", "timeCodesPerSecond", "framesPerSecond", "defaultPrim"):
+        if layer.pseudoRoot.HasInfo(key) or key == "documentation":
+            setattr(out, key, getattr(layer, key))
+    for key in ("upAxis", "metersPerUnit"):
+        if layer.pseudoRoot.HasInfo(key):
+            out.pseudoRoot.SetInfo(key, layer.pseudoRoot.GetInfo(key))
+    return out
 
 
 def weights_layer(doc: str, animations, fps: float | None, metadata: dict | None = None) -> Sdf.Layer:

@@ -21,9 +21,9 @@ import socket
 import time
 from typing import Any
 
-from ...errors import InputError
+from ...errors import BatchUsageError, InputError
 from ..runner import make_output_folders, run_job
-from ..tasks import Batch, BatchResult, BatchUsageError, JobResult, OnDone, Task
+from ..tasks import Batch, BatchResult, JobResult, OnDone, Task
 from .base import Backend
 
 #: Seconds to connect to the scheduler and get its handshake: a scheduler answers in

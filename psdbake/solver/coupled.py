@@ -1,0 +1,487 @@
+"""The black-box inverse when the chain couples vertices (Delta Mush, corrective smooth, wraps).
+
+``invert`` is what ``fit`` runs per example. Whether the chain couples vertices shows in the
+per-vertex solver's own Jacobian calls (they move only sculpted vertices: any other output that
+changes was moved by a neighbour), so skinning stays at 5 calls per example. Where no unsculpted
+vertex can show it (a sculpt that covers whole pieces of the mesh) a **probe** call with a few
+well-separated sculpted vertices moved (farthest-point sample, deterministic) tells whether any
+*other* sculpted vertex's output moved. Skinning and per-vertex deformers leave every other
+output bit-identical; a coupling deformer moves the neighbours. Per-vertex chains keep
+``inverse.invert_example``'s result (Powell in lockstep, regime "per-vertex").
+
+Coupled chains are solved jointly::
+
+    minimise || sculpt[S] - F(rest + D)[S] ||^2 + ridge || D ||^2     D: offsets on the sculpted vertices S
+
+(vertices whose output the sculpt did not move keep a zero offset, so the fit never spreads
+beyond them; ``ridge`` is ``smoothstart.ridge``, the documented regularisation that keeps the
+offsets bounded where a sculpt asks for what the chain cannot produce). Everything the
+per-vertex solver measured is reused: the chain at rest, the per-vertex 3x3 blocks (3 calls
+moving *every* sculpted vertex along x, then y, then z: the row sums of the coupled chain's
+Jacobian, for a smoothing deformer the skinning's own blocks) and its linearised start.
+
+1. **The smooth start** (``smooth_start``, ``psdbake.solver.smoothstart``): Levenberg-Marquardt over
+   the region's smoothest fields (``psdbake.solver.smoothbasis``, sized to the region), first the
+   coarsest quarter of them, then all, on a model of the chain's Jacobian that knows how much
+   the chain smooths (one probe call measures it), corrected by Broyden's update from every
+   step's call. Where the smoothing reaches across a large part of a small mesh, the fields a
+   sculpt needs come out of the chain at a fifth of their size or less; the blocks alone took
+   them at full size, and the smooth start undershot by that much at every step.
+2. **Newton-Krylov** from there: GMRES (right-preconditioned by the blocks, Arnoldi with
+   modified Gram-Schmidt) on ``J delta = r``, each Jacobian-vector product one black-box call
+   (forward difference, the largest vertex move a tenth of the largest residual, within
+   ``JVP_MIN_STEP_RTOL`` and ``JVP_STEP_RTOL`` of the diagonal), stopping once the linear model
+   predicts every vertex within a fraction of the tolerance; the step is the one in the
+   Krylov space that minimises the regularised misfit's linear model; one call at
+   ``rest + D`` checks it (halved up to ``BACKTRACKS`` times where it does not help). In this
+   finish the vertices still above the tolerance weigh by how far above they are.
+
+The result is ``at_optimum`` when the last Krylov space could not lower the residual's linear
+model by ``OPTIMUM_RTOL``: what is left is orthogonal to everything the chain produced from
+the directions tried, so vertices still above the tolerance there are what the chain smooths
+away rather than what the solver failed to reach (``fit``'s report says which). Without edges
+(no smooth start), Newton-Krylov from zero runs instead, then the per-vertex solve and a
+restart from it, and the best is kept.
+
+Powell's per-vertex line searches are not used here: they assume a vertex's residual depends
+on its own offset only, which is exactly what a coupling deformer breaks.
+
+Statuses are the per-vertex ``powell`` codes: CONVERGED within tolerance (checked by running
+the full chain on rest + offsets), MAX_CYCLES the call budget ran out, STALLED Newton
+stopped improving (or ended at an optimum), NONFINITE the chain returned non-finite values
+there. The measurements behind these choices are in ``docs/decisions/coupled-inverse-coarse-meshes.md``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from collections.abc import Callable
+
+import numpy as np
+import scipy.sparse as sp
+from numpy.typing import NDArray
+from threadpoolctl import threadpool_limits
+
+from .. import tolerances as tol
+from ..arrays import Points, is_singular
+from . import powell, smoothstart
+from .inverse import COUPLING_SEEN, BlackBox, Counted, InverseResult, invert_example_with, sculpted_vertices
+from .smoothbasis import basis_sizes, smooth_bases
+
+#: Vertices moved by the coupling probe (a farthest-point sample of the sculpted vertices).
+PROBE_VERTICES = 16
+#: An unprobed vertex whose output moves by more than this fraction of the probed vertices'
+#: largest response means coupling. Per-vertex chains move it by exactly 0.
+COUPLING_RTOL = 1e-6
+#: Forward-difference step of a Jacobian-vector product: the largest vertex move is
+#: ``JVP_RESIDUAL_STEP`` times the largest residual, clipped to [JVP_MIN_STEP_RTOL,
+#: JVP_STEP_RTOL] of the diagonal. Where skinning folds the mesh Delta Mush is non-linear at
+#: the scale of the correction still to make, and a secant much longer than it misleads the
+#: model (13k bench, elbow at 60, 100 and 140 degrees: a fixed 1e-4 left 276 vertices above
+#: the tolerance, a fixed 1e-5 5, a tenth of the residual none, there and on all eight). The
+#: floor keeps UsdSkel's float32 rounding (~1e-7 relative, smoothed by the chain) well under
+#: the difference.
+JVP_STEP_RTOL = 1e-4
+JVP_RESIDUAL_STEP = 0.1
+JVP_MIN_STEP_RTOL = 1e-6
+#: GMRES stops when the linear model predicts every vertex within this fraction of atol.
+KRYLOV_TARGET = 0.25
+#: Inexact Newton: a step's GMRES stops once the model predicts the largest vertex residual
+#: reduced by this factor (or within KRYLOV_TARGET * atol). Solving the linear model further
+#: than the model is right only fits what the chain's smoothing nearly annihilates, with
+#: large high-frequency offsets.
+FORCING = 0.1
+#: Krylov vectors per Newton step (each one black-box call).
+KRYLOV_MAX = 40
+#: Trust region of a Newton step: its largest vertex move, in units of the largest residual.
+STEP_CAP = 20.0
+#: Halvings of a Newton step that does not reduce the residual before giving up.
+BACKTRACKS = 4
+#: Black-box calls of one joint solve from a start (the smooth start, or the per-vertex
+#: solution), counted from that start.
+MAX_EVALUATIONS = 160
+#: The joint solve from zero, where the smooth start missed (or there is none), counted from
+#: its start: enough for unfolded examples (docs/decisions/coupled-inverse.md); where skinning
+#: folds the mesh the smooth start is what converges.
+FROM_ZERO_EVALUATIONS = 64
+#: Calls of the smooth start's two span solves (``smoothstart.span_solve``): over the coarse
+#: basis, then the fine one. Each stops earlier at the tolerance or at its span's optimum.
+COARSE_SPAN_CALLS = 20
+FINE_SPAN_CALLS = 15
+#: Newton-Krylov's calls after the smooth start, counted from its end.
+FINISH_EVALUATIONS = 40
+#: A Newton step whose Krylov space cannot lower the regularised misfit's linear model by this
+#: fraction ends the solve at an optimum (``InverseResult.at_optimum``): the residual left is
+#: orthogonal to everything the chain produced from the directions tried.
+OPTIMUM_RTOL = 0.02
+#: The finish after the smooth start regularises the offsets' departure from the smooth start,
+#: ``|r|^2 + ridge |D - D_start|^2``, with the ridge's scale this fraction of the blocks' gain:
+#: a direction the chain passes at less than that is not pushed further than what it removes.
+#: Weaker, it chased detail no smoothing passes (a ripple around the 1.3k rig's tube: offsets
+#: grew to 5.8x the sculpt's largest move at 1e-3); this leaves the smooth start's own offsets,
+#: which the sculpt needs at full size, unpulled.
+FINISH_RIDGE = 1e-2
+#: The finish after the smooth start weighs each vertex's residual by max(1, |r| / u), u the
+#: larger of the residuals' RMS and WEIGHT_FLOOR * atol: there the residual's RMS is far
+#: within the tolerance and a few vertices miss it (13k bench, five examples: 245 calls in
+#: all weighted, 290 not; from zero, on the 1.3k test rig, weighting cost 28 and 31 calls
+#: against 16 and 25).
+WEIGHT_FLOOR = 0.5
+
+
+def probe_vertices(rest: Points, candidates: NDArray[np.int64], count: int = PROBE_VERTICES) -> NDArray[np.int64]:
+    """Up to ``count`` well-separated candidates: farthest-point sampling from the first one."""
+    if len(candidates) <= count:
+        return np.asarray(candidates, dtype=np.int64)
+    pts = rest[candidates]
+    chosen = [0]
+    dist = np.linalg.norm(pts - pts[0], axis=1)
+    for _ in range(count - 1):
+        k = int(np.argmax(dist))
+        chosen.append(k)
+        dist = np.minimum(dist, np.linalg.norm(pts - pts[k], axis=1))
+    return np.sort(candidates[np.array(chosen)])
+
+
+def closed_region(adjacency: sp.csr_matrix, region: NDArray[np.int64]) -> bool:
+    """Whether no edge leaves the region (it is a union of whole connected pieces)."""
+    inside = np.zeros(adjacency.shape[0], dtype=bool)
+    inside[region] = True
+    rows = adjacency[region]
+    return bool(np.all(inside[rows.indices]))
+
+
+def is_coupled(call: BlackBox, rest: Points, base: Points, probed: NDArray[np.int64], step: float,
+               others: NDArray[np.int64] | None = None) -> bool:
+    """One call: does moving ``probed`` move any other vertex's output (any other of ``others``
+    when given: a region closed under the mesh's edges has no outside vertex to show it)?"""
+    if len(probed) == 0 or (others is None and len(probed) == len(rest)) or (others is not None and len(probed) == len(others)):
+        return False
+    moved = rest.copy()
+    moved[probed] += step * np.array([0.8, 0.5, 0.3]) / np.sqrt(0.98)
+    change = np.linalg.norm(call(moved) - base, axis=1)
+    own = float(change[probed].max())
+    change[probed] = 0.0
+    moved_others = float(change.max() if others is None else change[others].max())
+    return bool(moved_others > COUPLING_RTOL * max(own, step)) or not np.isfinite(moved_others)
+
+
+def invert(blackbox: BlackBox, rest: Points, sculpt: Points, *, rtol: float = tol.INVERSE_RTOL,
+           neighbours: Callable[[], sp.csr_matrix | None] | None = None) -> InverseResult:
+    """Solve the example per vertex, or jointly when the chain couples vertices, keeping the
+    better solution (``InverseResult.regime`` says which ran and which was kept).
+
+    The per-vertex solver's 3 Jacobian calls move only sculpted vertices, so they show for
+    free whether any other vertex's output moved: skinning (5 calls) and per-vertex deformers
+    pay nothing to find out. When they show coupling and the linearised start misses, the
+    joint solve takes over from what the per-vertex solver measured (the chain at rest and the
+    blocks cost no call again): the smooth start (``smooth_start``; ``neighbours()`` gives the
+    mesh's edge adjacency), then Newton-Krylov. Without edges, Newton-Krylov from zero, then
+    the per-vertex solve and a restart from it; the kept result has the fewest vertices above
+    the tolerance, then the smallest worst residual, both measured by running the chain. A
+    sculpt that leaves no unsculpted neighbour is probed (1 call) once the linearised start
+    misses; a chain that couples only vertices the per-vertex calls could not show otherwise
+    is probed (2 calls) once the per-vertex solve misses."""
+    started = time.perf_counter()
+    rest = np.asarray(rest, dtype=np.float64)
+    sculpt = np.asarray(sculpt, dtype=np.float64)
+    adjacency: sp.csr_matrix | None = None
+    read = False
+
+    def closed_probe(call: BlackBox, base: Points, idx: NDArray[np.int64], step: float) -> bool:
+        """A sculpt with no unsculpted edge neighbour (whole pieces of the mesh) cannot show
+        coupling in the per-vertex solver's calls: probe it (1 call)."""
+        nonlocal adjacency, read
+        if not read:
+            adjacency, read = (neighbours() if neighbours is not None else None), True
+        if adjacency is None or len(idx) < 2 or not closed_region(adjacency, idx):
+            return False
+        return is_coupled(call, rest, base, probe_vertices(rest, idx), step, others=idx)
+
+    first = invert_example_with(blackbox, rest, sculpt, rtol=rtol, stop_if_coupled=True, coupling_probe=closed_probe)
+    if first.regime != COUPLING_SEEN and not len(first.missed):
+        return first
+    call = Counted(blackbox, first.evaluations)
+    measured = first.linearised
+    base = measured.posed_rest if measured is not None else call(rest)
+    diagonal, floor, idx = sculpted_vertices(rest, base, sculpt)
+    if measured is None:  # per-vertex ran to the end and missed: probe
+        step = tol.JACOBIAN_STEP_RTOL * max(diagonal, floor)
+        if not (len(idx) and is_coupled(call, rest, base, probe_vertices(rest, idx), step)):
+            return dataclasses.replace(first, evaluations=call.calls, seconds=time.perf_counter() - started)
+    # The joint stages' sums run on BLAS (GMRES, ARPACK, the Gram matrix), whose results depend
+    # on its thread count: one thread, so a fit gives the same bytes on every machine (the 100k
+    # bench: 8.76 s an example against 8.54 with two threads; the black box dominates)
+    with threadpool_limits(limits=1, user_api="blas"):
+        if not read:
+            adjacency = neighbours() if neighbours is not None else None
+        # the per-vertex 3x3 blocks, shared by every stage: the per-vertex solver's own, else 3 calls
+        blocks = measured.blocks if measured is not None else chain_blocks(call, rest, base, idx, diagonal, floor)
+        candidates: list[InverseResult] = []
+        if adjacency is not None:  # 1. the smooth start, then Newton-Krylov
+            start = smooth_start(call, rest, sculpt, base, idx, diagonal, blocks, adjacency,
+                                 max(rtol * diagonal, floor))
+            if start is not None:
+                offsets, outputs = start
+                smooth = invert_coupled(call, rest, sculpt, base, idx, diagonal, floor, rtol=rtol, started=started,
+                                        max_evaluations=call.calls + FINISH_EVALUATIONS, start=offsets,
+                                        start_outputs=outputs, blocks=blocks, weighted=True)
+                candidates.append(dataclasses.replace(smooth, regime="coupled, from the smooth start"))
+        if not candidates:  # 2. no smooth start (no edges, or ARPACK failed): from zero
+            joint = invert_coupled(call, rest, sculpt, base, idx, diagonal, floor, rtol=rtol, started=started,
+                                   max_evaluations=call.calls + FROM_ZERO_EVALUATIONS, blocks=blocks)
+            candidates.append(joint)
+            if len(joint.missed):  # the per-vertex solution and a restart from it
+                candidates.extend(_from_per_vertex(call, blackbox, rest, sculpt, base, idx, diagonal, floor, first,
+                                                   blocks, rtol=rtol, started=started))
+    best = min(candidates, key=lambda c: (len(c.missed), c.max_residual))
+    return dataclasses.replace(best, evaluations=call.calls, seconds=time.perf_counter() - started,
+                               sculpt_rms=first.sculpt_rms)
+
+
+def _from_per_vertex(call: Counted, blackbox: BlackBox, rest: Points, sculpt: Points, base: Points,
+                     idx: NDArray[np.int64], diagonal: float, floor: float, first: InverseResult,
+                     blocks: NDArray[np.float64], *, rtol: float, started: float) -> list[InverseResult]:
+    """Without mesh edges: the full per-vertex solve, and Newton-Krylov restarted from it."""
+    per_vertex = first
+    if first.regime == COUPLING_SEEN:
+        per_vertex = invert_example_with(blackbox, rest, sculpt, rtol=rtol)
+        call.calls += per_vertex.evaluations
+    found = [dataclasses.replace(per_vertex, regime="coupled chain, per-vertex kept")]
+    if len(per_vertex.missed) and np.array_equal(per_vertex.indices, idx):
+        warm = invert_coupled(call, rest, sculpt, base, idx, diagonal, floor, rtol=rtol, started=started,
+                              max_evaluations=call.calls + MAX_EVALUATIONS, start=per_vertex.offsets, blocks=blocks)
+        found.append(dataclasses.replace(warm, regime="coupled, from the per-vertex solution"))
+    return found
+
+
+def _outputs(call: Counted, rest: Points, idx: NDArray[np.int64], offsets: Points) -> Points:
+    """The chain's outputs at the sculpted vertices for rest + offsets there: one call."""
+    moved = rest.copy()
+    moved[idx] += offsets
+    return call(moved)[idx]
+
+
+def chain_blocks(call: BlackBox, rest: Points, base: Points, idx: NDArray[np.int64], diagonal: float,
+                 floor: float) -> NDArray[np.float64]:
+    """Per-vertex 3x3 blocks (len(idx), 3, 3) from 3 calls moving every sculpted vertex along
+    x, then y, then z (forward differences, ``JACOBIAN_STEP_RTOL`` of the diagonal): the
+    per-vertex solver's Jacobian; for a coupled chain the row sums of its Jacobian, which for a
+    smoothing deformer (weights summing to 1) are the skinning's own blocks."""
+    jstep = tol.JACOBIAN_STEP_RTOL * max(diagonal, floor)
+    blocks = np.empty((len(idx), 3, 3))
+    for axis in range(3):
+        moved = rest.copy()
+        moved[idx, axis] += jstep
+        blocks[:, :, axis] = (call(moved)[idx] - base[idx]) / jstep
+    return blocks
+
+
+def smooth_start(call: Counted, rest: Points, sculpt: Points, base: Points, idx: NDArray[np.int64], diagonal: float,
+                 blocks: NDArray[np.float64], adjacency: sp.csr_matrix, atol: float
+                 ) -> tuple[Points, Points] | None:
+    """Offsets (k, 3) and the chain's outputs there (k, 3), from Levenberg-Marquardt over the
+    region's smoothest fields (``psdbake.solver.smoothstart``): one probe call measures how much the
+    chain smooths; the solve runs over the coarse basis (a quarter of the fields, the
+    smoothest of each piece of the region: ``smoothbasis.smooth_bases``), then over the fine
+    one from there, the coarse solve's Broyden-corrected model carried over. None where the
+    region has no edges (or ARPACK failed)."""
+    bases = smooth_bases(adjacency, idx, *basis_sizes(len(idx)))
+    if bases is None:
+        return None
+    basis, coarse = bases
+    freqs = smoothstart.frequencies(adjacency, idx, basis)
+    reach = smoothstart.measure_reach(call, rest, base, idx, blocks, basis[:, :coarse], freqs[:coarse], diagonal)
+    steps = reach.steps if reach.misfit <= smoothstart.REACH_MAX_MISFIT else 0.0
+    believe = reach.misfit <= smoothstart.BELIEVE_MISFIT
+    gain = smoothstart.gains(freqs, steps)
+    cols = smoothstart.model_columns(blocks, basis, gain)
+    gram = smoothstart.model_gram(blocks, basis, gain)
+    first, first_gram = cols[: 3 * coarse].copy(), gram[: 3 * coarse, : 3 * coarse].copy()
+    ridge = smoothstart.ridge(blocks)
+    span = smoothstart.span_solve(call, rest, sculpt, idx, basis[:, :coarse], first, atol, ridge, COARSE_SPAN_CALLS,
+                                  start_outputs=base[idx], gram=first_gram, believe=believe)
+    x = np.zeros((basis.shape[1], 3))
+    x[:coarse] = span.coefficients
+    outputs = span.outputs
+    done = bool(np.all(np.linalg.norm(sculpt[idx] - outputs, axis=1) <= atol))
+    if not done and basis.shape[1] > coarse:
+        # the coarse solve's Broyden-corrected rows carried over, the Gram matrix with them
+        cols[: 3 * coarse] = first
+        gram[: 3 * coarse, : 3 * coarse] = first_gram
+        cross = first @ cols[3 * coarse:].T
+        gram[: 3 * coarse, 3 * coarse:] = cross
+        gram[3 * coarse:, : 3 * coarse] = cross.T
+        span = smoothstart.span_solve(call, rest, sculpt, idx, basis, cols, atol, ridge, FINE_SPAN_CALLS, start=x,
+                                      start_outputs=outputs, gram=gram, believe=believe)
+        x, outputs = span.coefficients, span.outputs
+    return basis @ x, outputs
+
+
+def invert_coupled(
+    call: Counted,
+    rest: Points,
+    sculpt: Points,
+    base: Points,
+    idx: NDArray[np.int64],
+    diagonal: float,
+    floor: float,
+    *,
+    rtol: float = tol.INVERSE_RTOL,
+    started: float,
+    max_evaluations: int = MAX_EVALUATIONS,
+    start: Points | None = None,
+    start_outputs: Points | None = None,
+    blocks: NDArray[np.float64] | None = None,
+    weighted: bool = False,
+) -> InverseResult:
+    """Newton-Krylov on the sculpted vertices' offsets (module docstring). ``base`` is
+    ``call(rest)``; ``call.calls`` counts the example's calls so far (the budget's measure);
+    ``start_outputs`` the chain's outputs at ``start`` when known (else one call);
+    ``blocks`` are ``chain_blocks`` (measured here when not given). Steps lower the
+    regularised misfit ``|r|^2 + ridge |D - anchor|^2`` (``smoothstart.ridge`` and zero from
+    zero; after the smooth start ``FINISH_RIDGE`` and the start, with ``weighted``); the result is
+    ``at_optimum`` where no direction of a step's Krylov space could lower its linear model
+    by ``OPTIMUM_RTOL``. ``weighted``: each vertex's residual weighs by how far above the
+    residuals' RMS it is (``WEIGHT_FLOOR``), for a finish where few vertices are left above
+    the tolerance."""
+    atol = max(rtol * diagonal, floor)
+    target = sculpt[idx]
+    k = len(idx)
+
+    def evaluate(offsets: Points) -> Points:
+        return _outputs(call, rest, idx, offsets)
+
+    # Per-vertex 3x3 blocks (row sums in the coupled case): the preconditioner.
+    if blocks is None:
+        blocks = chain_blocks(call, rest, base, idx, diagonal, floor)
+    ok = ~is_singular(blocks, tol.JACOBIAN_RCOND)  # singular, or non-finite points there: no block to invert
+    inverse_blocks = np.tile(np.eye(3), (k, 1, 1))
+    if ok.any():
+        inverse_blocks[ok] = np.linalg.inv(blocks[ok])
+
+    def precondition(v: Points) -> Points:
+        return np.einsum("kab,kb->ka", inverse_blocks, v)
+
+    offsets = np.zeros((k, 3)) if start is None else np.array(start, dtype=np.float64)
+    if start is None:
+        out = base[idx]
+    else:
+        out = evaluate(offsets) if start_outputs is None else np.asarray(start_outputs, dtype=np.float64)
+    r = target - out
+    norms = np.linalg.norm(r, axis=1)
+    stalled = optimum = False
+    steps = 0
+    # the regularisation: offsets pulled towards zero weakly (``smoothstart.ridge``); after the
+    # smooth start, its departures from the smooth start more strongly (``FINISH_RIDGE``)
+    anchor = np.zeros((k, 3)) if start is None or not weighted else np.array(start, dtype=np.float64)
+    ridge = smoothstart.ridge(blocks) * ((FINISH_RIDGE / smoothstart.SPAN_RIDGE) ** 2 if weighted else 1.0)
+    scale = max(diagonal, floor)
+    while np.isfinite(norms).all() and norms.max() > atol and call.calls < max_evaluations - 2:
+        at, out_at = offsets, out
+        # the secant shrinks with the residual: where skinning folds the mesh the chain is
+        # strongly non-linear, and a step far larger than the correction misleads the model
+        h_move = min(JVP_STEP_RTOL * scale, max(JVP_RESIDUAL_STEP * float(norms.max()), JVP_MIN_STEP_RTOL * scale))
+
+        def jvp(z: Points, at: Points = at, out_at: Points = out_at, h_move: float = h_move) -> Points:
+            h = h_move / max(float(np.sqrt(np.mean(np.einsum("ij,ij->i", z, z)))), 1e-300)
+            return (evaluate(at + h * z) - out_at) / h
+
+        budget = min(KRYLOV_MAX, max_evaluations - 2 - call.calls)
+        # vertices above the tolerance weigh by how far above they are: the least-squares
+        # model then works on the vertices that miss, not on the many already far within it
+        unit = max(WEIGHT_FLOOR * atol, float(np.sqrt(np.mean(norms**2))))
+        weight = np.maximum(norms / unit, 1.0)[:, None] if weighted else np.ones((k, 1))
+        target_lin = max(KRYLOV_TARGET * atol, FORCING * float(norms.max())) * float(weight.max())
+
+        def weighted_jvp(z: Points, jvp: Callable[[Points], Points] = jvp, weight: NDArray[np.float64] = weight
+                         ) -> Points:
+            return weight * jvp(z)
+
+        directions, images = _gmres(weighted_jvp, precondition, weight * r, target_lin, budget)
+        scaled = weight * r
+        merit = float(np.sum(scaled**2)) + ridge * float(np.sum((offsets - anchor) ** 2))
+        delta, left = _ridge_step(scaled, offsets - anchor, directions, images, ridge)
+        if float(np.sum(scaled**2)) - float(np.sum(left**2)) <= OPTIMUM_RTOL * float(np.sum(scaled**2)):
+            stalled = optimum = True  # no direction tried lowers the residual: an optimum
+            break
+        # Trust region: no vertex moves further than STEP_CAP times the largest residual.
+        lengths = np.linalg.norm(delta, axis=1)
+        cap = STEP_CAP * float(norms.max())
+        delta = delta * np.minimum(1.0, cap / np.maximum(lengths, 1e-300))[:, None]
+        for _ in range(BACKTRACKS + 1):  # the full step, then halvings
+            trial = offsets + delta
+            out_trial = evaluate(trial)
+            r_trial = target - out_trial
+            better = bool(np.all(np.isfinite(r_trial))
+                          and float(np.sum((weight * r_trial) ** 2)) + ridge * float(np.sum((trial - anchor) ** 2)) < merit)
+            if better or call.calls >= max_evaluations - 1:
+                break
+            delta = 0.5 * delta
+        if not better:
+            stalled = True
+            break
+        offsets, out, r = trial, out_trial, r_trial
+        norms = np.linalg.norm(r, axis=1)
+        steps += 1
+
+    status = np.full(k, powell.STALLED if stalled or optimum else powell.MAX_CYCLES, dtype=np.int8)
+    status[norms <= atol] = powell.CONVERGED
+    status[~np.isfinite(norms)] = powell.NONFINITE
+    return InverseResult(
+        indices=idx, offsets=offsets, residual=norms, status=status, evaluations=call.calls, diagonal=diagonal,
+        atol=atol, seconds=time.perf_counter() - started, regime="coupled", at_optimum=optimum,
+    )
+
+
+def _gmres(jvp: Callable[[Points], Points], precondition: Callable[[Points], Points], r: Points,
+           target: float, max_iter: int) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Right-preconditioned GMRES for ``J delta = r`` ((k, 3) vectors), at most ``max_iter``
+    products; stops once the linear model predicts every vertex's residual <= ``target``.
+    Returns the Krylov directions ``M^-1 v_j`` and their images ``J M^-1 v_j`` (m, 3k), from
+    which the caller takes its step (``_ridge_step``)."""
+    shape = r.shape
+    b = r.ravel()
+    beta = float(np.linalg.norm(b))
+    if max_iter <= 0 or beta == 0.0:
+        return np.zeros((0, b.size)), np.zeros((0, b.size))
+    basis = np.zeros((max_iter + 1, b.size))
+    images = np.zeros((max_iter, b.size))  # J M^-1 v_j
+    directions = np.zeros((max_iter, b.size))  # M^-1 v_j
+    hess = np.zeros((max_iter + 1, max_iter))
+    basis[0] = b / beta
+    used = 0
+    for j in range(max_iter):
+        directions[j] = precondition(basis[j].reshape(shape)).ravel()
+        w = jvp(directions[j].reshape(shape)).ravel()
+        if not np.all(np.isfinite(w)):  # the chain gave non-finite points: the model so far
+            break
+        images[j] = w
+        used = j + 1
+        for i in range(j + 1):  # modified Gram-Schmidt
+            hess[i, j] = basis[i] @ w
+            w = w - hess[i, j] * basis[i]
+        hess[j + 1, j] = np.linalg.norm(w)
+        rhs = np.zeros(j + 2)
+        rhs[0] = beta
+        y = np.asarray(np.linalg.lstsq(hess[: j + 2, : j + 1], rhs, rcond=None)[0], dtype=np.float64)
+        predicted = (b - y @ images[: j + 1]).reshape(shape)
+        if np.linalg.norm(predicted, axis=1).max() <= target or hess[j + 1, j] <= 1e-14 * beta:
+            break
+        basis[j + 1] = w / hess[j + 1, j]
+    return directions[:used], images[:used]
+
+
+def _ridge_step(r: Points, offsets: Points, directions: NDArray[np.float64], images: NDArray[np.float64],
+                ridge: float) -> tuple[Points, Points]:
+    """The step in the Krylov space minimising the linear model of the regularised misfit
+    ``|r - J delta|^2 + ridge |offsets + delta|^2``, and the residual ``r - J delta`` that
+    model predicts."""
+    if not len(directions):
+        return np.zeros_like(r), r.copy()
+    scale = np.sqrt(ridge)
+    system = np.concatenate([images.T, scale * directions.T])
+    rhs = np.concatenate([r.ravel(), -scale * offsets.ravel()])
+    y = np.asarray(np.linalg.lstsq(system, rhs, rcond=None)[0], dtype=np.float64)
+    return (y @ directions).reshape(r.shape), (r.ravel() - y @ images).reshape(r.shape)
