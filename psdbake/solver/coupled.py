@@ -67,7 +67,7 @@ from .. import tolerances as tol
 from ..arrays import Points, is_singular
 from . import powell, smoothstart
 from .inverse import COUPLING_SEEN, BlackBox, Counted, InverseResult, invert_example_with, sculpted_vertices
-from .smoothbasis import basis_sizes, smooth_bases
+from .smoothbasis import basis_sizes, smooth_bases, smooth_basis
 
 #: Vertices moved by the coupling probe (a farthest-point sample of the sculpted vertices).
 PROBE_VERTICES = 16
@@ -111,6 +111,18 @@ COARSE_SPAN_CALLS = 20
 FINE_SPAN_CALLS = 15
 #: Newton-Krylov's calls after the smooth start, counted from its end.
 FINISH_EVALUATIONS = 40
+#: Smooth fields of the measured smooth start (``measured_smooth_start``, 3 calls each, one
+#: per axis), the last of the escalation's stages (``_escalate``).
+MEASURED_FIELDS = 64
+#: Where ARPACK fails on the escalation's basis (a region of many pieces: CesiumMan's 136),
+#: regions up to this many vertices take a dense eigendecomposition instead.
+DENSE_FALLBACK = 6000
+#: Gauss-Newton steps of the measured smooth start: the first on the measured Jacobian, then
+#: Broyden's updates of it, 1 call each.
+MEASURED_STEPS = 4
+#: Singular values of the measured span's Jacobian below this fraction of the largest are
+#: dropped (truncated least squares: the steps stay smooth and the columns' noise out).
+MEASURED_RCOND = 1e-3
 #: A Newton step whose Krylov space cannot lower the regularised misfit's linear model by this
 #: fraction ends the solve at an optimum (``InverseResult.at_optimum``): the residual left is
 #: orthogonal to everything the chain produced from the directions tried.
@@ -228,6 +240,10 @@ def invert(blackbox: BlackBox, rest: Points, sculpt: Points, *, rtol: float = to
                                         max_evaluations=call.calls + FINISH_EVALUATIONS, start=offsets,
                                         start_outputs=outputs, blocks=blocks, weighted=True)
                 candidates.append(dataclasses.replace(smooth, regime="coupled, from the smooth start"))
+                if len(smooth.missed) and not smooth.at_optimum:
+                    assert adjacency is not None
+                    candidates.extend(_escalate(call, rest, sculpt, base, idx, diagonal, floor, smooth, blocks,
+                                                adjacency, rtol=rtol, started=started))
         if not candidates:  # 2. no smooth start (no edges, or ARPACK failed): from zero
             joint = invert_coupled(call, rest, sculpt, base, idx, diagonal, floor, rtol=rtol, started=started,
                                    max_evaluations=call.calls + FROM_ZERO_EVALUATIONS, blocks=blocks)
@@ -238,6 +254,89 @@ def invert(blackbox: BlackBox, rest: Points, sculpt: Points, *, rtol: float = to
     best = min(candidates, key=lambda c: (len(c.missed), c.max_residual))
     return dataclasses.replace(best, evaluations=call.calls, seconds=time.perf_counter() - started,
                                sculpt_rms=first.sculpt_rms)
+
+
+def _escalate(call: Counted, rest: Points, sculpt: Points, base: Points, idx: NDArray[np.int64], diagonal: float,
+              floor: float, smooth: InverseResult, blocks: NDArray[np.float64], adjacency: sp.csr_matrix, *,
+              rtol: float, started: float) -> list[InverseResult]:
+    """Where the smooth start's finish misses and is not at an optimum: the slower stages, each
+    while the best so far still misses. Newton-Krylov continued from the finish (up to
+    ``MAX_EVALUATIONS``; it ends there if it reaches the tolerance or an optimum), then from
+    zero (``FROM_ZERO_EVALUATIONS``), then the measured smooth start and Newton-Krylov from it
+    (``measured_smooth_start``, 3 calls a field). Every call counts; ``invert`` keeps the best."""
+    found: list[InverseResult] = []
+    basis = smooth_basis(adjacency, idx, MEASURED_FIELDS)
+    if basis is None and len(idx) <= DENSE_FALLBACK:  # ARPACK failed: a dense eigendecomposition
+        basis = smooth_basis(adjacency, idx, MEASURED_FIELDS, dense=True)
+    if basis is not None:
+        start = measured_smooth_start(call, rest, sculpt, base, idx, diagonal, floor, basis, model=blocks)
+        blocky = invert_coupled(call, rest, sculpt, base, idx, diagonal, floor, rtol=rtol, started=started,
+                                max_evaluations=call.calls + MAX_EVALUATIONS, start=start, blocks=blocks, regularised=False)
+        found.append(dataclasses.replace(blocky, regime="coupled, from the smooth start"))
+        if not len(blocky.missed):
+            return found
+    joint = invert_coupled(call, rest, sculpt, base, idx, diagonal, floor, rtol=rtol, started=started,
+                           max_evaluations=call.calls + FROM_ZERO_EVALUATIONS, blocks=blocks, regularised=False)
+    found.append(joint)
+    if not len(joint.missed) or basis is None:
+        return found
+    start = measured_smooth_start(call, rest, sculpt, base, idx, diagonal, floor, basis)
+    measured = invert_coupled(call, rest, sculpt, base, idx, diagonal, floor, rtol=rtol, started=started,
+                              max_evaluations=call.calls + MAX_EVALUATIONS, start=start, blocks=blocks, regularised=False)
+    found.append(dataclasses.replace(measured, regime="coupled, from the measured smooth start"))
+    return found
+
+
+def measured_smooth_start(call: Counted, rest: Points, sculpt: Points, base: Points, idx: NDArray[np.int64],
+                          diagonal: float, floor: float, basis: NDArray[np.float64],
+                          model: NDArray[np.float64] | None = None) -> Points:
+    """Offsets (len(idx), 3) from Gauss-Newton restricted to smooth fields, ``basis`` (k, b)
+    per axis, with the span's Jacobian measured: 3b calls (forward differences, the largest
+    vertex move ``JACOBIAN_STEP_RTOL`` of the diagonal). The step is the truncated
+    least-squares solve (singular values below ``MEASURED_RCOND`` of the largest dropped), and
+    ``MEASURED_STEPS - 1`` more steps refresh that Jacobian by Broyden updates, 1 call each. A
+    step is kept only if it lowers the residual."""
+    k, b = basis.shape
+    target = sculpt[idx]
+    out = base[idx]
+    cols = np.empty((3 * b, 3 * k))  # the span's Jacobian, stored by column (one row each)
+    if model is not None:
+        for c in range(b):
+            for axis in range(3):
+                cols[3 * c + axis] = (model[:, :, axis] * basis[:, c, None]).ravel()
+    else:
+        step = tol.JACOBIAN_STEP_RTOL * max(diagonal, floor)
+        for c in range(b):
+            h = step / max(float(np.abs(basis[:, c]).max()), 1e-300)
+            for axis in range(3):
+                moved = rest.copy()
+                moved[idx, axis] += h * basis[:, c]
+                cols[3 * c + axis] = ((call(moved)[idx] - out) / h).ravel()
+    offsets = np.zeros((k, 3))
+    if not np.all(np.isfinite(cols)):  # the chain gave non-finite values: no smooth start
+        return offsets
+    r = target - out
+    # truncated least squares through the span's Gram matrix (3b x 3b): the same solution as an
+    # SVD of the (3k, 3b) Jacobian, at a fraction of its cost on large regions
+    gram = cols @ cols.T
+    for _ in range(MEASURED_STEPS):
+        values, vectors = np.linalg.eigh(gram)
+        keep = values > MEASURED_RCOND**2 * values[-1] if values[-1] > 0 else np.zeros(len(values), dtype=bool)
+        if not keep.any():
+            break
+        y = vectors[:, keep] @ ((vectors[:, keep].T @ (cols @ r.ravel())) / values[keep])
+        trial = offsets + basis @ y.reshape(b, 3)
+        out_trial = _outputs(call, rest, idx, trial)
+        if not np.all(np.isfinite(out_trial)):
+            break
+        yy = float(y @ y)
+        if yy == 0.0:
+            break
+        smoothstart.broyden(cols, gram, y, (out_trial - out).ravel())
+        r_trial = target - out_trial
+        if np.linalg.norm(r_trial) < np.linalg.norm(r):
+            offsets, out, r = trial, out_trial, r_trial
+    return offsets
 
 
 def _from_per_vertex(call: Counted, blackbox: BlackBox, rest: Points, sculpt: Points, base: Points,
@@ -335,6 +434,7 @@ def invert_coupled(
     start_outputs: Points | None = None,
     blocks: NDArray[np.float64] | None = None,
     weighted: bool = False,
+    regularised: bool = True,
 ) -> InverseResult:
     """Newton-Krylov on the sculpted vertices' offsets (module docstring). ``base`` is
     ``call(rest)``; ``call.calls`` counts the example's calls so far (the budget's measure);
@@ -377,6 +477,8 @@ def invert_coupled(
     # smooth start, its departures from the smooth start more strongly (``FINISH_RIDGE``)
     anchor = np.zeros((k, 3)) if start is None or not weighted else np.array(start, dtype=np.float64)
     ridge = smoothstart.ridge(blocks) * ((FINISH_RIDGE / smoothstart.SPAN_RIDGE) ** 2 if weighted else 1.0)
+    if not regularised:
+        ridge = 0.0
     scale = max(diagonal, floor)
     while np.isfinite(norms).all() and norms.max() > atol and call.calls < max_evaluations - 2:
         at, out_at = offsets, out

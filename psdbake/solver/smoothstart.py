@@ -233,7 +233,7 @@ def span_solve(call: BlackBox, rest: Points, sculpt: Points, idx: NDArray[np.int
         if not np.all(np.isfinite(out_trial)):
             stalled = True
             break
-        _broyden(cols, gram, y, out_trial - out)
+        broyden(cols, gram, y, out_trial - out)
         r_trial = target - out_trial
         before = float(r @ r) + floor_damping * float(x @ x)
         actual = before - float(r_trial @ r_trial) - floor_damping * float(trial @ trial)
@@ -259,7 +259,7 @@ def span_solve(call: BlackBox, rest: Points, sculpt: Points, idx: NDArray[np.int
     return SpanResult(x.reshape(b, 3), out.reshape(k, 3), calls, stalled)
 
 
-def _broyden(cols: NDArray[np.float64], gram: NDArray[np.float64], y: NDArray[np.float64],
+def broyden(cols: NDArray[np.float64], gram: NDArray[np.float64], y: NDArray[np.float64],
              observed: NDArray[np.float64]) -> None:
     """Broyden's update of the model's columns from a step ``y`` and the change it caused,
     ``C += y u^T / (y.y)`` with ``u = observed - C^T y``, row by row (no (3b, 3k) temporary),
