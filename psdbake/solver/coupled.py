@@ -126,9 +126,6 @@ POLISHED = ", polished per vertex"
 #: Smooth fields of the measured smooth start (``measured_smooth_start``, 3 calls each, one
 #: per axis), the last of the escalation's stages (``_escalate``).
 MEASURED_FIELDS = 64
-#: Where ARPACK fails on the escalation's basis (a region of many pieces: CesiumMan's 136),
-#: regions up to this many vertices take a dense eigendecomposition instead.
-DENSE_FALLBACK = 6000
 #: Gauss-Newton steps of the measured smooth start: the first on the measured Jacobian, then
 #: Broyden's updates of it, 1 call each.
 MEASURED_STEPS = 4
@@ -256,8 +253,8 @@ def invert(blackbox: BlackBox, rest: Points, sculpt: Points, *, rtol: float = to
                     candidates.extend(_polish(call, rest, sculpt, idx, max(diagonal, floor), candidates[-1],
                                               started=started))
                     if len(candidates[-1].missed):
-                        candidates.extend(_escalate(call, rest, sculpt, base, idx, diagonal, floor, blocks,
-                                                    adjacency, rtol=rtol, started=started))
+                        candidates.extend(_escalate(call, blackbox, rest, sculpt, base, idx, diagonal, floor, first,
+                                                    blocks, adjacency, rtol=rtol, started=started))
                         best = min(candidates, key=_rank)
                         if not (best.at_optimum or best.regime.endswith(POLISHED)):
                             candidates.extend(_polish(call, rest, sculpt, idx, max(diagonal, floor), best,
@@ -338,33 +335,37 @@ def _polish(call: Counted, rest: Points, sculpt: Points, idx: NDArray[np.int64],
                           regime=result.regime + POLISHED)]
 
 
-def _escalate(call: Counted, rest: Points, sculpt: Points, base: Points, idx: NDArray[np.int64], diagonal: float,
-              floor: float, blocks: NDArray[np.float64], adjacency: sp.csr_matrix, *,
-              rtol: float, started: float) -> list[InverseResult]:
+def _escalate(call: Counted, blackbox: BlackBox, rest: Points, sculpt: Points, base: Points, idx: NDArray[np.int64],
+              diagonal: float, floor: float, first: InverseResult, blocks: NDArray[np.float64],
+              adjacency: sp.csr_matrix, *, rtol: float, started: float) -> list[InverseResult]:
     """Where the smooth start's finish misses, is not at an optimum and the polish does not
     finish it: the slower stages, each while the last still misses, unregularised. The blocks'
     smooth start over the region's ``MEASURED_FIELDS`` smoothest fields
     (``measured_smooth_start`` with the blocks as the span's model) and Newton-Krylov from it
     (up to ``MAX_EVALUATIONS``), Newton-Krylov from zero (``FROM_ZERO_EVALUATIONS``), then the
-    span's Jacobian measured (3 calls a field) and Newton-Krylov from there. On CesiumMan,
+    span's Jacobian measured (3 calls a field) and Newton-Krylov from there; where ARPACK finds
+    no basis, the per-vertex solution and Newton-Krylov restarted from it instead. On CesiumMan,
     through the chain from known offsets, the first of them left 844 of 2,620 vertices above
     the tolerance where the smooth start's finish left 2,617. Every call counts; ``invert``
     keeps the best."""
     found: list[InverseResult] = []
     basis = smooth_basis(adjacency, idx, MEASURED_FIELDS)
-    if basis is None and len(idx) <= DENSE_FALLBACK:  # ARPACK failed: a dense eigendecomposition
-        basis = smooth_basis(adjacency, idx, MEASURED_FIELDS, dense=True)
     if basis is not None:
         start = measured_smooth_start(call, rest, sculpt, base, idx, diagonal, floor, basis, model=blocks)
         blocky = invert_coupled(call, rest, sculpt, base, idx, diagonal, floor, rtol=rtol, started=started,
-                                max_evaluations=call.calls + MAX_EVALUATIONS, start=start, blocks=blocks, regularised=False)
+                                max_evaluations=call.calls + MAX_EVALUATIONS, start=start, blocks=blocks,
+                                regularised=False)
         found.append(dataclasses.replace(blocky, regime="coupled, from the smooth start"))
         if not len(blocky.missed):
             return found
     joint = invert_coupled(call, rest, sculpt, base, idx, diagonal, floor, rtol=rtol, started=started,
                            max_evaluations=call.calls + FROM_ZERO_EVALUATIONS, blocks=blocks, regularised=False)
     found.append(joint)
-    if not len(joint.missed) or basis is None:
+    if not len(joint.missed):
+        return found
+    if basis is None:  # ARPACK failed (a region of many pieces): the per-vertex solution and a restart from it
+        found.extend(_from_per_vertex(call, blackbox, rest, sculpt, base, idx, diagonal, floor, first, blocks,
+                                      rtol=rtol, started=started, regularised=False))
         return found
     start = measured_smooth_start(call, rest, sculpt, base, idx, diagonal, floor, basis)
     measured = invert_coupled(call, rest, sculpt, base, idx, diagonal, floor, rtol=rtol, started=started,
@@ -427,8 +428,10 @@ def measured_smooth_start(call: Counted, rest: Points, sculpt: Points, base: Poi
 
 def _from_per_vertex(call: Counted, blackbox: BlackBox, rest: Points, sculpt: Points, base: Points,
                      idx: NDArray[np.int64], diagonal: float, floor: float, first: InverseResult,
-                     blocks: NDArray[np.float64], *, rtol: float, started: float) -> list[InverseResult]:
-    """Without mesh edges: the full per-vertex solve, and Newton-Krylov restarted from it."""
+                     blocks: NDArray[np.float64], *, rtol: float, started: float,
+                     regularised: bool = True) -> list[InverseResult]:
+    """Without mesh edges (or a smooth basis): the full per-vertex solve, and Newton-Krylov
+    restarted from it (``regularised``: as ``invert_coupled``)."""
     per_vertex = first
     if first.regime == COUPLING_SEEN:
         per_vertex = invert_example_with(blackbox, rest, sculpt, rtol=rtol)
@@ -436,7 +439,8 @@ def _from_per_vertex(call: Counted, blackbox: BlackBox, rest: Points, sculpt: Po
     found = [dataclasses.replace(per_vertex, regime="coupled chain, per-vertex kept")]
     if len(per_vertex.missed) and np.array_equal(per_vertex.indices, idx):
         warm = invert_coupled(call, rest, sculpt, base, idx, diagonal, floor, rtol=rtol, started=started,
-                              max_evaluations=call.calls + MAX_EVALUATIONS, start=per_vertex.offsets, blocks=blocks)
+                              max_evaluations=call.calls + MAX_EVALUATIONS, start=per_vertex.offsets, blocks=blocks,
+                              regularised=regularised)
         found.append(dataclasses.replace(warm, regime="coupled, from the per-vertex solution"))
     return found
 
@@ -531,7 +535,7 @@ def invert_coupled(
     ``at_optimum`` where no direction of a step's Krylov space could lower its linear model
     by ``OPTIMUM_RTOL``. ``weighted``: each vertex's residual weighs by how far above the
     residuals' RMS it is (``WEIGHT_FLOOR``), for a finish where few vertices are left above
-    the tolerance."""
+    the tolerance. ``regularised=False``: no ridge (the escalation's stages, ``_escalate``)."""
     atol = max(rtol * diagonal, floor)
     target = sculpt[idx]
     k = len(idx)

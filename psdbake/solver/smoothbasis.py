@@ -57,18 +57,16 @@ def edge_adjacency(topology: Topology) -> sp.csr_matrix:
     return adj
 
 
-def smooth_basis(adjacency: sp.csr_matrix, region: NDArray[np.int64], count: int,
-                 dense: bool = False) -> NDArray[np.float64] | None:
+def smooth_basis(adjacency: sp.csr_matrix, region: NDArray[np.int64], count: int) -> NDArray[np.float64] | None:
     """Orthonormal columns (len(region), b <= count): the ``count`` smoothest fields on the
     region's own edges (eigenvectors of its graph Laplacian, free at its border), smoothest
-    first; None when the region has no edge (nothing to be smooth along), or ARPACK failed.
-    ``dense``: a dense eigendecomposition whatever the region's size."""
+    first; None when the region has no edge (nothing to be smooth along)."""
     region = np.asarray(region, dtype=np.int64)
     k = len(region)
     inner = adjacency[region][:, region].tocsr()
     if inner.nnz == 0 or k < 2:
         return None
-    return _fields(inner, min(int(count), k - 1), dense)
+    return _fields(inner, min(int(count), k - 1))
 
 
 def smooth_bases(adjacency: sp.csr_matrix, region: NDArray[np.int64], coarse: int,
@@ -106,14 +104,14 @@ def smooth_bases(adjacency: sp.csr_matrix, region: NDArray[np.int64], coarse: in
     return np.asarray(columns, dtype=np.float64), coarse_part.shape[1]
 
 
-def _fields(inner: sp.csr_matrix, b: int, dense: bool = False) -> NDArray[np.float64] | None:
+def _fields(inner: sp.csr_matrix, b: int) -> NDArray[np.float64] | None:
     """The b smoothest eigenvectors of the graph Laplacian of ``inner`` (a region's own edges),
-    smoothest first: dense for small regions (or ``dense``), else ARPACK in shift-invert mode; None if it fails."""
+    smoothest first: dense for small regions, else ARPACK in shift-invert mode; None if it fails."""
     k = inner.shape[0]
     degree = np.asarray(inner.sum(axis=1)).ravel()
     laplacian = (sp.diags(degree) - inner).tocsc()
     shift = SHIFT * max(float(degree.mean()), 1.0)
-    if dense or k <= DENSE_BELOW or b >= k - 1:
+    if k <= DENSE_BELOW or b >= k - 1:
         values, vectors = np.linalg.eigh(laplacian.toarray())
         return np.asarray(vectors[:, :b], dtype=np.float64)
     # a fixed start vector (no random numbers: every run gives the same basis), not the
