@@ -142,10 +142,10 @@ def bench_rig(rig: rigs.Rig, times: Sequence[float], poses: dict, methods: Seque
             name = f"{rig.name} elbow {poses[t]['Elbow'][1]:g} deg"
             for tally in (every, bent) if t in folded else (every,):
                 tally.add(name, calls, seconds, residual, atol, diagonal)
-        rows.append([rig.name.split()[0], str(len(times)), LABELS[method], *every.cells()])
+        rows.append([rig.size, str(len(times)), LABELS[method], *every.cells()])
         _show(rows[-1])
         if folded and len(folded) < len(times):
-            rows.append([f"{rig.name.split()[0]} folded", str(len(folded)), LABELS[method], *bent.cells()])
+            rows.append([f"{rig.size} folded", str(len(folded)), LABELS[method], *bent.cells()])
             _show(rows[-1])
         raw.append({"rig": rig.name, "method": method, "examples": every.examples})
     return rows
