@@ -35,6 +35,12 @@ Jacobian, for a smoothing deformer the skinning's own blocks) and its linearised
    Krylov space that minimises the regularised misfit's linear model; one call at
    ``rest + D`` checks it (halved up to ``BACKTRACKS`` times where it does not help). In this
    finish the vertices still above the tolerance weigh by how far above they are.
+3. Where that misses short of an optimum: a **local polish** (``_polish``) of the few vertices
+   left above the tolerance, their own Jacobian columns measured; where that misses too, the
+   **slower stages** (``_escalate``: the blocks' smooth start over the region's smoothest
+   fields, Newton-Krylov from zero, the span's Jacobian measured), then the polish of the best.
+   The fast path alone costs a few dozen calls; these cost hundreds where they run, and the
+   best of every result is kept, so an example never ends worse than the fast path left it.
 
 The result is ``at_optimum`` when the last Krylov space could not lower the residual's linear
 model by ``OPTIMUM_RTOL``: what is left is orthogonal to everything the chain produced from
@@ -200,7 +206,8 @@ def invert(blackbox: BlackBox, rest: Points, sculpt: Points, *, rtol: float = to
     pay nothing to find out. When they show coupling and the linearised start misses, the
     joint solve takes over from what the per-vertex solver measured (the chain at rest and the
     blocks cost no call again): the smooth start (``smooth_start``; ``neighbours()`` gives the
-    mesh's edge adjacency), then Newton-Krylov. Without edges, Newton-Krylov from zero, then
+    mesh's edge adjacency), then Newton-Krylov; where that misses short of an optimum, the
+    polish and the slower stages (module docstring). Without edges, Newton-Krylov from zero, then
     the per-vertex solve and a restart from it; the kept result has the fewest vertices above
     the tolerance, then the smallest worst residual, both measured by running the chain. A
     sculpt that leaves no unsculpted neighbour is probed (1 call) once the linearised start
