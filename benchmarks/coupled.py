@@ -1,16 +1,22 @@
 """Inverting a chain that couples vertices: LBS + Delta Mush (10 iterations, step 0.5).
 
-One table, three methods on the same examples (``benchmarks.rigs`` variant ``lbs+deltamush``,
-the 13k and 100k bench rigs):
+Three methods on the same examples, side by side in one run:
 
 * per-vertex: ``inverse.invert_example`` as is (Powell in lockstep, assumes no coupling);
 * one-shot: cvShapeInverter's linearisation, a 3x3 Jacobian per vertex from 3 calls moving
   every sculpted vertex together, D = J^-1 r, no iteration (its residual checked here);
-* coupled: ``coupled.invert`` (coupling probe, Newton-Krylov from zero, then from the smooth
-  start where that misses: ``psdbake.solver.smoothbasis``).
+* psdbake: ``coupled.invert`` (the smooth start that measures the chain's smoothing, then
+  Newton-Krylov: ``psdbake.solver.coupled``).
 
-Every residual is measured here by running the full chain on rest + offsets. Usage:
-``python -m benchmarks.coupled [--examples N] [--examples-100k N]``.
+Tables: the bench rigs (``benchmarks.rigs`` variant ``lbs+deltamush``) at about 1.3k, 3k, 13k
+and 100k points, eight examples each (elbow 20-160 degrees), every example and the folded
+ones (elbow 60 degrees and more, where LBS folds the inner elbow) in rows of their own; the
+real characters (``benchmarks.characters``: CesiumMan and the character fixture) with sculpts
+made through the chain from known smooth offsets; and CesiumMan's shipped sculpts, which no
+offset reproduces through Delta Mush, against a long-run reference optimiser on the same
+objective (``reference``). Every residual is measured here by running the full chain on
+rest + offsets. Usage: ``python -m benchmarks.coupled [--sizes 1.3k,3k,13k,100k] [--examples N]
+[--no-characters] [--reference-iterations N]``.
 """
 
 from __future__ import annotations
@@ -18,10 +24,12 @@ from __future__ import annotations
 import argparse
 import tempfile
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.optimize import least_squares
+from threadpoolctl import threadpool_limits
 
 from psdbake import tolerances as tol
 from psdbake.solver import coupled
@@ -29,13 +37,23 @@ from psdbake.solver.inverse import invert_example, sculpted_vertices
 from psdbake.solver.smoothbasis import edge_adjacency
 from psdbake.usd.meshrest import rest_mesh
 
-from . import results, rigs
+from . import characters, results, rigs
 
 VARIANT = "lbs+deltamush"
+METHODS = ("per-vertex", "one-shot", "coupled")
+SIZES = ("1.3k", "3k", "13k", "100k")
+#: An example is folded where the elbow bends this far or more (LBS folds the inner elbow).
+FOLDED_DEGREES = 60.0
+#: The reference optimiser's Gauss-Newton iterations on CesiumMan's shipped sculpts (each a
+#: Jacobian by coloured finite differences: 1,159 calls on CesiumMan, whose whole mesh is
+#: sculpted).
+REFERENCE_ITERATIONS = 40
+
+Box = Callable[[NDArray[np.float64]], NDArray[np.float64]]
 
 
-def one_shot(box: Callable[[NDArray[np.float64]], NDArray[np.float64]], rest: NDArray[np.float64],
-             sculpt: NDArray[np.float64]) -> tuple[NDArray[np.int64], NDArray[np.float64], int]:
+def one_shot(box: Box, rest: NDArray[np.float64], sculpt: NDArray[np.float64]
+             ) -> tuple[NDArray[np.int64], NDArray[np.float64], int]:
     """cvShapeInverter's method: (sculpted indices, offsets, calls)."""
     base = box(rest)
     diagonal, floor, idx = sculpted_vertices(rest, base, sculpt)
@@ -44,86 +62,232 @@ def one_shot(box: Callable[[NDArray[np.float64]], NDArray[np.float64]], rest: ND
     return idx, offsets, 4
 
 
-METHODS = ("per-vertex", "one-shot", "coupled")
+def run_method(method: str, box: Box, rest: NDArray[np.float64], sculpt: NDArray[np.float64], adjacency
+               ) -> tuple[NDArray[np.int64], NDArray[np.float64], int, float]:
+    """(sculpted indices, offsets, calls, seconds) of one method on one example."""
+    started = time.perf_counter()
+    if method == "one-shot":
+        idx, offsets, calls = one_shot(box, rest, sculpt)
+    else:
+        res = (invert_example(box, rest, sculpt) if method == "per-vertex" else
+               coupled.invert(box, rest, sculpt, neighbours=lambda: adjacency))
+        idx, offsets, calls = res.indices, res.offsets, res.evaluations
+    return idx, offsets, calls, time.perf_counter() - started
 
 
-def measure(rig: rigs.Rig, times: list[float], methods: tuple[str, ...] = METHODS
-            ) -> list[tuple[str, float, float, float, int, int]]:
-    """Per method: (method, calls/example, s/example, max residual / diagonal, missed, sculpted)."""
+def residuals(check: Box, rest: NDArray[np.float64], sculpt: NDArray[np.float64], idx: NDArray[np.int64],
+              offsets: NDArray[np.float64]) -> tuple[NDArray[np.float64], float, float]:
+    """(residual per sculpted vertex, atol, diagonal), by running the full chain on rest + offsets."""
+    base = check(rest)
+    diagonal, floor, _ = sculpted_vertices(rest, base, sculpt)
+    moved = rest.copy()
+    moved[idx] += offsets
+    return np.linalg.norm(sculpt[idx] - check(moved)[idx], axis=1), max(tol.INVERSE_RTOL * diagonal, floor), diagonal
+
+
+class Tally:
+    """Sums over examples for one table row, and each example's own figures (the record's raw)."""
+
+    def __init__(self) -> None:
+        self.calls: list[int] = []
+        self.seconds = self.worst = self.squares = 0.0
+        self.missed = self.sculpted = 0
+        self.examples: list[dict] = []
+
+    def add(self, name: str, calls: int, seconds: float, residual: NDArray[np.float64], atol: float,
+            diagonal: float) -> None:
+        self.calls.append(calls)
+        self.seconds += seconds
+        worst = float(residual.max(initial=0.0)) / diagonal
+        self.worst = max(self.worst, worst)
+        self.squares += float(np.sum((residual / diagonal) ** 2))
+        missed = int(np.count_nonzero(residual > atol))
+        self.missed += missed
+        self.sculpted += len(residual)
+        self.examples.append({"example": name, "calls": calls, "seconds": round(seconds, 3), "missed": missed,
+                              "sculpted": len(residual), "max_residual_rel": worst,
+                              "rms_residual_rel": float(np.sqrt(np.mean((residual / diagonal) ** 2)))})
+
+    def cells(self) -> list[str]:
+        """calls / example (range), s / example, max and RMS residual / diag, vertices above tolerance."""
+        n = max(len(self.calls), 1)
+        spread = f" ({min(self.calls)}-{max(self.calls)})" if len(set(self.calls)) > 1 else ""
+        rms = np.sqrt(self.squares / max(self.sculpted, 1))
+        return [f"{sum(self.calls) / n:.1f}{spread}", f"{self.seconds / n:.2f}", f"{self.worst:.2e}", f"{rms:.2e}",
+                f"{self.missed:,} of {self.sculpted:,}"]
+
+
+COLUMNS = ["calls / example (range)", "s / example", "max residual / diag", "RMS residual / diag",
+           "vertices above tolerance"]
+LABELS = {"per-vertex": "per-vertex (Powell in lockstep)", "one-shot": "one-shot linearisation (cvShapeInverter's method)",
+          "coupled": "psdbake"}
+
+
+def _show(row: Sequence[str]) -> None:
+    print(" | ".join(row), flush=True)
+
+
+def bench_rig(rig: rigs.Rig, times: Sequence[float], poses: dict, methods: Sequence[str], raw: list[dict]
+              ) -> list[list[str]]:
+    """Every method on every example of one rig: a row for all, one for the folded ones."""
     scene = rig.scene()
     adjacency = edge_adjacency(rest_mesh(scene.stage, rigs.MESH)[1])
+    folded = [t for t in times if poses[t]["Elbow"][1] >= FOLDED_DEGREES]
     rows = []
     for method in methods:
-        calls = seconds = worst = 0.0
-        missed = sculpted = 0
+        every, bent = Tally(), Tally()
         for t in times:
-            box = rig.blackbox(scene, t)
-            sculpt = rig.sculpts[t]
-            started = time.perf_counter()
-            if method == "one-shot":
-                idx, offsets, n = one_shot(box, rig.rest, sculpt)
-            else:
-                res = (invert_example(box, rig.rest, sculpt) if method == "per-vertex" else
-                       coupled.invert(box, rig.rest, sculpt, neighbours=lambda: adjacency))
-                idx, offsets, n = res.indices, res.offsets, res.evaluations
-            seconds += time.perf_counter() - started
-            calls += n
-            check = rig.blackbox(scene, t)  # the full chain on rest + offsets
-            base = check(rig.rest)
-            diagonal, floor, _ = sculpted_vertices(rig.rest, base, sculpt)
-            atol = max(tol.INVERSE_RTOL * diagonal, floor)
-            moved = rig.rest.copy()
-            moved[idx] += offsets
-            residual = np.linalg.norm(sculpt[idx] - check(moved)[idx], axis=1)
-            worst = max(worst, float(residual.max(initial=0.0)) / diagonal)
-            missed += int(np.count_nonzero(residual > atol))
-            sculpted += len(idx)
-        rows.append((method, calls / len(times), seconds / len(times), worst, missed, sculpted))
+            idx, offsets, calls, seconds = run_method(method, rig.blackbox(scene, t), rig.rest, rig.sculpts[t], adjacency)
+            residual, atol, diagonal = residuals(rig.blackbox(scene, t), rig.rest, rig.sculpts[t], idx, offsets)
+            name = f"{rig.name} elbow {poses[t]['Elbow'][1]:g} deg"
+            for tally in (every, bent) if t in folded else (every,):
+                tally.add(name, calls, seconds, residual, atol, diagonal)
+        rows.append([rig.size, str(len(times)), LABELS[method], *every.cells()])
+        _show(rows[-1])
+        if folded and len(folded) < len(times):
+            rows.append([f"{rig.size} folded", str(len(folded)), LABELS[method], *bent.cells()])
+            _show(rows[-1])
+        raw.append({"rig": rig.name, "method": method, "examples": every.examples})
+    return rows
+
+
+def bench_cases(label: str, cases: Sequence[characters.Case], methods: Sequence[str], raw: list[dict]
+                ) -> list[list[str]]:
+    """Every method on a set of character examples (one row per method)."""
+    rows = []
+    for method in methods:
+        tally = Tally()
+        for case in cases:
+            idx, offsets, calls, seconds = run_method(method, case.box, case.rest, case.sculpt, case.adjacency)
+            residual, atol, diagonal = residuals(case.box, case.rest, case.sculpt, idx, offsets)
+            tally.add(case.name, calls, seconds, residual, atol, diagonal)
+        rows.append([label, str(len(cases)), LABELS[method], *tally.cells()])
+        _show(rows[-1])
+        raw.append({"rig": label, "method": method, "examples": tally.examples})
+    return rows
+
+
+def reference(case: characters.Case, iterations: int) -> tuple[float, int, float]:
+    """A long-run reference optimiser on psdbake's objective, ``|r|^2 + ridge |D|^2`` over the
+    sculpted vertices (``smoothstart.ridge`` of the chain's own blocks): scipy's trust-region
+    least squares (``least_squares(method="trf")``) from zero, its Jacobian by finite
+    differences over Delta Mush's reach, coloured (``jac_sparsity``: one call per colour).
+    Only the chain is called, as psdbake does. Returns (RMS residual / diagonal, calls, seconds)."""
+    from psdbake.solver import smoothstart
+
+    started = time.perf_counter()
+    base = case.box(case.rest)
+    diagonal, floor, idx = sculpted_vertices(case.rest, base, case.sculpt)
+    blocks = coupled.chain_blocks(case.box, case.rest, base, idx, diagonal, floor)
+    weight = np.sqrt(smoothstart.ridge(blocks))
+    pattern = characters.reach_pattern(case.adjacency, idx, characters.DELTA_MUSH_RINGS)
+    k = len(idx)
+    augmented = pattern.tolil()
+    augmented.resize((6 * k, 3 * k))
+    augmented.setdiag(1.0, k=-3 * k)
+    target = case.sculpt[idx].ravel()
+    calls = [4]
+
+    def misfit(x: NDArray[np.float64]) -> NDArray[np.float64]:
+        calls[0] += 1
+        moved = case.rest.copy()
+        moved[idx] += x.reshape(k, 3)
+        return np.concatenate([case.box(moved)[idx].ravel() - target, weight * x]) / diagonal
+
+    with threadpool_limits(limits=1, user_api="blas"):
+        found = least_squares(misfit, np.zeros(3 * k), jac_sparsity=augmented.tocsr(), method="trf", tr_solver="lsmr",
+                              x_scale="jac", max_nfev=iterations, diff_step=1e-4)
+    r = found.fun[: 3 * k].reshape(k, 3)
+    return float(np.sqrt(np.mean(np.sum(r**2, axis=1)))), calls[0], time.perf_counter() - started
+
+
+def bench_shipped(iterations: int, raw: list[dict]) -> list[list[str]]:
+    """psdbake against the reference optimiser on CesiumMan's shipped sculpts."""
+    rows = []
+    for case in characters.cesium(shipped=True):
+        started = time.perf_counter()
+        res = coupled.invert(case.box, case.rest, case.sculpt, neighbours=lambda case=case: case.adjacency)
+        seconds = time.perf_counter() - started
+        residual, atol, diagonal = residuals(case.box, case.rest, case.sculpt, res.indices, res.offsets)
+        rms = float(np.sqrt(np.mean(residual**2))) / diagonal
+        ref_rms, ref_calls, ref_seconds = reference(case, iterations) if iterations > 0 else (float("nan"), 0, 0.0)
+        optimum, unreachable = getattr(res, "at_optimum", None), getattr(res, "unreachable_fraction", None)
+        rows.append([case.name.removesuffix(" shipped"), str(res.evaluations), f"{seconds:.1f}", f"{rms:.3e}",
+                     f"{float(residual.max()) / diagonal:.2e}",
+                     f"{int(np.count_nonzero(residual > atol)):,} of {len(residual):,}",
+                     "-" if optimum is None else ("yes" if optimum else "no"),
+                     "-" if unreachable is None else f"{unreachable:.1%}",
+                     f"{ref_calls:,}", f"{ref_seconds:.0f}", f"{ref_rms:.3e}", f"{rms / ref_rms:.3f}"])
+        _show(rows[-1])
+        raw.append({"example": case.name, "calls": res.evaluations, "seconds": seconds, "rms_residual_rel": rms,
+                    "regime": res.regime, "at_optimum": optimum, "unreachable_fraction": unreachable,
+                    "reference_calls": ref_calls, "reference_seconds": ref_seconds, "reference_rms_residual_rel": ref_rms})
     return rows
 
 
 ABOUT = (
-    "LBS followed by the reference Delta Mush (10 iterations, step 0.5), 8 examples bending the elbow from 20° "
-    "to 160° with the wrist; three methods side by side in one run per rig: the per-vertex solver (Powell in "
-    "lockstep, which assumes no coupling), the one-shot linearisation (cvShapeInverter's method: a 3x3 "
-    "Jacobian per vertex from 3 calls, no iteration) and psdbake (coupling seen, smooth start, Newton-Krylov, "
-    "best stage kept). Every residual is measured by running the chain on rest + offsets. How the stages were "
-    "chosen: [decisions/coupled-inverse.md](decisions/coupled-inverse.md)."
+    "LBS followed by the reference Delta Mush (10 iterations, step 0.5). The bench rigs (`benchmarks/rigs.py`) at "
+    "about 1.3k, 3k, 13k and 100k points, 8 examples each bending the elbow from 20° to 160° with the wrist "
+    "(\"folded\": the six at 60° and more, where LBS folds the inner elbow); real characters (`benchmarks/characters.py`: "
+    "CesiumMan and the character fixture) with sculpts made through the chain from the fixtures' own smooth rest-space "
+    "offsets, so an exact answer exists; and CesiumMan's shipped sculpts, made on the plain-skinned mesh, which no "
+    "offset reproduces through Delta Mush, against a long-run reference optimiser on the same objective. Three "
+    "methods side by side in one run: the per-vertex solver (Powell in lockstep, which assumes no coupling), the "
+    "one-shot linearisation (cvShapeInverter's method: a 3x3 Jacobian per vertex from 3 calls, no iteration) and "
+    "psdbake. Every residual is measured by running the chain on rest + offsets. How the stages were chosen: "
+    "[decisions/coupled-inverse.md](decisions/coupled-inverse.md) and "
+    "[decisions/coupled-inverse-coarse-meshes.md](decisions/coupled-inverse-coarse-meshes.md)."
 )
-LABELS = {"per-vertex": "per-vertex (Powell in lockstep)", "one-shot": "one-shot linearisation (cvShapeInverter's method)",
-          "coupled": "psdbake (coupling seen, smooth start, Newton-Krylov, best kept)"}
+SHIPPED_ABOUT = (
+    "The reference optimiser minimises psdbake's objective, |r|² + ridge |D|² over the sculpted vertices, with "
+    "scipy's `least_squares(method=\"trf\")` from zero, its Jacobian by finite differences over Delta Mush's 12-edge "
+    "reach, coloured (one call per colour); like psdbake it only calls the chain. \"Not reproduced\" is what the "
+    "summary reports: the RMS residual over the RMS of the sculpt's own displacement."
+)
 
 
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--examples", type=int, default=8, help="examples on the 13k rig (of 8)")
-    parser.add_argument("--examples-100k", type=int, default=8, help="examples on the 100k rig (of 8)")
+    parser.add_argument("--sizes", default=",".join(SIZES), help="comma-separated, of: " + ", ".join(rigs.SIZES))
+    parser.add_argument("--examples", type=int, default=8, help="examples per rig (of 8)")
     parser.add_argument("--methods", default=",".join(METHODS), help="comma-separated, of: " + ", ".join(METHODS))
+    parser.add_argument("--no-characters", action="store_true", help="skip CesiumMan and the character fixture")
+    parser.add_argument("--reference-iterations", type=int, default=REFERENCE_ITERATIONS,
+                        help="the reference optimiser's iterations on CesiumMan's shipped sculpts (0: skip it)")
     parser.add_argument("--json", default=results.path_of("coupled"), help="where to write the results record")
     args = parser.parse_args(argv)
     methods = tuple(m for m in args.methods.split(",") if m)
+    sizes = tuple(s for s in args.sizes.split(",") if s)
     if not set(methods) <= set(METHODS):
         parser.error(f"--methods: unknown {sorted(set(methods) - set(METHODS))}")
+    if not set(sizes) <= set(rigs.SIZES):
+        parser.error(f"--sizes: unknown {sorted(set(sizes) - set(rigs.SIZES))}")
     print(f"# {VARIANT}: per-vertex vs one-shot vs coupled inverse (residuals by running the chain)")
-    print(f"{'rig':<20} {'examples':>8} {'method':<11} {'calls/ex':>9} {'s/ex':>8} {'max res/diag':>13} "
-          f"{'missed / sculpted':>18}")
-    rows: list[list[str]] = []
+    rig_rows: list[list[str]] = []
+    character_rows: list[list[str]] = []
+    raw: dict[str, list[dict]] = {"rigs": [], "characters": [], "shipped": []}
     with tempfile.TemporaryDirectory() as folder:
         poses_layer, poses = rigs.write_poses(folder)
-        for size, count in (("13k", args.examples), ("100k", args.examples_100k)):
-            if count <= 0:
-                continue
+        for size in sizes:
             rig = rigs.build(folder, VARIANT, size, poses, poses_layer)
-            times = rig.times[:count]
-            for method, calls, seconds, worst, missed, sculpted in measure(rig, times, methods):
-                print(f"{rig.name:<20} {len(times):>8} {method:<11} {calls:>9.1f} {seconds:>8.2f} {worst:>13.2e} "
-                      f"{f'{missed} / {sculpted}':>18}", flush=True)
-                rows.append([size, str(len(times)), LABELS[method], f"{calls:.1f}", f"{seconds:.2f}", f"{worst:.2e}",
-                             f"{missed:,} of {sculpted:,}"])
-    table = results.table("A chain that couples vertices: LBS + Delta Mush",
-                          ["rig", "examples", "method", "calls / example", "s / example", "max residual / diag",
-                           "vertices above tolerance"], rows)
-    results.write("coupled", argv, ABOUT, [table], raw=rows, path=args.json)
+            rig_rows += bench_rig(rig, rig.times[: args.examples], poses, methods, raw["rigs"])
+        if not args.no_characters:
+            character_rows += bench_cases("CesiumMan (3,273 points, 2 examples)", characters.cesium(), methods,
+                                          raw["characters"])
+            character_rows += bench_cases("character fixture (3 tubes + sleeve, 8 examples)",
+                                          characters.whole_character(folder), methods, raw["characters"])
+    tables = [results.table("The bench rigs: LBS + Delta Mush", ["rig", "examples", "method", *COLUMNS], rig_rows)]
+    if not args.no_characters:
+        tables.append(results.table("Real characters, sculpts made through the chain", ["character", "examples", "method",
+                                                                                        *COLUMNS], character_rows))
+        print(f"# CesiumMan's shipped sculpts (made on the plain-skinned mesh) through {VARIANT}")
+        shipped = bench_shipped(args.reference_iterations, raw["shipped"])
+        tables.append(results.table(
+            "CesiumMan's shipped sculpts against a reference optimiser",
+            ["example", "psdbake calls", "s", "RMS residual / diag", "max residual / diag", "vertices above tolerance",
+             "at optimum", "not reproduced", "reference calls", "reference s", "reference RMS / diag",
+             "RMS ratio (psdbake / reference)"], shipped, notes=SHIPPED_ABOUT))
+    results.write("coupled", argv, ABOUT, tables, raw=raw, path=args.json)
 
 
 if __name__ == "__main__":

@@ -37,8 +37,8 @@ MESH = generate.MESH
 DEFORMER_SPEC = "benchmarks.deformers:bulge"
 #: The coupling chain's deformer: psdbake's reference Delta Mush (10 iterations, step 0.5).
 DELTA_MUSH_SPEC = "psdbake.delta_mush:delta_mush"
-#: Sizes (rings, segments): about 1.3k, 13k, 100k and 1M points (1M: benchmarks/fitspeed.py only).
-SIZES = {"1.3k": (82, 16), "13k": (260, 50), "100k": (625, 160), "1M": (2500, 400)}
+#: Sizes (rings, segments): about 1.3k, 3k, 13k, 100k and 1M points (1M: benchmarks/fitspeed.py only).
+SIZES = {"1.3k": (82, 16), "3k": (130, 24), "13k": (260, 50), "100k": (625, 160), "1M": (2500, 400)}
 #: Variant -> (UsdSkel skinning method, user deformer chain).
 VARIANTS = {"lbs": ("classicLinear", False), "dqs": ("dualQuaternion", False), "lbs+bulge": ("classicLinear", True)}
 #: Chains whose deformer couples vertices (benchmarks/coupled.py), kept out of VARIANTS, which

@@ -121,6 +121,8 @@ def fit_report(result: FitResult, output: str) -> dict:
                 "tolerance": inv.atol, "missed": len(inv.missed),
                 "missed_vertices": [int(i) for i in inv.missed[:100]], "missed_statuses": inv.missed_statuses,
                 "seconds": round(inv.seconds, 6),
+                "at_optimum": inv.at_optimum, "unreachable_fraction": inv.unreachable_fraction,
+                "worst_vertices": _worst(inv),
             })
         d = m.driver_data
         meshes.append({
@@ -137,6 +139,23 @@ def fit_report(result: FitResult, output: str) -> dict:
         "degraded": [f"{c.label} <{c.mesh}>" for c in result.degraded], "written": True,
         "roundtrip_tolerance": tol.ROUNDTRIP_RTOL,
     }
+
+
+def _worst(inv: Any, count: int = 20) -> list[list[float]]:
+    """The example's worst vertices above its tolerance, worst first: [vertex, residual / diagonal]."""
+    above = [(float(r), int(i)) for i, r in zip(inv.indices, inv.residual, strict=True) if not r <= inv.atol]
+    diag = inv.diagonal or 1.0
+    return [[i, r / diag] for r, i in sorted(above, key=lambda p: (-p[0], p[1]))[:count]]
+
+
+def _unreachable_line(label: str, inv: Any) -> str:
+    """Where an example missed: how much of its sculpt is not reproduced, where, and whether the
+    solve ended at an optimum (the chain smooths it away) or short of one (the solver stopped)."""
+    worst = ", ".join(str(v) for v, _ in _worst(inv, 3))
+    verdict = ("at a least-squares optimum: the deformer chain cannot reproduce it" if inv.at_optimum else
+               "the solver stopped short of an optimum")
+    return (f"{label}: {len(inv.missed)} vertices above the tolerance, {inv.unreachable_fraction:.1%} of the sculpt not "
+            f"reproduced (worst: {worst}); {verdict}")
 
 
 def fit_failure(result: FitResult, output: str, *, strict: bool, allow_degraded: bool) -> str | None:
@@ -212,6 +231,10 @@ def say_fit(ui: Ui, result: FitResult, output: str, changes: GroupChanges | None
         detail = ", ".join(f"{name} {count}" for name, count in sorted(why.items()))
         ui.warn(f"{output}: {result.missed} vertices missed the fit tolerance ({detail}; see --report; --strict makes "
                 "this fatal)")
+        for m in result.meshes:
+            for ex, inv in zip(m.examples, m.inverses, strict=True):
+                if len(inv.missed) and inv.regime != "per-vertex":
+                    ui.warn(f"{output}: {_unreachable_line(ex.label, inv)}")
     if result.settings.smoothing > 0 and result.checks:
         worst = max(result.checks, key=lambda c: c.error)
         ui.warn(f"{output}: --smoothing {result.settings.smoothing:g}: the product approximates the examples "

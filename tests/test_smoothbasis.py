@@ -84,3 +84,36 @@ def test_when_arpack_fails_there_is_no_basis(monkeypatch):
     monkeypatch.setattr(smoothbasis, "eigsh", fails)
     adj = _tube_adjacency(70, 16)
     assert smooth_basis(adj, np.arange(16 * 2, 16 * 68), 24) is None
+
+
+def test_each_piece_of_a_region_gets_its_share_of_the_fields():
+    """Two tubes in one mesh (a piece of 480 vertices and one of 160): each field lives on one
+    piece, the pieces share the fields by size, each has its constant among the coarse ones."""
+    big = _tube_adjacency(30, 16)
+    small = _tube_adjacency(10, 16)
+    adj = sp.block_diag([big, small], format="csr")
+    region = np.arange(adj.shape[0])
+    found = smoothbasis.smooth_bases(adj, region, 8, 32)
+    assert found is not None
+    basis, coarse = found
+    np.testing.assert_allclose(basis.T @ basis, np.eye(basis.shape[1]), atol=1e-10)
+    on_big = np.abs(basis[:480]).max(axis=0) > 0
+    on_small = np.abs(basis[480:]).max(axis=0) > 0
+    assert not np.any(on_big & on_small)  # no field straddles the pieces
+    assert (on_big.sum(), on_small.sum()) == (24, 8) and (on_big[:coarse].sum(), on_small[:coarse].sum()) == (6, 2)
+    for piece, columns in ((slice(0, 480), on_big[:coarse]), (slice(480, 640), on_small[:coarse])):
+        constant = np.abs(basis[piece][:, :coarse][:, columns]).std(axis=0) < 1e-10
+        assert constant.sum() == 1  # the piece's constant field is coarse
+
+
+def test_basis_sizes_follow_the_region():
+    """As many fields as keep the span's algebra cheap (b^2 k <= BASIS_WORK), at most
+    MAX_FIELDS and one fewer than the region's vertices; the coarse basis a quarter."""
+    assert smoothbasis.basis_sizes(100) == (24, 99)
+    assert smoothbasis.basis_sizes(580) == (64, 256)  # the 1.3k bench rig's regions
+    assert smoothbasis.basis_sizes(4600) == (38, 154)  # 13k
+    assert smoothbasis.basis_sizes(34000) == (16, 56)  # 100k
+    for k in (10, 300, 3000, 30000, 300000):
+        coarse, fine = smoothbasis.basis_sizes(k)
+        assert coarse <= fine <= min(k - 1, smoothbasis.MAX_FIELDS)
+        assert fine**2 * k <= smoothbasis.BASIS_WORK

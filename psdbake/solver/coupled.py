@@ -3,51 +3,59 @@
 ``invert`` is what ``fit`` runs per example. Whether the chain couples vertices shows in the
 per-vertex solver's own Jacobian calls (they move only sculpted vertices: any other output that
 changes was moved by a neighbour), so skinning stays at 5 calls per example. Where no unsculpted
-vertex can show it and the per-vertex solve misses, a **probe** call with a few well-separated
-sculpted vertices moved (farthest-point sample, deterministic) tells whether any *other*
-sculpted vertex's output moved. Skinning and per-vertex deformers leave every other output
-bit-identical; a coupling deformer moves the neighbours. Per-vertex chains keep
+vertex can show it (a sculpt that covers whole pieces of the mesh) a **probe** call with a few
+well-separated sculpted vertices moved (farthest-point sample, deterministic) tells whether any
+*other* sculpted vertex's output moved. Skinning and per-vertex deformers leave every other
+output bit-identical; a coupling deformer moves the neighbours. Per-vertex chains keep
 ``inverse.invert_example``'s result (Powell in lockstep, regime "per-vertex").
 
-Coupled chains are solved jointly (the regimes named below), **matrix-free Newton-Krylov**::
+Coupled chains are solved jointly::
 
-    minimise || sculpt[S] - F(rest + D)[S] ||^2     D: offsets on the sculpted vertices S
+    minimise || sculpt[S] - F(rest + D)[S] ||^2 + ridge || D ||^2     D: offsets on the sculpted vertices S
 
-* unknowns: the offsets of the sculpted vertices S only (a square system; vertices whose
-  output the sculpt did not move keep a zero offset, so the fit never spreads beyond it);
-* preconditioner: per-vertex 3x3 blocks from 3 calls moving *every* sculpted vertex along x,
-  then y, then z (what the per-vertex solver measures as its Jacobian; in the coupled case
-  the row sums of the Jacobian, which for a smoothing deformer is the skinning's own block);
-* Newton step: GMRES (right-preconditioned, Arnoldi with modified Gram-Schmidt) on
-  ``J delta = r``, each Jacobian-vector product one black-box call (forward difference, the
-  largest vertex move a tenth of the largest residual, within ``JVP_MIN_STEP_RTOL`` and
-  ``JVP_STEP_RTOL`` of the diagonal); it stops as soon as the linear model predicts every
-  vertex within a fraction of the tolerance;
-* then one call at ``rest + D`` checks the true residual; Newton repeats from there until
-  every sculpted vertex is within tolerance, the call budget is spent or a step fails to
-  improve (a step that does not is halved, up to ``BACKTRACKS`` times).
+(vertices whose output the sculpt did not move keep a zero offset, so the fit never spreads
+beyond them; ``ridge`` is ``smoothstart.ridge``, the documented regularisation that keeps the
+offsets bounded where a sculpt asks for what the chain cannot produce). Everything the
+per-vertex solver measured is reused: the chain at rest, the per-vertex 3x3 blocks (3 calls
+moving *every* sculpted vertex along x, then y, then z: the row sums of the coupled chain's
+Jacobian, for a smoothing deformer the skinning's own blocks) and its linearised start.
 
-Where skinning folds the mesh, Newton from zero stalls: the chain's Jacobian has half its
-singular values below 1e-3 of the largest (smoothing nearly annihilates high-frequency
-offsets), and Newton follows large high-frequency offsets into a spurious minimum. The sculpt
-is reachable all the same (the bench's ground-truth offsets give residuals 28-47x below the
-tolerance at 13k). So where the mesh has edges Newton-Krylov starts from the **smooth start**
-(``smooth_start``): Gauss-Newton restricted to the region's smoothest fields
-(``psdbake.solver.smoothbasis``), with the per-vertex blocks as the span's Jacobian (a smooth field
-moves each vertex as its neighbours, so a smoothing chain maps it much as skinning alone does)
-and Broyden's updates of it from each step's call, which lands next to the smooth solution
-(regime "coupled, from the smooth start"). On the bench's eight examples (elbow 20-160
-degrees, 13k and 100k points) every sculpted vertex then reaches the tolerance in 52 and 19
-calls per example. Where it misses, Newton-Krylov from zero (regime "coupled") and the smooth
-start with the span's Jacobian measured, 3 calls a field (regime "coupled, from the measured
-smooth start"), follow, and the best of them is kept.
+1. **The smooth start** (``smooth_start``, ``psdbake.solver.smoothstart``): Levenberg-Marquardt over
+   the region's smoothest fields (``psdbake.solver.smoothbasis``, sized to the region), first the
+   coarsest quarter of them, then all, on a model of the chain's Jacobian that knows how much
+   the chain smooths (one probe call measures it), corrected by Broyden's update from every
+   step's call. Where the smoothing reaches across a large part of a small mesh, the fields a
+   sculpt needs come out of the chain at a fifth of their size or less; the blocks alone took
+   them at full size, and the smooth start undershot by that much at every step.
+2. **Newton-Krylov** from there: GMRES (right-preconditioned by the blocks, Arnoldi with
+   modified Gram-Schmidt) on ``J delta = r``, each Jacobian-vector product one black-box call
+   (forward difference, the largest vertex move a tenth of the largest residual, within
+   ``JVP_MIN_STEP_RTOL`` and ``JVP_STEP_RTOL`` of the diagonal), stopping once the linear model
+   predicts every vertex within a fraction of the tolerance; the step is the one in the
+   Krylov space that minimises the regularised misfit's linear model; one call at
+   ``rest + D`` checks it (halved up to ``BACKTRACKS`` times where it does not help). In this
+   finish the vertices still above the tolerance weigh by how far above they are.
+3. Where that misses short of an optimum: a **local polish** (``_polish``) of the few vertices
+   left above the tolerance, their own Jacobian columns measured; where that misses too, the
+   **slower stages** (``_escalate``: the blocks' smooth start over the region's smoothest
+   fields, Newton-Krylov from zero, the span's Jacobian measured), then the polish of the best.
+   The fast path alone costs a few dozen calls; these cost hundreds where they run, and the
+   best of every result is kept, so an example never ends worse than the fast path left it.
+
+The result is ``at_optimum`` when the last Krylov space could not lower the residual's linear
+model by ``OPTIMUM_RTOL``: what is left is orthogonal to everything the chain produced from
+the directions tried, so vertices still above the tolerance there are what the chain smooths
+away rather than what the solver failed to reach (``fit``'s report says which). Without edges
+(no smooth start), Newton-Krylov from zero runs instead, then the per-vertex solve and a
+restart from it, and the best is kept.
 
 Powell's per-vertex line searches are not used here: they assume a vertex's residual depends
 on its own offset only, which is exactly what a coupling deformer breaks.
 
 Statuses are the per-vertex ``powell`` codes: CONVERGED within tolerance (checked by running
 the full chain on rest + offsets), MAX_CYCLES the call budget ran out, STALLED Newton
-stopped improving, NONFINITE the chain returned non-finite values there.
+stopped improving (or ended at an optimum), NONFINITE the chain returned non-finite values
+there. The measurements behind these choices are in ``docs/decisions/coupled-inverse-coarse-meshes.md``.
 """
 
 from __future__ import annotations
@@ -62,10 +70,10 @@ from numpy.typing import NDArray
 from threadpoolctl import threadpool_limits
 
 from .. import tolerances as tol
-from ..arrays import Points
-from . import powell
+from ..arrays import Points, is_singular
+from . import powell, smoothstart
 from .inverse import COUPLING_SEEN, BlackBox, Counted, InverseResult, invert_example_with, sculpted_vertices
-from .smoothbasis import smooth_basis
+from .smoothbasis import basis_sizes, smooth_bases, smooth_basis
 
 #: Vertices moved by the coupling probe (a farthest-point sample of the sculpted vertices).
 PROBE_VERTICES = 16
@@ -103,20 +111,52 @@ MAX_EVALUATIONS = 160
 #: its start: enough for unfolded examples (docs/decisions/coupled-inverse.md); where skinning
 #: folds the mesh the smooth start is what converges.
 FROM_ZERO_EVALUATIONS = 64
-#: Smooth fields in ``smooth_start``'s span (3 calls each, one per axis, when its Jacobian is
-#: measured). With the measured Jacobian, on the 13k bench's six folded examples 32 left 18
-#: vertices above the tolerance, 64 none.
-SMOOTH_FIELDS = 64
-#: Gauss-Newton steps in that span: the first on the blocks' (or the measured) Jacobian, then
-#: Broyden's updates of it, 1 call each. From the blocks, on the 13k bench's six folded
-#: examples with Newton-Krylov from zero run first: 1 step left 4,284 vertices above the
-#: tolerance, 2 left 115, 4, 8, 12 or 20 none; run first, as now, 3, 4, 6 and 8 none (measured
-#: Jacobian: the residual went 2.0e-3, 5.0e-4, 4.7e-4, 4.1e-4 of the diagonal over four steps
-#: on the 60-degree elbow).
-SMOOTH_STEPS = 4
-#: Singular values of the span's Jacobian below this fraction of the largest are dropped
-#: (truncated least squares: the steps stay smooth and the noise of the measured columns out).
-SMOOTH_RCOND = 1e-3
+#: Calls of the smooth start's two span solves (``smoothstart.span_solve``): over the coarse
+#: basis, then the fine one. Each stops earlier at the tolerance or at its span's optimum.
+COARSE_SPAN_CALLS = 20
+FINE_SPAN_CALLS = 15
+#: Newton-Krylov's calls after the smooth start, counted from its end.
+FINISH_EVALUATIONS = 40
+#: The local polish (``_polish``): at most this many vertices above the tolerance (3 calls
+#: each for their Jacobian columns), its finite-difference step (a fraction of the diagonal:
+#: about 100 float32 ulps of the coordinates, so the columns' noise is near 1%), its
+#: least-squares steps and their truncation. On the 1.3k bench rig's 80 and 100 degree
+#: elbows, where the finish stalled with 11 and 36 vertices at up to 7e-6 of the diagonal,
+#: one step brought every vertex within the tolerance; on the character fixture's 140 degree
+#: elbow, 77 vertices at up to 3e-6 (at most 64 left them; 128 polished both of its folded
+#: elbows, 200 polished 168 vertices first and left 29 of them).
+POLISH_VERTICES = 128
+POLISH_STEP_RTOL = 1e-5
+POLISH_STEPS = 3
+POLISH_RCOND = 1e-6
+#: What a polished result's regime says after the regime it was polished from.
+POLISHED = ", polished per vertex"
+#: Smooth fields of the measured smooth start (``measured_smooth_start``, 3 calls each, one
+#: per axis), the last of the escalation's stages (``_escalate``).
+MEASURED_FIELDS = 64
+#: Gauss-Newton steps of the measured smooth start: the first on the measured Jacobian, then
+#: Broyden's updates of it, 1 call each.
+MEASURED_STEPS = 4
+#: Singular values of the measured span's Jacobian below this fraction of the largest are
+#: dropped (truncated least squares: the steps stay smooth and the columns' noise out).
+MEASURED_RCOND = 1e-3
+#: A Newton step whose Krylov space cannot lower the regularised misfit's linear model by this
+#: fraction ends the solve at an optimum (``InverseResult.at_optimum``): the residual left is
+#: orthogonal to everything the chain produced from the directions tried.
+OPTIMUM_RTOL = 0.02
+#: The finish after the smooth start regularises the offsets' departure from the smooth start,
+#: ``|r|^2 + ridge |D - D_start|^2``, with the ridge's scale this fraction of the blocks' gain:
+#: a direction the chain passes at less than that is not pushed further than what it removes.
+#: Weaker, it chased detail no smoothing passes (a ripple around the 1.3k rig's tube: offsets
+#: grew to 5.8x the sculpt's largest move at 1e-3); this leaves the smooth start's own offsets,
+#: which the sculpt needs at full size, unpulled.
+FINISH_RIDGE = 1e-2
+#: The finish after the smooth start weighs each vertex's residual by max(1, |r| / u), u the
+#: larger of the residuals' RMS and WEIGHT_FLOOR * atol: there the residual's RMS is far
+#: within the tolerance and a few vertices miss it (13k bench, five examples: 245 calls in
+#: all weighted, 290 not; from zero, on the 1.3k test rig, weighting cost 28 and 31 calls
+#: against 16 and 25).
+WEIGHT_FLOOR = 0.5
 
 
 def probe_vertices(rest: Points, candidates: NDArray[np.int64], count: int = PROBE_VERTICES) -> NDArray[np.int64]:
@@ -133,17 +173,27 @@ def probe_vertices(rest: Points, candidates: NDArray[np.int64], count: int = PRO
     return np.sort(candidates[np.array(chosen)])
 
 
-def is_coupled(call: BlackBox, rest: Points, base: Points, probed: NDArray[np.int64], step: float) -> bool:
-    """One call: does moving ``probed`` move any other vertex's output?"""
-    if len(probed) == 0 or len(probed) == len(rest):
+def closed_region(adjacency: sp.csr_matrix, region: NDArray[np.int64]) -> bool:
+    """Whether no edge leaves the region (it is a union of whole connected pieces)."""
+    inside = np.zeros(adjacency.shape[0], dtype=bool)
+    inside[region] = True
+    rows = adjacency[region]
+    return bool(np.all(inside[rows.indices]))
+
+
+def is_coupled(call: BlackBox, rest: Points, base: Points, probed: NDArray[np.int64], step: float,
+               others: NDArray[np.int64] | None = None) -> bool:
+    """One call: does moving ``probed`` move any other vertex's output (any other of ``others``
+    when given: a region closed under the mesh's edges has no outside vertex to show it)?"""
+    if len(probed) == 0 or (others is None and len(probed) == len(rest)) or (others is not None and len(probed) == len(others)):
         return False
     moved = rest.copy()
     moved[probed] += step * np.array([0.8, 0.5, 0.3]) / np.sqrt(0.98)
     change = np.linalg.norm(call(moved) - base, axis=1)
     own = float(change[probed].max())
     change[probed] = 0.0
-    others = float(change.max())
-    return bool(others > COUPLING_RTOL * max(own, step)) or not np.isfinite(others)
+    moved_others = float(change.max() if others is None else change[others].max())
+    return bool(moved_others > COUPLING_RTOL * max(own, step)) or not np.isfinite(moved_others)
 
 
 def invert(blackbox: BlackBox, rest: Points, sculpt: Points, *, rtol: float = tol.INVERSE_RTOL,
@@ -154,24 +204,39 @@ def invert(blackbox: BlackBox, rest: Points, sculpt: Points, *, rtol: float = to
     The per-vertex solver's 3 Jacobian calls move only sculpted vertices, so they show for
     free whether any other vertex's output moved: skinning (5 calls) and per-vertex deformers
     pay nothing to find out. When they show coupling and the linearised start misses, the
-    joint solve takes over: Gauss-Newton in the span of the region's smoothest fields on the
-    per-vertex blocks' model (``smooth_start``; ``neighbours()`` gives the mesh's edge
-    adjacency), then Newton-Krylov. Where that leaves vertices above the tolerance, Newton-Krylov
-    from zero, then the smooth start with the span's Jacobian measured and Newton-Krylov; without
-    edges, Newton-Krylov from zero, then the per-vertex solve and a restart from it. The kept
-    result has the fewest vertices above the tolerance, then the smallest worst residual, both
-    measured by running the chain. A chain that couples only vertices with no unsculpted
-    neighbour is probed (2 calls) once the per-vertex solve misses."""
+    joint solve takes over from what the per-vertex solver measured (the chain at rest and the
+    blocks cost no call again): the smooth start (``smooth_start``; ``neighbours()`` gives the
+    mesh's edge adjacency), then Newton-Krylov; where that misses short of an optimum, the
+    polish and the slower stages (module docstring). Without edges, Newton-Krylov from zero, then
+    the per-vertex solve and a restart from it; the kept result has the fewest vertices above
+    the tolerance, then the smallest worst residual, both measured by running the chain. A
+    sculpt that leaves no unsculpted neighbour is probed (1 call) once the linearised start
+    misses; a chain that couples only vertices the per-vertex calls could not show otherwise
+    is probed (2 calls) once the per-vertex solve misses."""
     started = time.perf_counter()
     rest = np.asarray(rest, dtype=np.float64)
     sculpt = np.asarray(sculpt, dtype=np.float64)
-    first = invert_example_with(blackbox, rest, sculpt, rtol=rtol, stop_if_coupled=True)
+    adjacency: sp.csr_matrix | None = None
+    read = False
+
+    def closed_probe(call: BlackBox, base: Points, idx: NDArray[np.int64], step: float) -> bool:
+        """A sculpt with no unsculpted edge neighbour (whole pieces of the mesh) cannot show
+        coupling in the per-vertex solver's calls: probe it (1 call)."""
+        nonlocal adjacency, read
+        if not read:
+            adjacency, read = (neighbours() if neighbours is not None else None), True
+        if adjacency is None or len(idx) < 2 or not closed_region(adjacency, idx):
+            return False
+        return is_coupled(call, rest, base, probe_vertices(rest, idx), step, others=idx)
+
+    first = invert_example_with(blackbox, rest, sculpt, rtol=rtol, stop_if_coupled=True, coupling_probe=closed_probe)
     if first.regime != COUPLING_SEEN and not len(first.missed):
         return first
     call = Counted(blackbox, first.evaluations)
-    base = call(rest)
+    measured = first.linearised
+    base = measured.posed_rest if measured is not None else call(rest)
     diagonal, floor, idx = sculpted_vertices(rest, base, sculpt)
-    if first.regime != COUPLING_SEEN:  # per-vertex ran to the end and missed: probe
+    if measured is None:  # per-vertex ran to the end and missed: probe
         step = tol.JACOBIAN_STEP_RTOL * max(diagonal, floor)
         if not (len(idx) and is_coupled(call, rest, base, probe_vertices(rest, idx), step)):
             return dataclasses.replace(first, evaluations=call.calls, seconds=time.perf_counter() - started)
@@ -179,35 +244,203 @@ def invert(blackbox: BlackBox, rest: Points, sculpt: Points, *, rtol: float = to
     # on its thread count: one thread, so a fit gives the same bytes on every machine (the 100k
     # bench: 8.76 s an example against 8.54 with two threads; the black box dominates)
     with threadpool_limits(limits=1, user_api="blas"):
-        adjacency = neighbours() if neighbours is not None else None
-        basis = smooth_basis(adjacency, idx, SMOOTH_FIELDS) if adjacency is not None else None
-        blocks = chain_blocks(call, rest, base, idx, diagonal, floor)  # 3 calls, shared by every stage
+        if not read:
+            adjacency = neighbours() if neighbours is not None else None
+        # the per-vertex 3x3 blocks, shared by every stage: the per-vertex solver's own, else 3 calls
+        blocks = measured.blocks if measured is not None else chain_blocks(call, rest, base, idx, diagonal, floor)
         candidates: list[InverseResult] = []
-        if basis is not None:  # 1. the model's smooth start, then Newton-Krylov
-            start = smooth_start(call, rest, sculpt, base, idx, diagonal, floor, basis, model=blocks)
-            smooth = invert_coupled(call, rest, sculpt, base, idx, diagonal, floor, rtol=rtol, started=started,
-                                    max_evaluations=call.calls + MAX_EVALUATIONS, start=start, blocks=blocks)
-            candidates.append(dataclasses.replace(smooth, regime="coupled, from the smooth start"))
-        if not candidates or len(candidates[0].missed):  # 2. Newton-Krylov from zero
+        if adjacency is not None:  # 1. the smooth start, then Newton-Krylov
+            start = smooth_start(call, rest, sculpt, base, idx, diagonal, blocks, adjacency,
+                                 max(rtol * diagonal, floor))
+            if start is not None:
+                offsets, outputs = start
+                smooth = invert_coupled(call, rest, sculpt, base, idx, diagonal, floor, rtol=rtol, started=started,
+                                        max_evaluations=call.calls + FINISH_EVALUATIONS, start=offsets,
+                                        start_outputs=outputs, blocks=blocks, weighted=True)
+                candidates.append(dataclasses.replace(smooth, regime="coupled, from the smooth start"))
+                if len(smooth.missed) and not smooth.at_optimum:  # 1b. polish, then escalate
+                    candidates.extend(_polish(call, rest, sculpt, idx, max(diagonal, floor), candidates[-1],
+                                              started=started))
+                    if len(candidates[-1].missed):
+                        candidates.extend(_escalate(call, blackbox, rest, sculpt, base, idx, diagonal, floor, first,
+                                                    blocks, adjacency, rtol=rtol, started=started))
+                        best = min(candidates, key=_rank)
+                        if not (best.at_optimum or best.regime.endswith(POLISHED)):
+                            candidates.extend(_polish(call, rest, sculpt, idx, max(diagonal, floor), best,
+                                                      started=started))
+        if not candidates:  # 2. no smooth start (no edges, or ARPACK failed): from zero
             joint = invert_coupled(call, rest, sculpt, base, idx, diagonal, floor, rtol=rtol, started=started,
                                    max_evaluations=call.calls + FROM_ZERO_EVALUATIONS, blocks=blocks)
             candidates.append(joint)
-            if len(joint.missed) and basis is not None:  # 3. the span's Jacobian measured, then Newton-Krylov
-                start = smooth_start(call, rest, sculpt, base, idx, diagonal, floor, basis)
-                finished = invert_coupled(call, rest, sculpt, base, idx, diagonal, floor, rtol=rtol, started=started,
-                                          max_evaluations=call.calls + MAX_EVALUATIONS, start=start, blocks=blocks)
-                candidates.append(dataclasses.replace(finished, regime="coupled, from the measured smooth start"))
-            elif len(joint.missed):  # no edges: the per-vertex solution and a restart from it
+            if len(joint.missed):  # the per-vertex solution and a restart from it
                 candidates.extend(_from_per_vertex(call, blackbox, rest, sculpt, base, idx, diagonal, floor, first,
                                                    blocks, rtol=rtol, started=started))
-    best = min(candidates, key=lambda c: (len(c.missed), c.max_residual))
-    return dataclasses.replace(best, evaluations=call.calls, seconds=time.perf_counter() - started)
+    best = min(candidates, key=_rank)
+    return dataclasses.replace(best, evaluations=call.calls, seconds=time.perf_counter() - started,
+                               sculpt_rms=first.sculpt_rms)
+
+
+def _rank(result: InverseResult) -> tuple[int, float]:
+    """The better of two results ranks lower: fewer vertices above the tolerance, then the
+    smaller worst residual."""
+    return len(result.missed), result.max_residual
+
+
+def _polish(call: Counted, rest: Points, sculpt: Points, idx: NDArray[np.int64], scale: float,
+            result: InverseResult, *, started: float) -> list[InverseResult]:
+    """A local Gauss-Newton on the offsets of the few vertices ``result`` leaves above the
+    tolerance (at most ``POLISH_VERTICES``), the others held: their columns of the chain's
+    Jacobian measured, 3 calls a vertex (forward differences of ``POLISH_STEP_RTOL`` of
+    ``scale``), over every sculpted vertex's output, then up to ``POLISH_STEPS`` least-squares
+    steps (singular values below ``POLISH_RCOND`` of the largest dropped), 1 call each, with
+    Broyden's update of those columns. A step is kept where it leaves fewer vertices above the
+    tolerance, then a smaller worst residual. Where the smooth start's finish stalls on a few
+    vertices at a fold, their own offsets are what is left to find. Empty where there is
+    nothing to polish (none missing, too many, or non-finite residuals)."""
+    missing = np.nonzero(result.status != powell.CONVERGED)[0]
+    if not 0 < len(missing) <= POLISH_VERTICES or not np.all(np.isfinite(result.residual)):
+        return []
+    atol = result.atol
+    target = sculpt[idx]
+    offsets = np.array(result.offsets, dtype=np.float64)
+    out = _outputs(call, rest, idx, offsets)
+    r = target - out
+    norms = np.linalg.norm(r, axis=1)
+    h = POLISH_STEP_RTOL * scale
+    columns = np.empty((3 * len(missing), r.size))  # one row per unknown: its column of the Jacobian
+    for j, vertex in enumerate(missing):
+        for axis in range(3):
+            moved = offsets.copy()
+            moved[vertex, axis] += h
+            columns[3 * j + axis] = ((_outputs(call, rest, idx, moved) - out) / h).ravel()
+    if not (np.all(np.isfinite(columns)) and np.all(np.isfinite(norms))):
+        return []
+
+    def rank(n: NDArray[np.float64]) -> tuple[int, float]:
+        return int(np.count_nonzero(n > atol)), float(n.max())
+
+    for _ in range(POLISH_STEPS):
+        if not np.any(norms > atol):
+            break
+        y = np.asarray(np.linalg.lstsq(columns.T, r.ravel(), rcond=POLISH_RCOND)[0], dtype=np.float64)
+        yy = float(y @ y)
+        if yy == 0.0:
+            break
+        trial = offsets.copy()
+        trial[missing] += y.reshape(-1, 3)
+        out_trial = _outputs(call, rest, idx, trial)
+        if not np.all(np.isfinite(out_trial)):
+            break
+        columns += np.outer(y, (out_trial - out).ravel() - y @ columns) / yy
+        r_trial = target - out_trial
+        n_trial = np.linalg.norm(r_trial, axis=1)
+        if rank(n_trial) < rank(norms):
+            offsets, out, r, norms = trial, out_trial, r_trial, n_trial
+    status = result.status.copy()
+    status[norms <= atol] = powell.CONVERGED
+    status[(norms > atol) & (status == powell.CONVERGED)] = powell.STALLED
+    return [InverseResult(indices=idx, offsets=offsets, residual=norms, status=status, evaluations=call.calls,
+                          diagonal=result.diagonal, atol=atol, seconds=time.perf_counter() - started,
+                          regime=result.regime + POLISHED)]
+
+
+def _escalate(call: Counted, blackbox: BlackBox, rest: Points, sculpt: Points, base: Points, idx: NDArray[np.int64],
+              diagonal: float, floor: float, first: InverseResult, blocks: NDArray[np.float64],
+              adjacency: sp.csr_matrix, *, rtol: float, started: float) -> list[InverseResult]:
+    """Where the smooth start's finish misses, is not at an optimum and the polish does not
+    finish it: the slower stages, each while the last still misses, unregularised. The blocks'
+    smooth start over the region's ``MEASURED_FIELDS`` smoothest fields
+    (``measured_smooth_start`` with the blocks as the span's model) and Newton-Krylov from it
+    (up to ``MAX_EVALUATIONS``), Newton-Krylov from zero (``FROM_ZERO_EVALUATIONS``), then the
+    span's Jacobian measured (3 calls a field) and Newton-Krylov from there; where ARPACK finds
+    no basis, the per-vertex solution and Newton-Krylov restarted from it instead. On CesiumMan,
+    through the chain from known offsets, the first of them left 844 of 2,620 vertices above
+    the tolerance where the smooth start's finish left 2,617. Every call counts; ``invert``
+    keeps the best."""
+    found: list[InverseResult] = []
+    basis = smooth_basis(adjacency, idx, MEASURED_FIELDS)
+    if basis is not None:
+        start = measured_smooth_start(call, rest, sculpt, base, idx, diagonal, floor, basis, model=blocks)
+        blocky = invert_coupled(call, rest, sculpt, base, idx, diagonal, floor, rtol=rtol, started=started,
+                                max_evaluations=call.calls + MAX_EVALUATIONS, start=start, blocks=blocks,
+                                regularised=False)
+        found.append(dataclasses.replace(blocky, regime="coupled, from the smooth start"))
+        if not len(blocky.missed):
+            return found
+    joint = invert_coupled(call, rest, sculpt, base, idx, diagonal, floor, rtol=rtol, started=started,
+                           max_evaluations=call.calls + FROM_ZERO_EVALUATIONS, blocks=blocks, regularised=False)
+    found.append(joint)
+    if not len(joint.missed):
+        return found
+    if basis is None:  # ARPACK failed (a region of many pieces): the per-vertex solution and a restart from it
+        found.extend(_from_per_vertex(call, blackbox, rest, sculpt, base, idx, diagonal, floor, first, blocks,
+                                      rtol=rtol, started=started, regularised=False))
+        return found
+    start = measured_smooth_start(call, rest, sculpt, base, idx, diagonal, floor, basis)
+    measured = invert_coupled(call, rest, sculpt, base, idx, diagonal, floor, rtol=rtol, started=started,
+                              max_evaluations=call.calls + MAX_EVALUATIONS, start=start, blocks=blocks, regularised=False)
+    found.append(dataclasses.replace(measured, regime="coupled, from the measured smooth start"))
+    return found
+
+
+def measured_smooth_start(call: Counted, rest: Points, sculpt: Points, base: Points, idx: NDArray[np.int64],
+                          diagonal: float, floor: float, basis: NDArray[np.float64],
+                          model: NDArray[np.float64] | None = None) -> Points:
+    """Offsets (len(idx), 3) from Gauss-Newton restricted to smooth fields, ``basis`` (k, b)
+    per axis, with the span's Jacobian measured: 3b calls (forward differences, the largest
+    vertex move ``JACOBIAN_STEP_RTOL`` of the diagonal). The step is the truncated
+    least-squares solve (singular values below ``MEASURED_RCOND`` of the largest dropped), and
+    ``MEASURED_STEPS - 1`` more steps refresh that Jacobian by Broyden updates, 1 call each. A
+    step is kept only if it lowers the residual."""
+    k, b = basis.shape
+    target = sculpt[idx]
+    out = base[idx]
+    cols = np.empty((3 * b, 3 * k))  # the span's Jacobian, stored by column (one row each)
+    if model is not None:
+        for c in range(b):
+            for axis in range(3):
+                cols[3 * c + axis] = (model[:, :, axis] * basis[:, c, None]).ravel()
+    else:
+        step = tol.JACOBIAN_STEP_RTOL * max(diagonal, floor)
+        for c in range(b):
+            h = step / max(float(np.abs(basis[:, c]).max()), 1e-300)
+            for axis in range(3):
+                moved = rest.copy()
+                moved[idx, axis] += h * basis[:, c]
+                cols[3 * c + axis] = ((call(moved)[idx] - out) / h).ravel()
+    offsets = np.zeros((k, 3))
+    if not np.all(np.isfinite(cols)):  # the chain gave non-finite values: no smooth start
+        return offsets
+    r = target - out
+    # truncated least squares through the span's Gram matrix (3b x 3b): the same solution as an
+    # SVD of the (3k, 3b) Jacobian, at a fraction of its cost on large regions
+    gram = cols @ cols.T
+    for _ in range(MEASURED_STEPS):
+        values, vectors = np.linalg.eigh(gram)
+        keep = values > MEASURED_RCOND**2 * values[-1] if values[-1] > 0 else np.zeros(len(values), dtype=bool)
+        if not keep.any():
+            break
+        y = vectors[:, keep] @ ((vectors[:, keep].T @ (cols @ r.ravel())) / values[keep])
+        trial = offsets + basis @ y.reshape(b, 3)
+        out_trial = _outputs(call, rest, idx, trial)
+        if not np.all(np.isfinite(out_trial)):
+            break
+        yy = float(y @ y)
+        if yy == 0.0:
+            break
+        smoothstart.broyden(cols, gram, y, (out_trial - out).ravel())
+        r_trial = target - out_trial
+        if np.linalg.norm(r_trial) < np.linalg.norm(r):
+            offsets, out, r = trial, out_trial, r_trial
+    return offsets
 
 
 def _from_per_vertex(call: Counted, blackbox: BlackBox, rest: Points, sculpt: Points, base: Points,
                      idx: NDArray[np.int64], diagonal: float, floor: float, first: InverseResult,
-                     blocks: NDArray[np.float64], *, rtol: float, started: float) -> list[InverseResult]:
-    """Without mesh edges: the full per-vertex solve, and Newton-Krylov restarted from it."""
+                     blocks: NDArray[np.float64], *, rtol: float, started: float,
+                     regularised: bool = True) -> list[InverseResult]:
+    """Without mesh edges (or a smooth basis): the full per-vertex solve, and Newton-Krylov
+    restarted from it (``regularised``: as ``invert_coupled``)."""
     per_vertex = first
     if first.regime == COUPLING_SEEN:
         per_vertex = invert_example_with(blackbox, rest, sculpt, rtol=rtol)
@@ -215,7 +448,8 @@ def _from_per_vertex(call: Counted, blackbox: BlackBox, rest: Points, sculpt: Po
     found = [dataclasses.replace(per_vertex, regime="coupled chain, per-vertex kept")]
     if len(per_vertex.missed) and np.array_equal(per_vertex.indices, idx):
         warm = invert_coupled(call, rest, sculpt, base, idx, diagonal, floor, rtol=rtol, started=started,
-                              max_evaluations=call.calls + MAX_EVALUATIONS, start=per_vertex.offsets, blocks=blocks)
+                              max_evaluations=call.calls + MAX_EVALUATIONS, start=per_vertex.offsets, blocks=blocks,
+                              regularised=regularised)
         found.append(dataclasses.replace(warm, regime="coupled, from the per-vertex solution"))
     return found
 
@@ -242,65 +476,45 @@ def chain_blocks(call: BlackBox, rest: Points, base: Points, idx: NDArray[np.int
     return blocks
 
 
-def smooth_start(call: Counted, rest: Points, sculpt: Points, base: Points, idx: NDArray[np.int64],
-                 diagonal: float, floor: float, basis: NDArray[np.float64],
-                 model: NDArray[np.float64] | None = None) -> Points:
-    """Offsets (len(idx), 3) from Gauss-Newton restricted to smooth fields: ``basis`` (k, b)
-    per axis. The span's Jacobian is the per-vertex blocks' (``model``, from ``chain_blocks``:
-    no call; a smooth field moves each vertex as its neighbours, so a smoothing chain maps it
-    as skinning alone does, and the steps' Broyden updates learn the rest) or, without a
-    model, measured: 3b calls (forward differences, the largest vertex move
-    ``JACOBIAN_STEP_RTOL`` of the diagonal). The step is the truncated least-squares solve
-    (singular values below ``SMOOTH_RCOND`` of the largest dropped), and ``SMOOTH_STEPS - 1``
-    more steps refresh that Jacobian by Broyden updates, 1 call each. A step is kept only if
-    it lowers the residual (``smoothbasis`` says why this helps)."""
-    k, b = basis.shape
-    target = sculpt[idx]
-    out = base[idx]
-    cols = np.empty((3 * b, 3 * k))  # the span's Jacobian, stored by column (one row each)
-    if model is not None:
-        for c in range(b):
-            for axis in range(3):
-                cols[3 * c + axis] = (model[:, :, axis] * basis[:, c, None]).ravel()
-    else:
-        step = tol.JACOBIAN_STEP_RTOL * max(diagonal, floor)
-        for c in range(b):
-            h = step / max(float(np.abs(basis[:, c]).max()), 1e-300)
-            for axis in range(3):
-                moved = rest.copy()
-                moved[idx, axis] += h * basis[:, c]
-                cols[3 * c + axis] = ((call(moved)[idx] - out) / h).ravel()
-    offsets = np.zeros((k, 3))
-    if not np.all(np.isfinite(cols)):  # the chain gave non-finite values: no smooth start
-        return offsets
-    r = target - out
-    # Truncated least squares through the span's Gram matrix (3b x 3b): the same solution as
-    # an SVD of the (3k, 3b) Jacobian, which at 100k points took 1.2 s a step
-    gram = cols @ cols.T
-    for _ in range(SMOOTH_STEPS):
-        values, vectors = np.linalg.eigh(gram)
-        keep = values > SMOOTH_RCOND**2 * values[-1] if values[-1] > 0 else np.zeros(len(values), dtype=bool)
-        if not keep.any():
-            break
-        y = vectors[:, keep] @ ((vectors[:, keep].T @ (cols @ r.ravel())) / values[keep])
-        trial = offsets + basis @ y.reshape(b, 3)
-        out_trial = _outputs(call, rest, idx, trial)
-        if not np.all(np.isfinite(out_trial)):
-            break
-        # Broyden's update J += u y^T / (y.y), column by column (no (3k, 3b) temporary), and
-        # the Gram matrix's with it
-        u = (out_trial - out).ravel() - y @ cols
-        yy = float(y @ y)
-        if yy == 0.0:
-            break
-        ju = cols @ u
-        for j in range(len(y)):
-            cols[j] += (y[j] / yy) * u
-        gram += (np.outer(ju, y) + np.outer(y, ju)) / yy + np.outer(y, y) * (float(u @ u) / yy**2)
-        r_trial = target - out_trial
-        if np.linalg.norm(r_trial) < np.linalg.norm(r):
-            offsets, out, r = trial, out_trial, r_trial
-    return offsets
+def smooth_start(call: Counted, rest: Points, sculpt: Points, base: Points, idx: NDArray[np.int64], diagonal: float,
+                 blocks: NDArray[np.float64], adjacency: sp.csr_matrix, atol: float
+                 ) -> tuple[Points, Points] | None:
+    """Offsets (k, 3) and the chain's outputs there (k, 3), from Levenberg-Marquardt over the
+    region's smoothest fields (``psdbake.solver.smoothstart``): one probe call measures how much the
+    chain smooths; the solve runs over the coarse basis (a quarter of the fields, the
+    smoothest of each piece of the region: ``smoothbasis.smooth_bases``), then over the fine
+    one from there, the coarse solve's Broyden-corrected model carried over. None where the
+    region has no edges (or ARPACK failed)."""
+    bases = smooth_bases(adjacency, idx, *basis_sizes(len(idx)))
+    if bases is None:
+        return None
+    basis, coarse = bases
+    freqs = smoothstart.frequencies(adjacency, idx, basis)
+    reach = smoothstart.measure_reach(call, rest, base, idx, blocks, basis[:, :coarse], freqs[:coarse], diagonal)
+    steps = reach.steps if reach.misfit <= smoothstart.REACH_MAX_MISFIT else 0.0
+    believe = reach.misfit <= smoothstart.BELIEVE_MISFIT
+    gain = smoothstart.gains(freqs, steps)
+    cols = smoothstart.model_columns(blocks, basis, gain)
+    gram = smoothstart.model_gram(blocks, basis, gain)
+    first, first_gram = cols[: 3 * coarse].copy(), gram[: 3 * coarse, : 3 * coarse].copy()
+    ridge = smoothstart.ridge(blocks)
+    span = smoothstart.span_solve(call, rest, sculpt, idx, basis[:, :coarse], first, atol, ridge, COARSE_SPAN_CALLS,
+                                  start_outputs=base[idx], gram=first_gram, believe=believe)
+    x = np.zeros((basis.shape[1], 3))
+    x[:coarse] = span.coefficients
+    outputs = span.outputs
+    done = bool(np.all(np.linalg.norm(sculpt[idx] - outputs, axis=1) <= atol))
+    if not done and basis.shape[1] > coarse:
+        # the coarse solve's Broyden-corrected rows carried over, the Gram matrix with them
+        cols[: 3 * coarse] = first
+        gram[: 3 * coarse, : 3 * coarse] = first_gram
+        cross = first @ cols[3 * coarse:].T
+        gram[: 3 * coarse, 3 * coarse:] = cross
+        gram[3 * coarse:, : 3 * coarse] = cross.T
+        span = smoothstart.span_solve(call, rest, sculpt, idx, basis, cols, atol, ridge, FINE_SPAN_CALLS, start=x,
+                                      start_outputs=outputs, gram=gram, believe=believe)
+        x, outputs = span.coefficients, span.outputs
+    return basis @ x, outputs
 
 
 def invert_coupled(
@@ -316,11 +530,21 @@ def invert_coupled(
     started: float,
     max_evaluations: int = MAX_EVALUATIONS,
     start: Points | None = None,
+    start_outputs: Points | None = None,
     blocks: NDArray[np.float64] | None = None,
+    weighted: bool = False,
+    regularised: bool = True,
 ) -> InverseResult:
     """Newton-Krylov on the sculpted vertices' offsets (module docstring). ``base`` is
     ``call(rest)``; ``call.calls`` counts the example's calls so far (the budget's measure);
-    ``blocks`` are ``chain_blocks`` (measured here when not given)."""
+    ``start_outputs`` the chain's outputs at ``start`` when known (else one call);
+    ``blocks`` are ``chain_blocks`` (measured here when not given). Steps lower the
+    regularised misfit ``|r|^2 + ridge |D - anchor|^2`` (``smoothstart.ridge`` and zero from
+    zero; after the smooth start ``FINISH_RIDGE`` and the start, with ``weighted``); the result is
+    ``at_optimum`` where no direction of a step's Krylov space could lower its linear model
+    by ``OPTIMUM_RTOL``. ``weighted``: each vertex's residual weighs by how far above the
+    residuals' RMS it is (``WEIGHT_FLOOR``), for a finish where few vertices are left above
+    the tolerance. ``regularised=False``: no ridge (the escalation's stages, ``_escalate``)."""
     atol = max(rtol * diagonal, floor)
     target = sculpt[idx]
     k = len(idx)
@@ -331,9 +555,7 @@ def invert_coupled(
     # Per-vertex 3x3 blocks (row sums in the coupled case): the preconditioner.
     if blocks is None:
         blocks = chain_blocks(call, rest, base, idx, diagonal, floor)
-    scale = np.einsum("kab,kab->k", blocks, blocks) ** 1.5
-    ok = np.isfinite(scale)  # a chain that gives non-finite points there: no block to invert
-    ok[ok] = np.abs(np.linalg.det(blocks[ok])) > tol.JACOBIAN_RCOND * np.maximum(scale[ok], 1e-300)
+    ok = ~is_singular(blocks, tol.JACOBIAN_RCOND)  # singular, or non-finite points there: no block to invert
     inverse_blocks = np.tile(np.eye(3), (k, 1, 1))
     if ok.any():
         inverse_blocks[ok] = np.linalg.inv(blocks[ok])
@@ -342,10 +564,20 @@ def invert_coupled(
         return np.einsum("kab,kb->ka", inverse_blocks, v)
 
     offsets = np.zeros((k, 3)) if start is None else np.array(start, dtype=np.float64)
-    out = base[idx] if start is None else evaluate(offsets)
+    if start is None:
+        out = base[idx]
+    else:
+        out = evaluate(offsets) if start_outputs is None else np.asarray(start_outputs, dtype=np.float64)
     r = target - out
     norms = np.linalg.norm(r, axis=1)
-    stalled = False
+    stalled = optimum = False
+    steps = 0
+    # the regularisation: offsets pulled towards zero weakly (``smoothstart.ridge``); after the
+    # smooth start, its departures from the smooth start more strongly (``FINISH_RIDGE``)
+    anchor = np.zeros((k, 3)) if start is None or not weighted else np.array(start, dtype=np.float64)
+    ridge = smoothstart.ridge(blocks) * ((FINISH_RIDGE / smoothstart.SPAN_RIDGE) ** 2 if weighted else 1.0)
+    if not regularised:
+        ridge = 0.0
     scale = max(diagonal, floor)
     while np.isfinite(norms).all() and norms.max() > atol and call.calls < max_evaluations - 2:
         at, out_at = offsets, out
@@ -358,9 +590,23 @@ def invert_coupled(
             return (evaluate(at + h * z) - out_at) / h
 
         budget = min(KRYLOV_MAX, max_evaluations - 2 - call.calls)
-        target_lin = max(KRYLOV_TARGET * atol, FORCING * float(norms.max()))
-        delta = _gmres(jvp, precondition, r, target_lin, budget)
-        size = np.linalg.norm(r)
+        # vertices above the tolerance weigh by how far above they are: the least-squares
+        # model then works on the vertices that miss, not on the many already far within it
+        unit = max(WEIGHT_FLOOR * atol, float(np.sqrt(np.mean(norms**2))))
+        weight = np.maximum(norms / unit, 1.0)[:, None] if weighted else np.ones((k, 1))
+        target_lin = max(KRYLOV_TARGET * atol, FORCING * float(norms.max())) * float(weight.max())
+
+        def weighted_jvp(z: Points, jvp: Callable[[Points], Points] = jvp, weight: NDArray[np.float64] = weight
+                         ) -> Points:
+            return weight * jvp(z)
+
+        directions, images = _gmres(weighted_jvp, precondition, weight * r, target_lin, budget)
+        scaled = weight * r
+        merit = float(np.sum(scaled**2)) + ridge * float(np.sum((offsets - anchor) ** 2))
+        delta, left = _ridge_step(scaled, offsets - anchor, directions, images, ridge)
+        if float(np.sum(scaled**2)) - float(np.sum(left**2)) <= OPTIMUM_RTOL * float(np.sum(scaled**2)):
+            stalled = optimum = True  # no direction tried lowers the residual: an optimum
+            break
         # Trust region: no vertex moves further than STEP_CAP times the largest residual.
         lengths = np.linalg.norm(delta, axis=1)
         cap = STEP_CAP * float(norms.max())
@@ -369,7 +615,8 @@ def invert_coupled(
             trial = offsets + delta
             out_trial = evaluate(trial)
             r_trial = target - out_trial
-            better = bool(np.all(np.isfinite(r_trial)) and np.linalg.norm(r_trial) < size)
+            better = bool(np.all(np.isfinite(r_trial))
+                          and float(np.sum((weight * r_trial) ** 2)) + ridge * float(np.sum((trial - anchor) ** 2)) < merit)
             if better or call.calls >= max_evaluations - 1:
                 break
             delta = 0.5 * delta
@@ -378,37 +625,41 @@ def invert_coupled(
             break
         offsets, out, r = trial, out_trial, r_trial
         norms = np.linalg.norm(r, axis=1)
+        steps += 1
 
-    status = np.full(k, powell.STALLED if stalled else powell.MAX_CYCLES, dtype=np.int8)
+    status = np.full(k, powell.STALLED if stalled or optimum else powell.MAX_CYCLES, dtype=np.int8)
     status[norms <= atol] = powell.CONVERGED
     status[~np.isfinite(norms)] = powell.NONFINITE
     return InverseResult(
         indices=idx, offsets=offsets, residual=norms, status=status, evaluations=call.calls, diagonal=diagonal,
-        atol=atol, seconds=time.perf_counter() - started, regime="coupled",
+        atol=atol, seconds=time.perf_counter() - started, regime="coupled", at_optimum=optimum,
     )
 
 
 def _gmres(jvp: Callable[[Points], Points], precondition: Callable[[Points], Points], r: Points,
-           target: float, max_iter: int) -> Points:
+           target: float, max_iter: int) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Right-preconditioned GMRES for ``J delta = r`` ((k, 3) vectors), at most ``max_iter``
-    products; stops once the linear model predicts every vertex's residual <= ``target``."""
+    products; stops once the linear model predicts every vertex's residual <= ``target``.
+    Returns the Krylov directions ``M^-1 v_j`` and their images ``J M^-1 v_j`` (m, 3k), from
+    which the caller takes its step (``_ridge_step``)."""
     shape = r.shape
     b = r.ravel()
     beta = float(np.linalg.norm(b))
     if max_iter <= 0 or beta == 0.0:
-        return np.zeros(shape)
+        return np.zeros((0, b.size)), np.zeros((0, b.size))
     basis = np.zeros((max_iter + 1, b.size))
     images = np.zeros((max_iter, b.size))  # J M^-1 v_j
     directions = np.zeros((max_iter, b.size))  # M^-1 v_j
     hess = np.zeros((max_iter + 1, max_iter))
     basis[0] = b / beta
-    y = np.zeros(0)
+    used = 0
     for j in range(max_iter):
         directions[j] = precondition(basis[j].reshape(shape)).ravel()
         w = jvp(directions[j].reshape(shape)).ravel()
         if not np.all(np.isfinite(w)):  # the chain gave non-finite points: the model so far
             break
         images[j] = w
+        used = j + 1
         for i in range(j + 1):  # modified Gram-Schmidt
             hess[i, j] = basis[i] @ w
             w = w - hess[i, j] * basis[i]
@@ -420,4 +671,18 @@ def _gmres(jvp: Callable[[Points], Points], precondition: Callable[[Points], Poi
         if np.linalg.norm(predicted, axis=1).max() <= target or hess[j + 1, j] <= 1e-14 * beta:
             break
         basis[j + 1] = w / hess[j + 1, j]
-    return (y @ directions[: len(y)]).reshape(shape)
+    return directions[:used], images[:used]
+
+
+def _ridge_step(r: Points, offsets: Points, directions: NDArray[np.float64], images: NDArray[np.float64],
+                ridge: float) -> tuple[Points, Points]:
+    """The step in the Krylov space minimising the linear model of the regularised misfit
+    ``|r - J delta|^2 + ridge |offsets + delta|^2``, and the residual ``r - J delta`` that
+    model predicts."""
+    if not len(directions):
+        return np.zeros_like(r), r.copy()
+    scale = np.sqrt(ridge)
+    system = np.concatenate([images.T, scale * directions.T])
+    rhs = np.concatenate([r.ravel(), -scale * offsets.ravel()])
+    y = np.asarray(np.linalg.lstsq(system, rhs, rcond=None)[0], dtype=np.float64)
+    return (y @ directions).reshape(r.shape), (r.ravel() - y @ images).reshape(r.shape)

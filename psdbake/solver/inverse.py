@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
@@ -37,6 +37,20 @@ from . import powell
 BlackBox = Callable[[Points], Points]
 #: ``invert_example_with(stop_if_coupled=True)`` stopped after the linearised start: the chain couples vertices.
 COUPLING_SEEN = "coupling seen"
+
+
+@dataclass(frozen=True)
+class LinearisedStart:
+    """What the per-vertex solver measured before it saw the chain couple vertices, handed to
+    the joint solve so that it pays for none of it again: the chain at rest, the per-vertex
+    3x3 blocks (forward differences moving every sculpted vertex along x, then y, then z) and
+    the linearised start's offsets with their outputs (one call each)."""
+
+    posed_rest: Points  # (n, 3) the chain's output at rest
+    blocks: NDArray[np.float64]  # (k, 3, 3) d posed / d rest at the sculpted vertices
+    start: Points  # (k, 3) the offsets J^-1 r
+    start_outputs: Points  # (k, 3) the chain's output at rest + start, on the sculpted vertices
+    floor: float  # float32 floor of the data (``tolerances.float32_floor``)
 
 
 @dataclass(frozen=True)
@@ -58,6 +72,15 @@ class InverseResult:
     #: step; 3 per line minimisation in a cycle)
     qn_steps: int = 0
     cycles: int = 0
+    #: RMS over the sculpted vertices of the sculpt's own displacement from the chain at rest:
+    #: the unit of ``unreachable_fraction`` (0 when nothing was sculpted)
+    sculpt_rms: float = 0.0
+    #: the solve ended at a least-squares optimum (the last attempts could not lower the
+    #: residual along any direction they tried), not on its call budget: vertices still above
+    #: the tolerance there are what the chain cannot reproduce (coupled regimes only)
+    at_optimum: bool = False
+    #: set with regime ``COUPLING_SEEN``: the per-vertex solver's measurements, for the joint solve
+    linearised: LinearisedStart | None = field(default=None, repr=False, compare=False)
 
     @property
     def missed(self) -> NDArray[np.int64]:
@@ -78,6 +101,12 @@ class InverseResult:
     @property
     def rms_residual(self) -> float:
         return float(np.sqrt(np.mean(self.residual**2))) if len(self.residual) else 0.0
+
+    @property
+    def unreachable_fraction(self) -> float:
+        """The share of the sculpt (RMS over the sculpted vertices, relative to the sculpt's
+        own displacement from the chain at rest) that the fitted offsets do not reproduce."""
+        return self.rms_residual / self.sculpt_rms if self.sculpt_rms > 0 else 0.0
 
 
 class Counted:
@@ -174,12 +203,16 @@ def invert_example_with(
     max_cycles: int = tol.POWELL_MAX_CYCLES,
     quasi_newton: bool = True,
     stop_if_coupled: bool = False,
+    coupling_probe: Callable[[BlackBox, Points, NDArray[np.int64], float], bool] | None = None,
 ) -> InverseResult:
     """``invert_example`` with the solver's switches. ``quasi_newton=False`` skips the
     Broyden refresh and runs Powell alone after the linearised start (the benchmarks'
     reference method, side by side). ``stop_if_coupled``: when
     the Jacobian calls show the chain couples vertices and the linearised start misses the
-    tolerance, return there (regime ``COUPLING_SEEN``, 5 calls) for a joint solve to take over."""
+    tolerance, return there (regime ``COUPLING_SEEN``, 5 calls) for a joint solve to take over.
+    ``coupling_probe(call, posed_rest, idx, step)`` is asked, when the Jacobian calls showed no
+    coupling and the start misses, whether the chain couples vertices all the same (a sculpt
+    that covers whole pieces of the mesh leaves no unsculpted neighbour to show it)."""
     started = time.perf_counter()
     rest = np.asarray(rest, dtype=np.float64)
     sculpt = np.asarray(sculpt, dtype=np.float64)
@@ -215,6 +248,8 @@ def invert_example_with(
     f_start = np.einsum("ij,ij->i", r_start, r_start)
     worse = f_start > np.einsum("ij,ij->i", r0, r0)
     worse |= ~np.all(np.isfinite(r_start), axis=1)
+    if stop_if_coupled and not coupled and coupling_probe is not None and not np.all(f_start <= atol * atol):
+        coupled = coupling_probe(call, posed_rest, idx, step)
     if stop_if_coupled and coupled:
         norms = np.linalg.norm(r_start, axis=1)
         if not np.all(norms <= atol):
@@ -222,7 +257,9 @@ def invert_example_with(
                 indices=idx, offsets=start, residual=np.where(np.isfinite(norms), norms, np.inf),
                 status=np.where(norms <= atol, powell.CONVERGED, powell.MAX_CYCLES).astype(np.int8),
                 evaluations=call.calls, diagonal=diagonal, atol=atol, seconds=time.perf_counter() - started,
-                regime=COUPLING_SEEN,
+                regime=COUPLING_SEEN, sculpt_rms=_rms(r0),
+                linearised=LinearisedStart(posed_rest=posed_rest, blocks=jac, start=start.copy(),
+                                           start_outputs=target - r_start, floor=floor),
             )
     if quasi_newton:
         # The start was a full step from zero offset: its secant refines J where the start
@@ -246,4 +283,10 @@ def invert_example_with(
         seconds=time.perf_counter() - started,
         qn_steps=result.qn_steps,
         cycles=result.cycles,
+        sculpt_rms=_rms(r0),
     )
+
+
+def _rms(rows: Points) -> float:
+    """RMS of the rows' lengths (0 for none)."""
+    return float(np.sqrt(np.mean(np.einsum("ij,ij->i", rows, rows)))) if len(rows) else 0.0
