@@ -45,6 +45,22 @@ class MeshFit:
     #: carry what its joints' own correctives do not already give at its poses
     shapes: tuple[BlendShapeData, ...] | None = None
     condition: float = float("nan")  # 2-norm condition number of the group's RBF system (nan: none solved)
+    #: the default fit's kind of group: "joint" (one joint's term) or "combination" (what the
+    #: joints' terms leave, gated); "" for a group of explicit drivers or one global group
+    role: str = ""
+    vertices: int = 0  # points the group's BlendShapes move (0: not counted)
+
+
+@dataclass(frozen=True)
+class ExampleSplit:
+    """How one example's corrective divides between the per-joint groups and the combinations."""
+
+    mesh: str
+    label: str
+    source: str
+    time: float
+    norm: float  # |d_k|: the norm of its rest-space offsets over the mesh's points
+    combination: float  # |r_k| / |d_k|: the part the combination groups carry (0 for a zero example)
 
 
 @dataclass(frozen=True)
@@ -81,6 +97,8 @@ class FitResult:
     rig: dict = field(default_factory=dict, repr=False, compare=False)
     #: every fitted example through the client's composition (``fitcheck.check_product``)
     checks: tuple[ExampleCheck, ...] = ()
+    #: the default fit: per mesh and example, how much the combinations carry (``decompose``)
+    splits: tuple[ExampleSplit, ...] = ()
 
     @property
     def missed(self) -> int:

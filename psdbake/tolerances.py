@@ -84,6 +84,36 @@ DRIVER_ANGLE_ATOL = 1e-5
 #: tiny secondary motion (a spine settling by a tenth of a degree) is not what was sculpted.
 ACTIVE_JOINT_ANGLE = 1e-2
 
+#: A joint influences a point (for which joints can explain its corrective, ``fitting.locality``)
+#: when its skinning weight there exceeds this: rigs pad influences with weights of a few 1e-3
+#: that barely move the point, and each joint added to a point's set costs the additive fit
+#: identifiability. Measured on the humanoid's shot sculpts (decisions/additive-correctives.md):
+#: 1e-2 removes more of the error on motions nobody sculpted than 1e-3 or 5e-2.
+INFLUENCE_WEIGHT_MIN = 1e-2
+
+#: sigma (radians) of a group driven by one joint (``fitting.additive``; ``--sigma`` overrides):
+#: a corrective grows over a joint's range of motion (the humanoid's truths as sin of the bend,
+#: turning over near 90 degrees), not over the spacing of the sculpts, so a joint sculpted at one
+#: angle needs the same width as one sculpted at five. Per-joint best on the humanoid: 1.7 to 2.3
+#: rad (decisions/additive-correctives.md). The same for a group fitted alone or with others.
+JOINT_SIGMA = 1.843
+
+#: The additive fit's ridge (``fitting.additive``): the weight of the RKHS norm of the per-joint
+#: terms against the squared misfit at an example that moves several of a point's joints, in the
+#: units of the kernel (1 at a centre). What the ridge leaves goes into the combination terms, so
+#: the examples stay exact; smaller fits the shot sculpts' frames closer, larger keeps the terms
+#: smoother. Measured on the humanoid's shot sculpts (decisions/additive-correctives.md): 1e-4
+#: beats 1e-3 and 1e-2 with both truths; below it the terms start to chase non-additive detail.
+ADDITIVE_RIDGE = 1e-4
+
+#: The ridge at an example that moves a single joint of a point's set: nothing else can explain
+#: its sculpt there, so the fit is exact up to round-off (a regularisation only for duplicated rows).
+ADDITIVE_RIDGE_EXACT = 1e-12
+
+#: A residual of the additive part below this fraction of the diagonal is left as it is instead
+#: of becoming combination terms: a thousandth of the round-trip tolerance (ROUNDTRIP_RTOL).
+RESIDUAL_NEGLIGIBLE_RTOL = 1e-8
+
 #: A combination is gated by the activations of the groups it sits on and divided by their
 #: product at its own pose (so its weight is 1 there). Below this product the joints'
 #: correctives are essentially off at the combination's pose: the division would amplify

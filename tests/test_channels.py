@@ -133,7 +133,7 @@ def test_a_pose_beyond_the_scales_is_written_as_is_and_warned(tmp_path, cli):
     gives the corrected shape; nothing is clamped silently."""
     from pxr import Sdf, Vt
 
-    result = api.fit(ASSET, [EXAMPLES])
+    result = api.fit(ASSET, [EXAMPLES], FitSettings(group="main"))
     corr = str(tmp_path / "c.usda")
     api.write_correctives(result, corr)
     layer = Sdf.Layer.FindOrOpen(corr)
