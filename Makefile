@@ -71,6 +71,7 @@ pages: $(STAMP)
 fidelity: $(STAMP)
 	$(BIN)/python -m benchmarks.fidelity
 	$(BIN)/python -m benchmarks.humanoid
+	$(BIN)/python -m benchmarks.shots
 	$(BIN)/python -m benchmarks.pages
 	@mkdir -p $(OUT)
 	$(BIN)/psdbake compare fixtures/hinge/hinge.usda fixtures/hinge/hinge_examples.usda --anim fixtures/hinge/hinge_anim.usda -o $(OUT)/hinge_report

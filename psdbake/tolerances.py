@@ -87,23 +87,26 @@ ACTIVE_JOINT_ANGLE = 1e-2
 #: A joint influences a point (for which joints can explain its corrective, ``fitting.locality``)
 #: when its skinning weight there exceeds this: rigs pad influences with weights of a few 1e-3
 #: that barely move the point, and each joint added to a point's set costs the additive fit
-#: identifiability. Measured on the humanoid's shot sculpts (decisions/additive-correctives.md):
-#: 1e-2 removes more of the error on motions nobody sculpted than 1e-3 or 5e-2.
+#: identifiability. Measured on the humanoid's shot sculpts (docs/decisions/additive-correctives.md):
+#: 1e-2 keeps less of plain skinning's error on motions nobody sculpted than 1e-3 or 5e-2.
 INFLUENCE_WEIGHT_MIN = 1e-2
 
-#: sigma (radians) of a group driven by one joint (``fitting.additive``; ``--sigma`` overrides):
-#: a corrective grows over a joint's range of motion (the humanoid's truths as sin of the bend,
-#: turning over near 90 degrees), not over the spacing of the sculpts, so a joint sculpted at one
-#: angle needs the same width as one sculpted at five. Per-joint best on the humanoid: 1.7 to 2.3
-#: rad (decisions/additive-correctives.md). The same for a group fitted alone or with others.
+#: sigma (radians) of a group driven by one joint (``fitting.additive``, ``drivers.plan_group``;
+#: ``--sigma`` overrides): a corrective grows over a joint's range of motion, not over the spacing
+#: of its sculpts, so a joint sculpted at one angle needs the same width as one sculpted at five,
+#: and the group gets it whether fitted alone or with others. 1.843 is the width the humanoid's
+#: joint groups had when a default fit derived one shared width from all its examples (the mean
+#: pairwise distance of its poses), so that its table stands; widths from 1.5 to 3 rad move its
+#: errors by less than 1.8x (docs/decisions/additive-correctives.md).
 JOINT_SIGMA = 1.843
 
 #: The additive fit's ridge (``fitting.additive``): the weight of the RKHS norm of the per-joint
 #: terms against the squared misfit at an example that moves several of a point's joints, in the
 #: units of the kernel (1 at a centre). What the ridge leaves goes into the combination terms, so
 #: the examples stay exact; smaller fits the shot sculpts' frames closer, larger keeps the terms
-#: smoother. Measured on the humanoid's shot sculpts (decisions/additive-correctives.md): 1e-4
-#: beats 1e-3 and 1e-2 with both truths; below it the terms start to chase non-additive detail.
+#: smoother. Measured on the humanoid's shot sculpts (docs/decisions/additive-correctives.md):
+#: 1e-4 beats 1e-3, 1e-2 and 1e-1 with the additive truth and matches them with the dual-quaternion
+#: one; 1e-5 does slightly better with the additive truth and worse with the dual-quaternion one.
 ADDITIVE_RIDGE = 1e-4
 
 #: The ridge at an example that moves a single joint of a point's set: nothing else can explain

@@ -13,7 +13,7 @@ The default fit, read top to bottom (``fit_mesh``):
 
 Combination groups over joints that are each sculpted alone are gated as the groups of those
 joints grow (their activations, psd: v4 ``gateGroups``: measured 6x better at the worst vertex
-than a ramp, decisions/additive-correctives.md); other combinations by a ramp of each joint's
+than a ramp, docs/decisions/additive-correctives.md); other combinations by a ramp of each joint's
 angle (psd: v5 ``rampGates``), which needs no other group and is 1 at every one of its examples.
 """
 
