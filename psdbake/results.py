@@ -61,6 +61,15 @@ class ExampleSplit:
     time: float
     norm: float  # |d_k|: the norm of its rest-space offsets over the mesh's points
     combination: float  # |r_k| / |d_k|: the part the combination groups carry (0 for a zero example)
+    terms: float = 0.0  # |A_k| / |d_k|: the part the per-joint terms give (A_k + r_k = d_k)
+
+    @property
+    def shares(self) -> tuple[float, float]:
+        """(additive, interaction): |A_k| and |r_k| as fractions of |A_k| + |r_k| (0, 0 for a
+        zero example): how much of the sculpt the per-joint terms explain and how much is left
+        to the combinations."""
+        total = self.terms + self.combination
+        return (self.terms / total, self.combination / total) if total > 0 else (0.0, 0.0)
 
 
 @dataclass(frozen=True)

@@ -53,6 +53,15 @@ def test_fit_report_and_summary(run, tmp_path):
     assert {m["group"]: m["drivers"] for m in data["meshes"]} == {
         "Elbow": ["Shoulder/Elbow"], "Wrist": ["Shoulder/Elbow/Wrist"],
         "combo_Elbow_Wrist": ["Shoulder/Elbow", "Shoulder/Elbow/Wrist"]}
+    # per group its role and the points it moves; per example what the terms explain
+    assert {m["group"]: m["role"] for m in data["meshes"]} == {"Elbow": "joint", "Wrist": "joint",
+                                                               "combo_Elbow_Wrist": "combination"}
+    assert all(0 < m["vertices_moved"] <= m["points"] for m in data["meshes"])
+    assert [e["time"] for e in data["explained"]] == [1.0, 2.0, 3.0]
+    for e in data["explained"]:
+        assert 0.0 <= e["interaction"] <= 1.0 and e["additive"] + e["interaction"] == pytest.approx(1.0)
+    assert data["explained"][0]["interaction"] < 1e-9  # the elbow sculpted alone: its term is the sculpt
+    assert "additive" in stdout and "interaction" in stdout and "points:" in stdout
 
 
 @pytest.mark.slow

@@ -354,11 +354,13 @@ def _unedited_sets(asset: str, mesh: _Mesh, names: dict[int, str], taken: set[st
 
 
 def _splits(mesh: _Mesh, residual: NDArray[np.float64]) -> list[ExampleSplit]:
-    """Per example: the norm of its offsets and the fraction the combinations carry."""
+    """Per example: the norm of its offsets and the parts the per-joint terms and the combinations carry."""
     out = []
     for k, example in enumerate(mesh.examples):
         total = float(np.linalg.norm(mesh.data[k, :, :3]))
         rest = float(np.linalg.norm(residual[k, :, :3]))
+        terms = float(np.linalg.norm(mesh.data[k, :, :3] - residual[k, :, :3]))
         out.append(ExampleSplit(mesh=mesh.info.path, label=example.label, source=example.source, time=example.time,
-                                norm=total, combination=rest / total if total > 0 else 0.0))
+                                norm=total, combination=rest / total if total > 0 else 0.0,
+                                terms=terms / total if total > 0 else 0.0))
     return out
