@@ -32,7 +32,8 @@ PAGES: dict[str, tuple[str, str, list[tuple[str, str]]]] = {
         [("run", "The inverse against its references"), ("run_solver", "The solver"),
          ("coupled", "A chain that couples vertices"), ("conditioning", "Many examples"),
          ("jobs", "`fit --jobs`"), ("batch", "`batch --workers`"), ("startup", "Start-up"),
-         ("evalspeed", "Eval and the points cache at film scale"), ("fitspeed", "Fit at film scale")],
+         ("evalspeed", "Eval and the points cache at film scale"), ("fitspeed", "Fit at film scale"),
+         ("sculptspeed", "Fit time by kind of sculpt"), ("manyjoints", "A big skeleton, a small sculpt")],
     ),
     "fidelity.md": (
         "Fidelity: the paper's claim, measured",

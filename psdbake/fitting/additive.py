@@ -128,7 +128,7 @@ def fit_signature(terms: Sequence[JointTerm], active: Sequence[frozenset[int]], 
     for t in terms:  # joints sculpted alone: as sculpted
         if t.solo:
             rows = list(t.solo)
-            s = scipy.linalg.lstsq(t.basis[rows], rest[rows], lapack_driver="gelsd")[0]
+            s = _least_squares(t.basis[rows], rest[rows])
             out[t.joint] = s.reshape(-1, n, c)
     for t in terms:
         if t.joint in out:
@@ -141,13 +141,20 @@ def fit_signature(terms: Sequence[JointTerm], active: Sequence[frozenset[int]], 
         root = scipy.linalg.block_diag(*[_root(t.penalty) for t in free])
         lhs = np.concatenate([basis, root])
         rhs = np.concatenate([rest[rows] / np.sqrt(ridge)[:, None], np.zeros((len(root), n * c))])
-        s = scipy.linalg.lstsq(lhs, rhs, lapack_driver="gelsd")[0]
+        s = _least_squares(lhs, rhs)
         start = 0
         for t in free:
             size = t.basis.shape[1]
             out[t.joint] = s[start:start + size].reshape(size, n, c)
             start += size
     return out
+
+
+def _least_squares(a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The minimum-norm least-squares solution of a x = b: a is small (examples + centres rows,
+    centres columns), b has a column per point and coordinate, so the pseudo-inverse (SVD,
+    LAPACK's default cutoff) is formed once and applied by one product."""
+    return scipy.linalg.pinv(a) @ b
 
 
 def _root(q: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -160,7 +167,8 @@ def predict(terms: Sequence[JointTerm], values: dict[int, NDArray[np.float64]]) 
     """(K, n, c): the additive part at every example, from the terms' weights there."""
     out = None
     for t in terms:
-        part = np.einsum("kl,lnc->knc", t.basis, values[t.joint])
+        v = values[t.joint]
+        part = (t.basis @ v.reshape(len(v), -1)).reshape(len(t.basis), *v.shape[1:])
         out = part if out is None else out + part
     assert out is not None
     return out

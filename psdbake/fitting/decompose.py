@@ -104,8 +104,9 @@ def fit_mesh(asset: str, info: SkinnedMesh, examples: Sequence[Example], solved:
     if not len(mesh.points):
         return [], []
     # 2. locality
-    sets = locality.explaining_joints(skin, mesh.points, mesh.moved)
-    sets = locality.separate(sets, locality.influences(skin, mesh.points), mesh.coords, mesh.data, skin.parents,
+    own = locality.influences(skin, mesh.points)
+    sets = locality.explaining_joints(skin, own, mesh.moved)
+    sets = locality.separate(sets, own, mesh.coords, mesh.data, skin.parents,
                              mesh.moved, mesh.atol, mesh.labels, here)
     rows_of: dict[Joints, list[int]] = {}
     for row, joints in enumerate(sets):
@@ -128,7 +129,7 @@ def fit_mesh(asset: str, info: SkinnedMesh, examples: Sequence[Example], solved:
         for j, s in part.items():
             values[j][:, rows] = s
         predicted[:, rows] = additive.predict(mine, part)
-    residual = mesh.data - predicted
+    residual = np.subtract(mesh.data, predicted, out=predicted)  # what the terms leave (in place)
     # 4. groups: joints, then combinations on what they leave
     joint_groups = _joint_groups(mesh, terms, values, bind_local, names, named_out, notes, asset, left_out)
     solo = {j for j, t in terms.items() if t.solo}
@@ -356,10 +357,12 @@ def _unedited_sets(asset: str, mesh: _Mesh, names: dict[int, str], taken: set[st
 def _splits(mesh: _Mesh, residual: NDArray[np.float64]) -> list[ExampleSplit]:
     """Per example: the norm of its offsets and the parts the per-joint terms and the combinations carry."""
     out = []
+    count = len(mesh.examples)
+    totals = np.sqrt(np.square(mesh.data[:, :, :3]).reshape(count, -1).sum(axis=1))
+    rests = np.sqrt(np.square(residual[:, :, :3]).reshape(count, -1).sum(axis=1))
+    parts = np.sqrt(np.square(mesh.data[:, :, :3] - residual[:, :, :3]).reshape(count, -1).sum(axis=1))
     for k, example in enumerate(mesh.examples):
-        total = float(np.linalg.norm(mesh.data[k, :, :3]))
-        rest = float(np.linalg.norm(residual[k, :, :3]))
-        terms = float(np.linalg.norm(mesh.data[k, :, :3] - residual[k, :, :3]))
+        total, rest, terms = float(totals[k]), float(rests[k]), float(parts[k])
         out.append(ExampleSplit(mesh=mesh.info.path, label=example.label, source=example.source, time=example.time,
                                 norm=total, combination=rest / total if total > 0 else 0.0,
                                 terms=terms / total if total > 0 else 0.0))

@@ -34,12 +34,23 @@ Joints = tuple[int, ...]  # sorted skeleton-order joint indices
 
 def influences(skin: Skin, points: NDArray[np.int64]) -> list[Joints]:
     """Per point of ``points``: its influences I(v), the joints weighted above ``tol.INFLUENCE_WEIGHT_MIN``."""
-    keep = (skin.weights[points] > tol.INFLUENCE_WEIGHT_MIN) & (skin.indices[points] >= 0)
-    return [tuple(sorted({int(j) for j in row[k]})) for row, k in zip(skin.indices[points], keep, strict=True)]
+    idx = skin.indices[points]
+    kept = np.where((skin.weights[points] > tol.INFLUENCE_WEIGHT_MIN) & (idx >= 0), idx, -1)
+    kept.sort(axis=1)
+    base = len(skin.parents) + 1
+    if kept.shape[1] * np.log2(base) < 62:  # one integer key per row: a 1-D unique, no lexsort
+        key = ((kept + 1) * base ** np.arange(kept.shape[1], dtype=np.int64)).sum(axis=1)
+        _, first, inverse = np.unique(key, return_index=True, return_inverse=True)
+        rows = kept[first]
+    else:
+        rows, inverse = np.unique(kept, axis=0, return_inverse=True)
+    sets = [tuple(sorted({int(j) for j in row if j >= 0})) for row in rows]  # points share a few sets
+    return [sets[i] for i in np.asarray(inverse).reshape(-1)]
 
 
-def explaining_joints(skin: Skin, points: NDArray[np.int64], moved: Sequence[int]) -> list[Joints]:
-    """Per point of ``points``: the moved joints that can explain its corrective (sorted)."""
+def explaining_joints(skin: Skin, own: Sequence[Joints], moved: Sequence[int]) -> list[Joints]:
+    """Per point: the moved joints that can explain its corrective (sorted), from its
+    influences ``own`` (``influences``)."""
     children: dict[int, list[int]] = {}
     for j, p in enumerate(skin.parents):
         if p >= 0:
@@ -47,14 +58,14 @@ def explaining_joints(skin: Skin, points: NDArray[np.int64], moved: Sequence[int
     moving = set(int(j) for j in moved)
     cache: dict[Joints, Joints] = {}
     out = []
-    for own in influences(skin, np.asarray(points, dtype=np.int64)):
-        if own not in cache:
-            found = set(own)
-            for j in own:
+    for mine in own:
+        if mine not in cache:
+            found = set(mine)
+            for j in mine:
                 found.update(children.get(j, ()))
-            found.update(_between(own, skin.parents))
-            cache[own] = tuple(sorted(found & moving))
-        out.append(cache[own])
+            found.update(_between(mine, skin.parents))
+            cache[mine] = tuple(sorted(found & moving))
+        out.append(cache[mine])
     return out
 
 
@@ -121,7 +132,8 @@ def separate(sets: list[Joints], anchors: Sequence[Joints], coords: NDArray[np.f
             by_set.setdefault(s, []).append(v)
         for joints, points in sorted(by_set.items()):
             for members in _agreeing(poses, joints):
-                spread = np.abs(offsets[members][:, points] - offsets[members[0]][None, points]).max(axis=(0, 2))
+                mine = offsets[np.ix_(members, points)]
+                spread = np.abs(mine - mine[:1]).max(axis=(0, 2))
                 bad = np.nonzero(spread > atol)[0]
                 if not len(bad):
                     continue
