@@ -215,8 +215,7 @@ def _say_decomposed(ui: Ui, groups: list, result: FitResult) -> None:
 
 def say_fit(ui: Ui, result: FitResult, output: str, changes: GroupChanges | None = None, *, written: bool = True
             ) -> None:
-    solves = {(m.mesh, ex.source, ex.time): inv for m in result.meshes
-              for ex, inv in zip(m.examples, m.inverses, strict=True)}
+    solves = result.solves
     solved = sum(len(inv.indices) for inv in solves.values())
     n_meshes = len({m.mesh for m in result.meshes})
     ui.say(f"psdbake fit: {n_meshes} mesh(es), {len(result.meshes)} group(s), {len(solves)} example(s), {solved} "
@@ -246,10 +245,9 @@ def say_fit(ui: Ui, result: FitResult, output: str, changes: GroupChanges | None
             ui.say(f"  {line}")
     if result.missed:
         why: dict[str, int] = {}
-        for m in result.meshes:
-            for inv in m.inverses:
-                for name, count in inv.missed_statuses.items():
-                    why[name] = why.get(name, 0) + count
+        for inv in result.solves.values():
+            for name, count in inv.missed_statuses.items():
+                why[name] = why.get(name, 0) + count
         detail = ", ".join(f"{name} {count}" for name, count in sorted(why.items()))
         ui.warn(f"{output}: {result.missed} vertices missed the fit tolerance ({detail}; see --report; --strict makes "
                 "this fatal)")

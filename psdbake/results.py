@@ -110,8 +110,15 @@ class FitResult:
     splits: tuple[ExampleSplit, ...] = ()
 
     @property
+    def solves(self) -> dict[tuple[str, str, float], InverseResult]:
+        """Each example's inverse once, by (mesh, source, time): the groups of one default fit of
+        a mesh all carry every example of it."""
+        return {(m.mesh, ex.source, ex.time): inv for m in self.meshes
+                for ex, inv in zip(m.examples, m.inverses, strict=True)}
+
+    @property
     def missed(self) -> int:
-        return int(sum(len(inv.missed) for m in self.meshes for inv in m.inverses))
+        return int(sum(len(inv.missed) for inv in self.solves.values()))
 
     @property
     def degraded(self) -> tuple[ExampleCheck, ...]:

@@ -35,6 +35,8 @@ def test_pose_writes_plain_skinning_and_the_pose(run, tmp_path):
     # fitting the unsculpted poses finds nothing to correct: a clear refusal
     code, _, err = run("fit", ASSET, out, "-o", tmp_path / "c.usda")
     assert code == 4 and "no example differs from plain skinning" in err
+    for group in ("group 'Elbow' (Elbow)", "group 'Wrist' (Wrist)", "group 'combo_Elbow_Wrist' (Elbow, Wrist)"):
+        assert group in err  # the groups a sculpt would make, and their joints
     assert not (tmp_path / "c.usda").exists()
 
 
