@@ -32,7 +32,7 @@ def _ratio(report, truth: str, motion: str, method: str, key: str) -> float:
 @pytest.mark.parametrize("motion", UNSCULPTED)
 def test_additive_truth_on_motions_nobody_sculpted(report, motion):
     """The default fit of ten shot sculpts: mean error <= 15% of plain skinning's, max <= 30%
-    (measured 2.1% / 2.3% one joint at a time, 0.4% / 1.8% on the second shot)."""
+    (measured 2.1% / 2.3% one joint at a time, 0.35% / 1.8% on the second shot)."""
     assert _ratio(report, "additive", motion, "default fit", "mean") <= 0.15
     assert _ratio(report, "additive", motion, "default fit", "max") <= 0.30
 
@@ -41,8 +41,8 @@ def test_additive_truth_on_motions_nobody_sculpted(report, motion):
 @pytest.mark.parametrize("motion", UNSCULPTED)
 def test_dual_quaternion_truth_on_motions_nobody_sculpted(report, motion):
     """Not additive across joints, and still >= 60% of plain skinning's mean error removed
-    (measured 68% one joint at a time, 85% on the second shot); one global group of the same
-    sculpts keeps 4x as much (measured 131% and 61% of plain's)."""
+    (measured 69% one joint at a time, 87% on the second shot); one global group of the same
+    sculpts keeps 4x as much (measured 132% and 61% of plain's)."""
     assert _ratio(report, "dual quaternion", motion, "default fit", "mean") <= 0.40
     assert _ratio(report, "dual quaternion", motion, "default fit", "mean") <= 0.5 * _ratio(
         report, "dual quaternion", motion, "one global group", "mean")
@@ -63,18 +63,14 @@ def test_every_shot_sculpt_round_trips(report, truth):
 
 @pytest.mark.slow
 def test_sculpted_shot_frames_against_one_global_group(report):
-    """On the frames of the sculpted shot (between the sculpts) the default fit is at least as
-    good as the one global group these sculpts used to get at its worst vertex, with both truths,
-    and in the mean with the additive truth. With the dual-quaternion truth its mean is within
-    1.5x of the global group's (measured 1.24x: the global RBF interpolates along the shot's own
-    path, which no motion but that shot follows)."""
+    """On the frames of the sculpted shot (between the sculpts) the default fit is no worse than
+    the one global group these sculpts used to get, mean and worst vertex, with both truths
+    (measured: additive 3.9e-07 / 4.4e-05 against 8.7e-06 / 1.2e-03 of the diagonal; dual
+    quaternion 2.3e-05 / 7.3e-04 against 2.5e-05 / 4.1e-03)."""
     for truth in ("additive", "dual quaternion"):
-        assert _ratio(report, truth, "sculpted shot", "default fit", "max") <= _ratio(
-            report, truth, "sculpted shot", "one global group", "max")
-    assert _ratio(report, "additive", "sculpted shot", "default fit", "mean") <= _ratio(
-        report, "additive", "sculpted shot", "one global group", "mean")
-    assert _ratio(report, "dual quaternion", "sculpted shot", "default fit", "mean") <= 1.5 * _ratio(
-        report, "dual quaternion", "sculpted shot", "one global group", "mean")
+        for key in ("mean", "max"):
+            assert _ratio(report, truth, "sculpted shot", "default fit", key) <= _ratio(
+                report, truth, "sculpted shot", "one global group", key), (truth, key)
 
 
 def test_a_joint_group_has_the_same_sigma_alone_or_with_others(tmp_path):

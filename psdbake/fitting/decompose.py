@@ -264,8 +264,10 @@ def _combination(mesh: _Mesh, joints: Joints, centres: Sequence[int], joint_grou
         model = rbf.constant_one(x)
         condition = float("nan")
     else:
+        start = tol.COMBINATION_SIGMA_FRACTION * rbf.auto_sigma(x)
         plan = rbf.plan_rbf(x, list(range(len(x))), labels, kernel=s.kernel, sigma=s.sigma, degree=degree,
-                            smoothing=s.smoothing, where=f"{here} group {name!r}")
+                            smoothing=s.smoothing, where=f"{here} group {name!r}", start=start,
+                            start_rule=f"{tol.COMBINATION_SIGMA_FRACTION:g} x mean pairwise distance")
         model, condition = plan.model(list(range(len(x)))), plan.condition
     data = _base_data(mesh, joints, model, labels, centres, bind_local)
     gated = _activation_gated(mesh, data, joints, centres, joint_groups)

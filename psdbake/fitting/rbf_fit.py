@@ -195,10 +195,12 @@ def plan_rbf(
     where: str = "",
     raise_problem: bool = True,
     start: float | None = None,
+    start_rule: str = "joint sigma",
 ) -> RbfPlan:
     """Build and check the RBF system before any example is solved (milliseconds; ~0.2 s at 500 poses).
 
-    start: where the automatic sigma starts (sigma0; default the mean pairwise distance).
+    start: where the automatic sigma starts (sigma0; default the mean pairwise distance), and
+    start_rule what the plan's ``sigma_rule`` calls it.
 
     centers: (k, D) every centre's full pose coordinates (bind pose included), labels name them;
     outputs: the centre indices that will carry a corrective (None: not known yet; the checks
@@ -207,7 +209,8 @@ def plan_rbf(
     ``raise_problem=False`` the plan carries it in ``problem`` instead.
     """
     try:
-        return _plan(np.asarray(centers, dtype=np.float64), labels, kernel, sigma, degree, smoothing, where, start)
+        return _plan(np.asarray(centers, dtype=np.float64), labels, kernel, sigma, degree, smoothing, where, start,
+                     start_rule)
     except FitError as exc:
         if raise_problem:
             raise
@@ -253,7 +256,7 @@ def _check_polynomial(system: System, subject: str, deg: int, dims: int) -> None
 
 
 def _choose_sigma(system: System, kernel: str, sigma: float | None, subject: str, warnings: list[str],
-                  start: float | None = None) -> tuple[float, float, str]:
+                  start: float | None = None, start_rule: str = "joint sigma") -> tuple[float, float, str]:
     """(sigma, condition number, the rule that chose it): scale-free kernels 1, --sigma as
     given (warned when far narrower than the poses' spacing), else the adaptive rule."""
     k = len(system.centers)
@@ -268,7 +271,7 @@ def _choose_sigma(system: System, kernel: str, sigma: float | None, subject: str
         return float(sigma), system.condition(float(sigma)), "--sigma"
     sigma0 = auto_sigma(system.centers) if start is None else float(start)
     sig, cond, j = _adapt_sigma(system, sigma0)
-    rule = "mean pairwise distance" if start is None else "joint sigma"
+    rule = "mean pairwise distance" if start is None else start_rule
     return sig, cond, rule if j == 0 else f"{rule} {sigma0:.4g} x 2^(-{j}/4)"
 
 
@@ -286,7 +289,7 @@ def _advice(system: System, kernel: str, sigma: float | None, deg: int, cond: fl
 
 
 def _plan(full: NDArray[np.float64], labels: Sequence[str], kernel: str, sigma: float | None, degree: int | None,
-          smoothing: float, where_: str, start: float | None = None) -> RbfPlan:
+          smoothing: float, where_: str, start: float | None = None, start_rule: str = "joint sigma") -> RbfPlan:
     deg = _check_settings(full, labels, kernel, sigma, degree, smoothing, f"{where_}: " if where_ else "")
     dims = np.nonzero(np.ptp(full, axis=0) > tol.DRIVER_ANGLE_ATOL)[0] if deg >= 0 else np.arange(full.shape[1])
     centers = full[:, dims]
@@ -294,7 +297,7 @@ def _plan(full: NDArray[np.float64], labels: Sequence[str], kernel: str, sigma: 
     system = System(centers, kernel, deg, float(smoothing))
     _check_polynomial(system, subject, deg, len(dims))
     warnings: list[str] = []
-    sig, cond, rule = _choose_sigma(system, kernel, sigma, subject, warnings, start)
+    sig, cond, rule = _choose_sigma(system, kernel, sigma, subject, warnings, start, start_rule)
     at_sigma = f"with sigma {sig:.3g} rad, kernel {kernel}, degree {deg}"
     if not cond < tol.RBF_COND_MAX:
         raise FitError(f"{subject} is numerically singular (condition number {cond:.1e} {at_sigma}): "
