@@ -207,8 +207,8 @@ def shots(tmp_path_factory):
 #: Blender more drivers per frame shows here (each costs ~1-5 us per frame, see
 #: docs/decisions/blender-live-drivers.md). CesiumMan's two sculpts are animation frames that
 #: move 19 joints at once: its default fit is a term per joint and combinations on what they
-#: leave (34 groups, 370 drivers; one global group over every joint made 43).
-DRIVER_BUDGETS = {"humanoid": 53, "mirrored": 53, "character": 21 + 7, "cesiumman": 370}
+#: leave (34 groups, 371 drivers; one global group over every joint made 43).
+DRIVER_BUDGETS = {"humanoid": 53, "mirrored": 53, "character": 21 + 7, "cesiumman": 371}
 
 
 @pytest.mark.slow
