@@ -110,3 +110,27 @@ def test_the_summary_says_which_sculpts_mixed_two_fixes(tmp_path):
         assert 0.1 < shares[t][1] < 0.9, t
     assert {m.role for m in result.meshes} == {"joint", "combination"}
     assert all(m.vertices > 0 for m in result.meshes)
+
+
+@pytest.fixture(scope="module")
+def shot_files(tmp_path_factory):
+    import humanoid
+
+    return humanoid.write_shot_files(str(tmp_path_factory.mktemp("shot_files")), fixture("humanoid", humanoid.ASSET))
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("settings", [
+    FitSettings(clamp_weights=True, normalize_weights=True, pose_space="quaternion"),
+    FitSettings(kernel="thin_plate_spline"),
+    FitSettings(kernel="cubic", pose_space="swingTwist", twist_axis=(0.0, 1.0, 0.0)),
+], ids=["clamp-normalize-quaternion", "thin-plate-spline", "cubic-swing-twist"])
+def test_every_option_still_reproduces_the_shot_sculpts(shot_files, settings):
+    """The stored options are part of the fit (the joint terms' weights at the examples are
+    clamped and normalised as eval will), and kernels that need a polynomial term get one in
+    the combinations too: the dual-quaternion shot sculpts are reproduced whatever the options."""
+    import humanoid
+
+    result = api.fit(fixture("humanoid", humanoid.ASSET), [shot_files["dual quaternion"]], settings)
+    assert not result.degraded
+    assert max(c.error for c in result.checks) <= tol.ROUNDTRIP_RTOL

@@ -93,9 +93,11 @@ def choose_centres(poses: NDArray[np.float64], kernel: str, sigma: float, degree
 
 
 def plan_term(joint: int, coords: NDArray[np.float64], active: Sequence[frozenset[int]], labels: Sequence[str],
-              kernel: str, sigma: float | None, degree: int | None, smoothing: float, where_: str) -> JointTerm | None:
+              kernel: str, sigma: float | None, degree: int | None, smoothing: float, where_: str,
+              clamp: bool = False, normalize: bool = False) -> JointTerm | None:
     """Joint ``joint``'s term over the examples' pose coordinates (K, J, w); None when no
-    pose of it can be a centre."""
+    pose of it can be a centre. clamp, normalize: the stored options (``weights.apply_options``),
+    applied to its weights at the examples as eval will apply them, so the fit is exact for them."""
     solo = tuple(k for k, a in enumerate(active) if a == {joint})
     moving = list(solo) if solo else [k for k, a in enumerate(active) if joint in a]
     deg = rbf.default_degree(kernel) if degree is None else int(degree)
@@ -109,6 +111,10 @@ def plan_term(joint: int, coords: NDArray[np.float64], active: Sequence[frozense
                         sigma=sigma, degree=deg, smoothing=smoothing, where=where_, start=sig)
     model = plan.model(list(range(1, len(full))))
     basis = model.weights(coords[:, joint])
+    if clamp:
+        basis = np.clip(basis, 0.0, 1.0)
+    if normalize:
+        basis = basis / np.maximum(1.0, basis.sum(axis=1, keepdims=True))
     k = len(full)
     kernel_matrix = KERNELS[kernel](distances(plan.centers, plan.centers) / plan.sigma)
     c = model.coefficients[:k]

@@ -116,7 +116,8 @@ def fit_mesh(asset: str, info: SkinnedMesh, examples: Sequence[Example], solved:
     terms: dict[int, additive.JointTerm] = {}
     for j in sorted({j for s in signatures for j in s}):
         term = additive.plan_term(j, mesh.coords, mesh.active, mesh.labels, settings.kernel, settings.sigma,
-                                  settings.degree, settings.smoothing, f"{here} group {_leaf(info, j)!r}")
+                                  settings.degree, settings.smoothing, f"{here} group {_leaf(info, j)!r}",
+                                  settings.clamp_weights, settings.normalize_weights)
         if term is not None:
             terms[j] = term
     values = {j: np.zeros((len(t.centres), len(mesh.points), mesh.data.shape[2])) for j, t in terms.items()}
@@ -257,7 +258,7 @@ def _combination(mesh: _Mesh, joints: Joints, centres: Sequence[int], joint_grou
     s = mesh.settings
     x = mesh.coords[list(centres)][:, list(joints)].reshape(len(centres), -1)
     labels = [mesh.labels[k] for k in centres]
-    degree = max(0, s.degree if s.degree is not None else 0)
+    degree = max(0, rbf.default_degree(s.kernel), s.degree if s.degree is not None else 0)
     name = group_name(mesh.info.joints, list(joints), taken) if len(joints) > 1 else _detail_name(mesh, joints[0], taken)
     taken.add(name)
     if len(centres) == 1:  # one pose: no polynomial to fit over it, the gates shape the constant
