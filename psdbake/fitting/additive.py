@@ -102,7 +102,7 @@ def plan_term(joint: int, coords: NDArray[np.float64], active: Sequence[frozense
     moving = list(solo) if solo else [k for k, a in enumerate(active) if joint in a]
     deg = rbf.default_degree(kernel) if degree is None else int(degree)
     sig = joint_sigma(kernel, sigma)
-    picks = choose_centres(coords[moving, joint], kernel, sig, deg, smoothing)
+    picks = choose_centres(coords[moving, joint], kernel, sig, deg, 0.0)  # the interpolant's conditioning
     if not picks:
         return None
     centres = tuple(moving[i] for i in picks)
@@ -110,14 +110,20 @@ def plan_term(joint: int, coords: NDArray[np.float64], active: Sequence[frozense
     plan = rbf.plan_rbf(full, list(range(1, len(full))), ["bind", *(labels[k] for k in centres)], kernel=kernel,
                         sigma=sigma, degree=deg, smoothing=smoothing, where=where_, start=sig)
     model = plan.model(list(range(1, len(full))))
-    basis = model.weights(coords[:, joint])
+    exact = model
+    if smoothing > 0:  # values fitted through the interpolant, weights written smoothed: the
+        # product then approximates the examples by request (as a group of explicit drivers
+        # whose shapes are its sculpts does) instead of undoing the smoothing
+        exact = rbf.plan_rbf(full, list(range(1, len(full))), ["bind", *(labels[k] for k in centres)], kernel=kernel,
+                             sigma=plan.sigma, degree=deg, smoothing=0.0, where=where_).model(list(range(1, len(full))))
+    basis = exact.weights(coords[:, joint])
     if clamp:
         basis = np.clip(basis, 0.0, 1.0)
     if normalize:
         basis = basis / np.maximum(1.0, basis.sum(axis=1, keepdims=True))
     k = len(full)
     kernel_matrix = KERNELS[kernel](distances(plan.centers, plan.centers) / plan.sigma)
-    c = model.coefficients[:k]
+    c = exact.coefficients[:k]
     penalty = c.T @ kernel_matrix @ c
     return JointTerm(joint=joint, solo=solo, centres=centres, plan=plan, model=model, basis=basis,
                      penalty=(penalty + penalty.T) / 2)

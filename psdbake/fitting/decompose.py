@@ -254,7 +254,9 @@ def _joint_groups(mesh: _Mesh, terms: dict[int, additive.JointTerm], values: dic
 def _combination(mesh: _Mesh, joints: Joints, centres: Sequence[int], joint_groups: dict[int, _Group],
                  bind_local: NDArray[np.float64], taken: set[str], here: str) -> _Group:
     """The combination group over ``joints`` with a centre at each of ``centres`` (example
-    indices), gated as the module says; its values are solved later."""
+    indices), gated as the module says; its values are solved later. It interpolates
+    (``--smoothing`` smooths the per-joint terms): it carries what they leave at its examples,
+    and a smoothed one would have to be inverted at them (T S = R), amplifying its shapes."""
     s = mesh.settings
     x = mesh.coords[list(centres)][:, list(joints)].reshape(len(centres), -1)
     labels = [mesh.labels[k] for k in centres]
@@ -267,7 +269,7 @@ def _combination(mesh: _Mesh, joints: Joints, centres: Sequence[int], joint_grou
     else:
         start = tol.COMBINATION_SIGMA_FRACTION * rbf.auto_sigma(x)
         plan = rbf.plan_rbf(x, list(range(len(x))), labels, kernel=s.kernel, sigma=s.sigma, degree=degree,
-                            smoothing=s.smoothing, where=f"{here} group {name!r}", start=start,
+                            smoothing=0.0, where=f"{here} group {name!r}", start=start,
                             start_rule=f"{tol.COMBINATION_SIGMA_FRACTION:g} x mean pairwise distance")
         model, condition = plan.model(list(range(len(x)))), plan.condition
     data = _base_data(mesh, joints, model, labels, centres, bind_local)
