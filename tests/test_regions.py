@@ -222,6 +222,20 @@ def test_psd_v2_layers_still_evaluate_to_the_same_weights(tmp_path):
     np.testing.assert_allclose(w2.weights, column_weights(data, w4.weights), rtol=1e-12, atol=1e-15)
 
 
+def test_psd_v4_layers_still_evaluate_to_the_same_weights(tmp_path):
+    """A v4 layer (tests/data/correctives_v4.usda: the psdbake before ramp gates, fitting the
+    bad-input catalogue's arm, whose examples then went into one group) evaluates as a v5 fit
+    of the same examples in that one group: the same channels and weights (float64 round-off)."""
+    asset, examples, anim = fixture("bad", "good_asset.usda"), fixture("bad", "good_examples.usda"), fixture("arm_anim.usda")
+    v4 = os.path.join(ROOT, "tests", "data", "correctives_v4.usda")
+    v5 = str(tmp_path / "v5.usda")
+    api.write_correctives(api.fit(asset, [examples], FitSettings(group="main")), v5)
+    w4 = api.evaluate(asset, v4, anim).animations[0]
+    w5 = api.evaluate(asset, v5, anim).animations[0]
+    assert w4.channels == w5.channels
+    np.testing.assert_allclose(w4.weights, w5.weights, rtol=1e-12, atol=1e-15)
+
+
 def test_v3_layer_with_joint_gates_still_evaluates(rig, tmp_path):
     """A v3 layer (written by psdbake before combinations were gated by their groups, for this
     rig: tests/data/correctives_v3.usda) still evaluates: its single-joint groups as a fit of
