@@ -130,9 +130,10 @@ def plan_term(joint: int, coords: NDArray[np.float64], active: Sequence[frozense
 
 
 def fit_signature(terms: Sequence[JointTerm], active: Sequence[frozenset[int]], data: NDArray[np.float64]
-                  ) -> dict[int, NDArray[np.float64]]:
-    """joint -> its values s_j (L_j, n, c) at the points of one signature, whose offsets are
-    data (K, n, c) at every example; terms are the signature's joints' terms."""
+                  ) -> tuple[dict[int, NDArray[np.float64]], NDArray[np.float64]]:
+    """(joint -> its values s_j (L_j, n, c), what the terms leave d_k - A(x_k) (K, n, c)) at the
+    points of one signature, whose offsets are data (K, n, c) at every example; terms are the
+    signature's joints' terms."""
     count, n, c = data.shape
     joints = {t.joint for t in terms}
     out: dict[int, NDArray[np.float64]] = {}
@@ -154,12 +155,13 @@ def fit_signature(terms: Sequence[JointTerm], active: Sequence[frozenset[int]], 
         lhs = np.concatenate([basis, root])
         rhs = np.concatenate([rest[rows] / np.sqrt(ridge)[:, None], np.zeros((len(root), n * c))])
         s = _least_squares(lhs, rhs)
+        rest -= np.concatenate([t.basis for t in free], axis=1) @ s
         start = 0
         for t in free:
             size = t.basis.shape[1]
             out[t.joint] = s[start:start + size].reshape(size, n, c)
             start += size
-    return out
+    return out, rest.reshape(count, n, c)
 
 
 def _least_squares(a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -173,14 +175,3 @@ def _root(q: NDArray[np.float64]) -> NDArray[np.float64]:
     """R with R^T R = Q for a symmetric positive semi-definite Q (negative round-off dropped)."""
     values, vectors = np.linalg.eigh(q)
     return (vectors * np.sqrt(np.clip(values, 0.0, None))).T
-
-
-def predict(terms: Sequence[JointTerm], values: dict[int, NDArray[np.float64]]) -> NDArray[np.float64]:
-    """(K, n, c): the additive part at every example, from the terms' weights there."""
-    out = None
-    for t in terms:
-        v = values[t.joint]
-        part = (t.basis @ v.reshape(len(v), -1)).reshape(len(t.basis), *v.shape[1:])
-        out = part if out is None else out + part
-    assert out is not None
-    return out

@@ -121,16 +121,15 @@ def fit_mesh(asset: str, info: SkinnedMesh, examples: Sequence[Example], solved:
         if term is not None:
             terms[j] = term
     values = {j: np.zeros((len(t.centres), len(mesh.points), mesh.data.shape[2])) for j, t in terms.items()}
-    predicted = np.zeros_like(mesh.data)
+    residual = mesh.data.copy()  # what the terms leave
     for joints, rows in signatures.items():
         mine = [terms[j] for j in joints if j in terms]
         if not mine:
             continue
-        part = additive.fit_signature(mine, mesh.active, mesh.data[:, rows])
+        part, left = additive.fit_signature(mine, mesh.active, mesh.data[:, rows])
+        residual[:, rows] = left
         for j, s in part.items():
             values[j][:, rows] = s
-        predicted[:, rows] = additive.predict(mine, part)
-    residual = np.subtract(mesh.data, predicted, out=predicted)  # what the terms leave (in place)
     # 4. groups: joints, then combinations on what they leave
     joint_groups = _joint_groups(mesh, terms, values, bind_local, names, named_out, notes, asset, left_out)
     solo = {j for j, t in terms.items() if t.solo}
@@ -181,16 +180,17 @@ class _Group:
         outputs = list(range(len(self.centres)))
         data = self.data
         shapes = []
+        nonzero = np.any(self.values != 0.0, axis=2)  # (columns, points)
         for col in outputs:
             v = self.values[col]
-            keep = np.nonzero(np.any(v != 0.0, axis=1))[0]
+            keep = np.flatnonzero(nonzero[col])
             shapes.append(BlendShapeData(name=channels[col], channel=channels[col], indices=mesh.points[keep],
                                          offsets=v[keep, :3], normal_offsets=v[keep, 3:] if mesh.normals else None))
         data = _with_shapes(data, channels)
         per_example = [""] * len(mesh.examples)
         for col, k in enumerate(self.centres):
             per_example[k] = channels[col]
-        moved = int(np.count_nonzero(np.any(self.values != 0.0, axis=(0, 2))))
+        moved = int(np.count_nonzero(nonzero.any(axis=0)))
         inv = mesh.inverses
         return MeshFit(
             mesh=info.path, skeleton=info.skeleton, point_count=info.point_count, examples=tuple(mesh.examples),

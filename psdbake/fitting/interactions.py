@@ -41,7 +41,7 @@ def keys(signatures: Mapping[Joints, NDArray[np.int64]], active: Sequence[frozen
     signatures (-> their point rows) whose residual (K, n, c) is not negligible. solo: the
     joints sculpted alone."""
     out: Keyed = {}
-    largest = np.abs(residual).max(axis=(0, 2), initial=0.0)  # per point, over examples and coordinates
+    largest = np.maximum(residual.max(axis=(0, 2), initial=0.0), -residual.min(axis=(0, 2), initial=0.0))  # per point
     for joints, rows in sorted(signatures.items()):
         if not len(rows) or float(largest[rows].max(initial=0.0)) <= negligible:
             continue
