@@ -71,6 +71,7 @@ pages: $(STAMP)
 fidelity: $(STAMP)
 	$(BIN)/python -m benchmarks.fidelity
 	$(BIN)/python -m benchmarks.humanoid
+	$(BIN)/python -m benchmarks.shots
 	$(BIN)/python -m benchmarks.pages
 	@mkdir -p $(OUT)
 	$(BIN)/psdbake compare fixtures/hinge/hinge.usda fixtures/hinge/hinge_examples.usda --anim fixtures/hinge/hinge_anim.usda -o $(OUT)/hinge_report
@@ -85,6 +86,8 @@ bench: $(STAMP)
 	$(BIN)/python -m benchmarks.coupled
 	$(BIN)/python -m benchmarks.evalspeed
 	$(BIN)/python -m benchmarks.fitspeed
+	$(BIN)/python -m benchmarks.sculptspeed
+	$(BIN)/python -m benchmarks.manyjoints --global-joints 120
 	$(BIN)/python -m benchmarks.startup
 	$(BIN)/python -m benchmarks.pages
 

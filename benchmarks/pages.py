@@ -32,18 +32,20 @@ PAGES: dict[str, tuple[str, str, list[tuple[str, str]]]] = {
         [("run", "The inverse against its references"), ("run_solver", "The solver"),
          ("coupled", "A chain that couples vertices"), ("conditioning", "Many examples"),
          ("jobs", "`fit --jobs`"), ("batch", "`batch --workers`"), ("startup", "Start-up"),
-         ("evalspeed", "Eval and the points cache at film scale"), ("fitspeed", "Fit at film scale")],
+         ("evalspeed", "Eval and the points cache at film scale"), ("fitspeed", "Fit at film scale"),
+         ("sculptspeed", "Fit time by kind of sculpt"), ("manyjoints", "A big skeleton, a small sculpt")],
     ),
     "fidelity.md": (
         "Fidelity: the paper's claim, measured",
-        "`make fidelity` runs these two benchmarks and writes two `psdbake compare` reports (`out/hinge_report/`, "
+        "`make fidelity` runs these benchmarks and writes two `psdbake compare` reports (`out/hinge_report/`, "
         "`out/arm_report/`: offline HTML, PNG figures, per-frame CSV/JSON). The paper's Figure 3 set-up is reproduced "
         "exactly by a test: on `fixtures/hinge/` (a quad rigidly bound to one hinge joint, one vertex sculpted at 90°, "
         "the bind pose as the 0° example), over a 0→90° sweep the inverse-PSD correction of that vertex turns by "
         "exactly the joint angle and the forward-PSD correction keeps one direction (`tests/test_fidelity.py`, to "
         "1e-3 rad; the report's `correction_angle.png` plots both). What the figures below mean for the design: "
         "[pose space and RBF](explanation/pose-space-and-rbf.md).",
-        [("fidelity", "Against ground truth: the arm"), ("humanoid", "A whole character")],
+        [("fidelity", "Against ground truth: the arm"), ("humanoid", "A whole character"),
+         ("shots", "Sculpts from any frame")],
     ),
 }
 

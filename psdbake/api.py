@@ -152,7 +152,7 @@ def fit(
     jobs: worker processes for the per-example inverses (None: 1, see ``solve.auto_jobs``).
     The output does not depend on it.
     """
-    from .fitting.correctives import fit_regions, plan_mesh, plan_systems
+    from .fitting.correctives import fit_planned, plan_mesh, plan_systems
     from .fitting.examples import gather_examples
     from .fitting.fitcheck import check_product
     from .solver.solve import clear_caches, share_scene, solve_all
@@ -179,24 +179,25 @@ def fit(
                              f"<{info.skeleton}>, so no joint can drive a corrective for it: skipped (an edit at the bind "
                              "pose belongs in the asset itself)")
                 continue
-            regions, unused, why = plan_mesh(asset, info, per_mesh[info.path], settings)  # who drives what
-            plans[info.path] = regions
-            systems[info.path] = plan_systems(asset, info, per_mesh[info.path], regions, settings, notes)
-            skipped += [f"{per_mesh[info.path][i].label} <{info.path}>" for i in unused]
-            if why:
-                layout.append(f"{where(asset, info.path)}: one global correctives group 'main': {why} (local, "
-                              "additive correctives need every joint an example moves sculpted on its own too)")
-        used = {(p, per_mesh[p][i].source, per_mesh[p][i].time) for p, regions in plans.items() for r in regions
-                for i in r.examples}
+            plan = plan_mesh(asset, info, per_mesh[info.path], settings)  # who drives what
+            plans[info.path] = plan
+            systems[info.path] = plan_systems(asset, info, per_mesh[info.path], plan, settings, notes)
+            skipped += [f"{per_mesh[info.path][i].label} <{info.path}>" for i in plan.unused]
+            if plan.why:
+                layout.append(f"{where(asset, info.path)}: one global correctives group 'main': {plan.why}")
+        used = {(p, per_mesh[p][i].source, per_mesh[p][i].time) for p, plan in plans.items()
+                for i in plan.examples(len(per_mesh[p]))}
         wanted = [t for t in tasks if (t.mesh, t.source, t.time) in used]
         solved = dict(zip([(t.mesh, t.source, t.time) for t in wanted], solve_all(wanted, jobs, progress), strict=True))
-        fits = []
-        for info in [i for i in infos if i.path in plans]:  # the RBFs, each mesh's regions in turn
+        fits, splits = [], []
+        for info in [i for i in infos if i.path in plans]:  # the groups, mesh by mesh
             examples = per_mesh[info.path]
             mine = {i: solved[(info.path, e.source, e.time)] for i, e in enumerate(examples)
                     if (info.path, e.source, e.time) in solved}
-            fits += fit_regions(asset, asset_scene, info, examples, mine, plans[info.path], settings, notes,
-                                systems[info.path], left_out)
+            mesh_fits, mesh_splits = fit_planned(asset, asset_scene, info, examples, mine, plans[info.path], settings,
+                                                 notes, systems[info.path], left_out)
+            fits += mesh_fits
+            splits += mesh_splits
             _note_normals(asset, info.path, notes)
         if not fits:
             raise FitError(f"{', '.join(example_files)}: nothing to correct: {'; '.join(left_out)}")
@@ -205,7 +206,7 @@ def fit(
     finally:
         clear_caches()  # the example stages die with the fit
     result = FitResult(asset=asset, example_files=tuple(example_files), settings=settings, meshes=tuple(fits),
-                       warnings=tuple(notes), skipped=tuple(skipped), layout=tuple(layout),
+                       warnings=tuple(notes), skipped=tuple(skipped), layout=tuple(layout), splits=tuple(splits),
                        input_layers=tuple(held[k] for k in sorted(held)), rig=provenance.rig_record(asset_scene))
     for note in cross_talk(result, fitted_groups(result)):  # why an example may not be reproduced, said before the check
         notes.append(note)

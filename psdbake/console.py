@@ -126,10 +126,12 @@ def fit_report(result: FitResult, output: str) -> dict:
             })
         d = m.driver_data
         meshes.append({
-            "gate_groups": list(d.gate_groups), "channels": list(d.channels),
+            "gate_groups": list(d.gate_groups), "ramp_gates": list(d.ramp_gates), "channels": list(d.channels),
             "mesh": m.mesh, "group": m.group, "skeleton": m.skeleton, "points": m.point_count, "drivers": list(m.drivers),
             "kernel": d.kernel, "sigma": d.sigma, "degree": d.degree, "examples": examples,
             "condition": None if m.condition != m.condition else m.condition,
+            "role": m.role or None, "vertices_moved": m.vertices if m.role else None,
+            "columns": len(d.shapes),
         })
     return {
         "psdbake": __version__, "command": "fit", "asset": result.asset, "output": output,
@@ -138,6 +140,9 @@ def fit_report(result: FitResult, output: str) -> dict:
         "skipped_examples": list(result.skipped), "layout": list(result.layout),
         "degraded": [f"{c.label} <{c.mesh}>" for c in result.degraded], "written": True,
         "roundtrip_tolerance": tol.ROUNDTRIP_RTOL,
+        "explained": [{"mesh": x.mesh, "example": x.label, "source": x.source, "time": x.time, "norm": x.norm,
+                       "additive": x.shares[0], "interaction": x.shares[1], "terms_rel": x.terms,
+                       "combinations_rel": x.combination} for x in result.splits],
     }
 
 
@@ -196,12 +201,47 @@ def say_changes(ui: Ui, changes: GroupChanges, output: str) -> None:
                 "(--replace-sculpted replaces them)")
 
 
+def _say_decomposed(ui: Ui, groups: list, result: FitResult) -> None:
+    """One mesh of a default fit: its groups (drivers, the points each moves) and, per example,
+    the solve and how much of its corrective the per-joint terms explain (``ExampleSplit``)."""
+    first = groups[0]
+    ui.say(f"  <{first.mesh}>  {len(groups)} group(s) fitted together from {len(first.examples)} example(s): a term per "
+           "joint, combinations on what the terms leave")
+    name_width = max(12, *(len(m.group) for m in groups))
+    for m in groups:
+        d = m.driver_data
+        drivers = ", ".join(j.split("/")[-1] for j in m.drivers)
+        gate = (f"  gated by {', '.join(d.gate_groups)}" if d.gate_groups
+                else "  ramp-gated" if len(d.ramp_gates) else "")
+        ui.say(f"    {m.group:<{name_width}} {m.role:<11} drivers: {drivers}  points: {m.vertices}  columns: "
+               f"{len(d.shapes)}  sigma: {d.sigma:.4g} rad{gate}")
+    splits = {(x.source, x.time): x for x in result.splits if x.mesh == first.mesh}
+    width = max(28, *(len(ex.label) for ex in first.examples))
+    ui.say(f"    {'example':<{width}} {'solved':>7} {'evals':>6} {'max/diag':>10} {'rms/diag':>10} {'missed':>7} "
+           f"{'seconds':>8} {'additive':>9} {'interaction':>12}  regime")
+    for ex, inv in zip(first.examples, first.inverses, strict=True):
+        diag = inv.diagonal or 1.0
+        split = splits.get((ex.source, ex.time))
+        shares = None if split is None or not split.norm else split.shares
+        explained = "-" if shares is None else f"{100 * shares[0]:.0f}%"
+        rest = "-" if shares is None else f"{100 * shares[1]:.0f}%"
+        ui.say(
+            f"    {ex.label:<{width}} {len(inv.indices):>7} {inv.evaluations:>6} {inv.max_residual / diag:>10.2e} "
+            f"{inv.rms_residual / diag:>10.2e} {len(inv.missed):>7} {inv.seconds:>8.3f} {explained:>9} {rest:>12}  "
+            f"{inv.regime}"
+        )
+
+
 def say_fit(ui: Ui, result: FitResult, output: str, changes: GroupChanges | None = None, *, written: bool = True
             ) -> None:
-    n_ex = sum(len(m.examples) for m in result.meshes)
-    solved = sum(len(inv.indices) for m in result.meshes for inv in m.inverses)
-    ui.say(f"psdbake fit: {len(result.meshes)} mesh(es), {n_ex} example(s), {solved} vertices solved in {result.seconds:.2f} s")
-    for m in result.meshes:
+    solves = result.solves
+    solved = sum(len(inv.indices) for inv in solves.values())
+    n_meshes = len({m.mesh for m in result.meshes})
+    ui.say(f"psdbake fit: {n_meshes} mesh(es), {len(result.meshes)} group(s), {len(solves)} example(s), {solved} "
+           f"vertices solved in {result.seconds:.2f} s")
+    for mesh in dict.fromkeys(m.mesh for m in result.meshes if m.role):
+        _say_decomposed(ui, [m for m in result.meshes if m.mesh == mesh and m.role], result)
+    for m in (m for m in result.meshes if not m.role):
         d = m.driver_data
         drivers = ", ".join(j.split("/")[-1] for j in m.drivers)
         cond = f"  cond: {m.condition:.2g}" if m.condition == m.condition else ""
@@ -224,10 +264,9 @@ def say_fit(ui: Ui, result: FitResult, output: str, changes: GroupChanges | None
             ui.say(f"  {line}")
     if result.missed:
         why: dict[str, int] = {}
-        for m in result.meshes:
-            for inv in m.inverses:
-                for name, count in inv.missed_statuses.items():
-                    why[name] = why.get(name, 0) + count
+        for inv in result.solves.values():
+            for name, count in inv.missed_statuses.items():
+                why[name] = why.get(name, 0) + count
         detail = ", ".join(f"{name} {count}" for name, count in sorted(why.items()))
         ui.warn(f"{output}: {result.missed} vertices missed the fit tolerance ({detail}; see --report; --strict makes "
                 "this fatal)")

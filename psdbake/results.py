@@ -45,6 +45,31 @@ class MeshFit:
     #: carry what its joints' own correctives do not already give at its poses
     shapes: tuple[BlendShapeData, ...] | None = None
     condition: float = float("nan")  # 2-norm condition number of the group's RBF system (nan: none solved)
+    #: the default fit's kind of group: "joint" (one joint's term) or "combination" (what the
+    #: joints' terms leave, gated); "" for a group of explicit drivers or one global group
+    role: str = ""
+    vertices: int = 0  # points the group's BlendShapes move (0: not counted)
+
+
+@dataclass(frozen=True)
+class ExampleSplit:
+    """How one example's corrective divides between the per-joint groups and the combinations."""
+
+    mesh: str
+    label: str
+    source: str
+    time: float
+    norm: float  # |d_k|: the norm of its rest-space offsets over the mesh's points
+    combination: float  # |r_k| / |d_k|: the part the combination groups carry (0 for a zero example)
+    terms: float = 0.0  # |A_k| / |d_k|: the part the per-joint terms give (A_k + r_k = d_k)
+
+    @property
+    def shares(self) -> tuple[float, float]:
+        """(additive, interaction): |A_k| and |r_k| as fractions of |A_k| + |r_k| (0, 0 for a
+        zero example): how much of the sculpt the per-joint terms explain and how much is left
+        to the combinations."""
+        total = self.terms + self.combination
+        return (self.terms / total, self.combination / total) if total > 0 else (0.0, 0.0)
 
 
 @dataclass(frozen=True)
@@ -81,10 +106,19 @@ class FitResult:
     rig: dict = field(default_factory=dict, repr=False, compare=False)
     #: every fitted example through the client's composition (``fitcheck.check_product``)
     checks: tuple[ExampleCheck, ...] = ()
+    #: the default fit: per mesh and example, how much the combinations carry (``decompose``)
+    splits: tuple[ExampleSplit, ...] = ()
+
+    @property
+    def solves(self) -> dict[tuple[str, str, float], InverseResult]:
+        """Each example's inverse once, by (mesh, source, time): the groups of one default fit of
+        a mesh all carry every example of it."""
+        return {(m.mesh, ex.source, ex.time): inv for m in self.meshes
+                for ex, inv in zip(m.examples, m.inverses, strict=True)}
 
     @property
     def missed(self) -> int:
-        return int(sum(len(inv.missed) for m in self.meshes for inv in m.inverses))
+        return int(sum(len(inv.missed) for inv in self.solves.values()))
 
     @property
     def degraded(self) -> tuple[ExampleCheck, ...]:

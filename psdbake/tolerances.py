@@ -84,6 +84,49 @@ DRIVER_ANGLE_ATOL = 1e-5
 #: tiny secondary motion (a spine settling by a tenth of a degree) is not what was sculpted.
 ACTIVE_JOINT_ANGLE = 1e-2
 
+#: A joint influences a point (for which joints can explain its corrective, ``fitting.locality``)
+#: when its skinning weight there exceeds this: rigs pad influences with weights of a few 1e-3
+#: that barely move the point, and each joint added to a point's set costs the additive fit
+#: identifiability. Measured on the humanoid's shot sculpts (docs/decisions/additive-correctives.md):
+#: 1e-2 keeps less of plain skinning's error on motions nobody sculpted than 1e-3 or 5e-2.
+INFLUENCE_WEIGHT_MIN = 1e-2
+
+#: sigma (radians) of a group driven by one joint (``fitting.additive``, ``drivers.plan_group``;
+#: ``--sigma`` overrides): a corrective grows over a joint's range of motion, not over the spacing
+#: of its sculpts, so a joint sculpted at one angle needs the same width as one sculpted at five,
+#: and the group gets it whether fitted alone or with others. 1.843 is the width the humanoid's
+#: joint groups had when a default fit derived one shared width from all its examples (the mean
+#: pairwise distance of its poses), so that its table stands; widths from 1.5 to 3 rad move its
+#: errors by less than 1.8x (docs/decisions/additive-correctives.md).
+JOINT_SIGMA = 1.843
+
+#: The additive fit's ridge (``fitting.additive``): the weight of the RKHS norm of the per-joint
+#: terms against the squared misfit at an example that moves several of a point's joints, in the
+#: units of the kernel (1 at a centre). What the ridge leaves goes into the combination terms, so
+#: the examples stay exact; smaller fits the shot sculpts' frames closer, larger keeps the terms
+#: smoother. Measured on the humanoid's shot sculpts (docs/decisions/additive-correctives.md):
+#: 1e-4 beats 1e-3, 1e-2 and 1e-1 with the additive truth and matches them with the dual-quaternion
+#: one; 1e-5 does slightly better with the additive truth and worse with the dual-quaternion one.
+ADDITIVE_RIDGE = 1e-4
+
+#: sigma of a combination group with several centres (``fitting.decompose``; ``--sigma``
+#: overrides), as a fraction of the mean pairwise distance of its poses: a combination carries
+#: what the per-joint terms leave at its examples, which on the humanoid's shot sculpts is
+#: detail of those frames, not a trend between them; 0.25 of the spacing keeps it near its
+#: frames (docs/decisions/additive-correctives.md: the dual-quaternion truth's mean error falls
+#: from 6.6% to 4.9% of plain skinning's on the sculpted shot and from 32% to 31% one joint at
+#: a time; narrower still measures lower, but a corrective that fades within a few degrees of
+#: its frame pops as a shot passes it).
+COMBINATION_SIGMA_FRACTION = 0.25
+
+#: The ridge at an example that moves a single joint of a point's set: nothing else can explain
+#: its sculpt there, so the fit is exact up to round-off (a regularisation only for duplicated rows).
+ADDITIVE_RIDGE_EXACT = 1e-12
+
+#: A residual of the additive part below this fraction of the diagonal is left as it is instead
+#: of becoming combination terms: a thousandth of the round-trip tolerance (ROUNDTRIP_RTOL).
+RESIDUAL_NEGLIGIBLE_RTOL = 1e-8
+
 #: A combination is gated by the activations of the groups it sits on and divided by their
 #: product at its own pose (so its weight is 1 there). Below this product the joints'
 #: correctives are essentially off at the combination's pose: the division would amplify

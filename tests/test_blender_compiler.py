@@ -92,7 +92,7 @@ def test_a_rest_other_than_the_stored_bind_is_composed_in():
 # --- whole groups: synthetic psd: data through every building block ---------------------------
 
 def _group(rng, drivers, space, kernel, degree, *, k=4, s=2, gates=(), gate_groups=(), directions=None,
-           channels=True, clamp=False, normalize=False, twist=None) -> DriverData:
+           channels=True, clamp=False, normalize=False, twist=None, ramps=()) -> DriverData:
     width = posespace.POSE_SPACES[space].width
     m_all = width * len(drivers)
     dims = np.arange(m_all) if degree < 0 else np.sort(rng.choice(m_all, size=min(m_all, 4), replace=False))
@@ -108,6 +108,7 @@ def _group(rng, drivers, space, kernel, degree, *, k=4, s=2, gates=(), gate_grou
         example_times=(), example_sources=(), gates=tuple(gates),
         gate_poses=rng.normal(size=(len(gates), width)) if gates else np.zeros((0, 0)),
         gate_groups=tuple(gate_groups), gate_directions=directions if directions is not None else np.zeros((0, 0)),
+        ramp_gates=tuple(ramps), ramp_radii=rng.uniform(0.3, 1.2, len(ramps)),
         channels=tuple(f"{drivers[0]}_{i}" for i in range(2 * s)) if channels else (),
         channel_columns=columns if channels else np.zeros(0, dtype=np.int64), channel_scales=scales if channels else np.zeros(0),
     )
@@ -123,7 +124,8 @@ def _synthetic_groups(rng, space: str, kernel: str, degree: int) -> list[tuple[s
     u[:, width:] /= np.linalg.norm(u[:, width:], axis=1, keepdims=True)
     combo = _group(rng, ["A", "B"], space, kernel, degree, twist=twist, gate_groups=["a", "b"], directions=u,
                    normalize=True)
-    return [("a", a), ("b", b), ("combo", combo)]
+    ramped = _group(rng, ["B", "C"], space, kernel, degree, twist=twist, ramps=["B", "C"])
+    return [("a", a), ("b", b), ("combo", combo), ("ramped", ramped)]
 
 
 def _reference(groups, basis: dict[str, np.ndarray], rest: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
@@ -151,8 +153,8 @@ def _reference(groups, basis: dict[str, np.ndarray], rest: dict[str, np.ndarray]
     ("quaternion", "inverse_quadratic", -1), ("rotationVector", "linear", 0),
 ])
 def test_compiled_groups_are_the_reference_formula(space, kernel, degree):
-    """Every kernel, pose space and polynomial degree, v3 joint gates, v4 combinations,
-    clamp/normalise, channels and pre-v4 shapes, and rests other than the stored binds: the
+    """Every kernel, pose space and polynomial degree, v3 joint gates, v4 combinations, v5 ramp
+    gates, clamp/normalise, channels and pre-v4 shapes, and rests other than the stored binds: the
     graph computes weights.py's weights (float64 here: the formula, not Blender's rounding)."""
     rng = np.random.default_rng(KERNEL_NAMES.index(kernel) * 10 + POSE_SPACE_NAMES.index(space))
     groups = _synthetic_groups(rng, space, kernel, degree)
@@ -203,8 +205,10 @@ def shots(tmp_path_factory):
 
 #: Drivers per mesh (nodes + channels), measured: a budget, so a layout change that costs
 #: Blender more drivers per frame shows here (each costs ~1-5 us per frame, see
-#: docs/decisions/blender-live-drivers.md).
-DRIVER_BUDGETS = {"humanoid": 53, "mirrored": 53, "character": 21 + 7, "cesiumman": 43}
+#: docs/decisions/blender-live-drivers.md). CesiumMan's two sculpts are animation frames that
+#: move 19 joints at once: its default fit is a term per joint and combinations on what they
+#: leave (34 groups, 371 drivers; one global group over every joint made 43).
+DRIVER_BUDGETS = {"humanoid": 53, "mirrored": 53, "character": 21 + 7, "cesiumman": 371}
 
 
 @pytest.mark.slow

@@ -110,7 +110,7 @@ def test_an_ill_conditioned_group_keeps_usable_channels(tmp_path):
 
     poses_layer, poses = rigs.write_poses(str(tmp_path), 32)
     rig = rigs.build(str(tmp_path), "lbs", "13k", poses, poses_layer)
-    result = api.fit(rig.asset, [rig.examples])
+    result = api.fit(rig.asset, [rig.examples], FitSettings(group="main"))  # one RBF over all 32
     (m,) = result.meshes
     _lo, hi = weight_range(m.driver_data, {m.group: m.driver_data})
     assert hi.max() > 1e4  # the loose bound this test is about
@@ -133,7 +133,7 @@ def test_a_pose_beyond_the_scales_is_written_as_is_and_warned(tmp_path, cli):
     gives the corrected shape; nothing is clamped silently."""
     from pxr import Sdf, Vt
 
-    result = api.fit(ASSET, [EXAMPLES])
+    result = api.fit(ASSET, [EXAMPLES], FitSettings(group="main"))
     corr = str(tmp_path / "c.usda")
     api.write_correctives(result, corr)
     layer = Sdf.Layer.FindOrOpen(corr)

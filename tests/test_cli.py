@@ -35,6 +35,8 @@ def test_pose_writes_plain_skinning_and_the_pose(run, tmp_path):
     # fitting the unsculpted poses finds nothing to correct: a clear refusal
     code, _, err = run("fit", ASSET, out, "-o", tmp_path / "c.usda")
     assert code == 4 and "no example differs from plain skinning" in err
+    for group in ("group 'Elbow' (Elbow)", "group 'Wrist' (Wrist)", "group 'combo_Elbow_Wrist' (Elbow, Wrist)"):
+        assert group in err  # the groups a sculpt would make, and their joints
     assert not (tmp_path / "c.usda").exists()
 
 
@@ -49,7 +51,19 @@ def test_fit_report_and_summary(run, tmp_path):
     for e in ex:
         assert e["vertices_solved"] > 0 and e["evaluations"] > 0 and e["missed"] == 0
         assert e["max_residual_rel"] <= 1e-6
-    assert data["meshes"][0]["drivers"] == ["Shoulder/Elbow", "Shoulder/Elbow/Wrist"]
+    # the elbow is sculpted alone, the wrist only with it: a group per joint and one for the pair
+    assert {m["group"]: m["drivers"] for m in data["meshes"]} == {
+        "Elbow": ["Shoulder/Elbow"], "Wrist": ["Shoulder/Elbow/Wrist"],
+        "combo_Elbow_Wrist": ["Shoulder/Elbow", "Shoulder/Elbow/Wrist"]}
+    # per group its role and the points it moves; per example what the terms explain
+    assert {m["group"]: m["role"] for m in data["meshes"]} == {"Elbow": "joint", "Wrist": "joint",
+                                                               "combo_Elbow_Wrist": "combination"}
+    assert all(0 < m["vertices_moved"] <= m["points"] for m in data["meshes"])
+    assert [e["time"] for e in data["explained"]] == [1.0, 2.0, 3.0]
+    for e in data["explained"]:
+        assert 0.0 <= e["interaction"] <= 1.0 and e["additive"] + e["interaction"] == pytest.approx(1.0)
+    assert data["explained"][0]["interaction"] < 1e-9  # the elbow sculpted alone: its term is the sculpt
+    assert "additive" in stdout and "interaction" in stdout and "points:" in stdout
 
 
 @pytest.mark.slow
@@ -95,7 +109,7 @@ def test_existing_blend_shapes_are_kept_everywhere(run, tmp_path):
     assert run("eval", asset, corr, "--anim", poses, "-o", weights, "-q")[0] == 0
     stage = Usd.Stage.Open(str(corr))
     channels = list(stage.GetPrimAtPath(generate.MESH).GetAttribute("skel:blendShapes").Get())
-    assert channels[0] == "flex" and all(c.startswith("psd_main_") for c in channels[1:]) and len(channels) >= 4
+    assert channels[0] == "flex" and all(c.startswith("psd_") for c in channels[1:]) and len(channels) >= 4
     wlayer = Sdf.Layer.FindOrOpen(str(weights))
     anim = wlayer.GetPrimAtPath(generate.ANIM)
     assert anim.properties["blendShapes"].default[0] == "flex"
@@ -180,7 +194,7 @@ def test_pose_spaces_are_stored_and_reproduced_by_eval(run, tmp_path, space):
     """Whatever the pose space, eval (reading only psd:) gives each example weight 1 at its
     own pose, and the round trip through BakeSkinning still reproduces the sculpts."""
     corr, weights = tmp_path / "c.usda", tmp_path / "w.usda"
-    assert run("fit", ASSET, EXAMPLES, "-o", corr, "-q", *space)[0] == 0
+    assert run("fit", ASSET, EXAMPLES, "-o", corr, "-q", "--group", "main", *space)[0] == 0  # one cardinal RBF
     assert run("eval", ASSET, corr, "--anim", POSES, "-o", weights, "-q")[0] == 0
     b = corrective_weights(ASSET, corr, weights, generate.ANIM, (1.0, 2.0, 3.0))
     # float32 storage of channel weights (in [0, 1]) times scales of a few units: 1e-6
@@ -190,8 +204,9 @@ def test_pose_spaces_are_stored_and_reproduced_by_eval(run, tmp_path, space):
 
 def test_clamp_and_normalize_are_explicit_stored_options(run, tmp_path):
     plain, clamped = tmp_path / "p.usda", tmp_path / "c.usda"
-    assert run("fit", ASSET, EXAMPLES, "-o", plain, "-q")[0] == 0
-    assert run("fit", ASSET, EXAMPLES, "-o", clamped, "-q", "--clamp-weights", "--normalize-weights")[0] == 0
+    assert run("fit", ASSET, EXAMPLES, "-o", plain, "-q", "--group", "main")[0] == 0  # one cardinal RBF
+    assert run("fit", ASSET, EXAMPLES, "-o", clamped, "-q", "--group", "main", "--clamp-weights",
+               "--normalize-weights")[0] == 0
     w = {}
     for name, corr in (("plain", plain), ("clamped", clamped)):
         out = tmp_path / f"w_{name}.usda"
@@ -208,7 +223,7 @@ def test_clamp_and_normalize_are_explicit_stored_options(run, tmp_path):
 
 def test_inspect_reports_what_a_file_holds(run, tmp_path):
     corr = tmp_path / "c.usda"
-    assert run("fit", ASSET, EXAMPLES, "-o", corr, "-q")[0] == 0
+    assert run("fit", ASSET, EXAMPLES, "-o", corr, "-q", "--group", "main")[0] == 0
     code, out, _ = run("inspect", corr, "--json")
     info = json.loads(out)
     assert code == 0 and info["correctives"][0]["mesh"] == generate.MESH

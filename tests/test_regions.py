@@ -56,9 +56,16 @@ def test_examples_fall_into_joint_regions_and_one_combination(rig):
     result = api.fit(asset, [examples])
     groups = {m.group: m for m in result.meshes}
     assert sorted(groups) == ["Elbow", "Wrist", "combo_Elbow_Wrist"]
-    assert groups["Elbow"].drivers == (ELBOW,) and len(groups["Elbow"].examples) == 2
-    assert groups["Wrist"].drivers == (WRIST,)
+    assert groups["Elbow"].drivers == (ELBOW,) and len(_own(groups["Elbow"])) == 2
+    assert groups["Wrist"].drivers == (WRIST,) and len(_own(groups["Wrist"])) == 1
     assert list(groups["combo_Elbow_Wrist"].driver_data.gate_groups) == ["Elbow", "Wrist"]
+    assert [e.time for e in _own(groups["combo_Elbow_Wrist"])] == [4.0]
+    assert all(m.role for m in result.meshes)  # fitted together: a joint's term or a combination
+
+
+def _own(fit) -> list:
+    """The examples whose poses are the group's columns (a default fit's group lists all of the mesh's)."""
+    return [e for e, c in zip(fit.examples, fit.channels, strict=True) if c]
 
 
 def test_the_stack_reproduces_every_sculpt_single_and_combination(rig, run):
@@ -99,7 +106,7 @@ def test_combination_is_off_whenever_one_of_its_joints_is_at_bind(rig):
         assert np.all(np.abs(w) <= 1e-3), (elbow, wrist, w)
     # at its own (stored) pose, float64 algebra: the RBF's column divided by the product it is
     # multiplied by again
-    (example,) = next(m for m in result.meshes if m.group == "combo_Elbow_Wrist").examples
+    (example,) = _own(next(m for m in result.meshes if m.group == "combo_Elbow_Wrist"))
     own = group_weights(groups, lambda data: Rotation.from_quat(example.pose[[joints.index(d) for d in data.drivers]]),
                         1)
     np.testing.assert_allclose(own["combo_Elbow_Wrist"], 1.0, rtol=0, atol=1e-12)
@@ -185,15 +192,17 @@ def test_explicit_driver_with_no_example_left_is_refused(rig, run, tmp_path):
     assert asset  # the module rig is unused here beyond its set-up
 
 
-def test_examples_moving_uncovered_joints_fall_back_to_one_global_group():
-    """An animation frame used as a sculpt moves many joints, none sculpted alone: one group."""
+def test_examples_moving_uncovered_joints_are_decomposed_not_one_global_group():
+    """An animation frame used as a sculpt moves many joints, none sculpted alone: the default
+    plan has no explicit regions (the decomposition fits them all together); only
+    --no-rest-example, which takes away the per-joint terms' zero example, makes one group."""
     poses = np.tile([0.0, 0.0, 0.0, 1.0], (2, 3, 1))
     turn = np.array([0.0, 0.0, np.sin(0.3), np.cos(0.3)])
     poses[0, 0] = poses[0, 1] = turn
     poses[1, 1] = poses[1, 2] = turn
-    regions, skipped, why = plan_regions(poses, ["a@1", "a@2"], ["A", "A/B", "A/B/C"], None, [])
-    assert [r.group for r in regions] == [DEFAULT_GROUP] and not skipped
-    assert "a@1 moves 2 joints" in why
+    assert plan_regions(poses, ["a@1", "a@2"], ["A", "A/B", "A/B/C"], None, []) == ([], [], "")
+    regions, skipped, why = plan_regions(poses, ["a@1", "a@2"], ["A", "A/B", "A/B/C"], None, [], rest_example=False)
+    assert [r.group for r in regions] == [DEFAULT_GROUP] and not skipped and "--no-rest-example" in why
     assert [sorted(a) for a in active_joints(poses)] == [[0, 1], [1, 2]]
 
 
@@ -213,31 +222,52 @@ def test_psd_v2_layers_still_evaluate_to_the_same_weights(tmp_path):
     np.testing.assert_allclose(w2.weights, column_weights(data, w4.weights), rtol=1e-12, atol=1e-15)
 
 
+def test_psd_v4_layers_still_evaluate_to_the_same_weights(tmp_path):
+    """A v4 layer (tests/data/correctives_v4.usda: the psdbake before ramp gates, fitting the
+    bad-input catalogue's arm, whose examples then went into one group) evaluates as a v5 fit
+    of the same examples in that one group: the same channels and weights (float64 round-off)."""
+    asset, examples, anim = fixture("bad", "good_asset.usda"), fixture("bad", "good_examples.usda"), fixture("arm_anim.usda")
+    v4 = os.path.join(ROOT, "tests", "data", "correctives_v4.usda")
+    v5 = str(tmp_path / "v5.usda")
+    api.write_correctives(api.fit(asset, [examples], FitSettings(group="main")), v5)
+    w4 = api.evaluate(asset, v4, anim).animations[0]
+    w5 = api.evaluate(asset, v5, anim).animations[0]
+    assert w4.channels == w5.channels
+    np.testing.assert_allclose(w4.weights, w5.weights, rtol=1e-12, atol=1e-15)
+
+
 def test_v3_layer_with_joint_gates_still_evaluates(rig, tmp_path):
     """A v3 layer (written by psdbake before combinations were gated by their groups, for this
-    rig: tests/data/correctives_v3.usda) still evaluates: its single-joint groups exactly as a
-    v4 fit's (the same stored numbers), and its combination by the documented v3 formula, the
-    constant 1 times clamp(x_j . g_j / g_j . g_j, 0, 1) per gate, computed here from the raw
-    attributes with rotation vectors."""
+    rig: tests/data/correctives_v3.usda) still evaluates: its single-joint groups as a fit of
+    one group with the same stored numbers (sigma, centres: --group/--driver --sigma) gives
+    them, and its combination by the documented v3 formula, the constant 1 times
+    clamp(x_j . g_j / g_j . g_j, 0, 1) per gate, computed here from the raw attributes with
+    rotation vectors."""
+    from pxr import Usd
+    from scipy.spatial.transform import Rotation
+
+    from psdbake.fitting.groups import read_correctives
+
     _, asset, examples, _ = rig
     v3 = os.path.join(ROOT, "tests", "data", "correctives_v3.usda")
-    result = api.fit(asset, [examples])
-    v4 = str(tmp_path / "v4.usda")
-    api.write_correctives(result, v4)
+    stored = next(iter(read_correctives(asset, v3).values()))
     poses = {1.0: {"Elbow": ((0, 0, 1), 30.0), "Wrist": ((1, 0, 0), 20.0)},
              2.0: {"Elbow": ((0, 0, 1), 90.0), "Wrist": ((1, 0, 0), 75.0)},
              3.0: {"Elbow": ((0, 0, 1), 60.0)}}
     anim = generate.write_animation(str(tmp_path / "anim.usda"), poses)
-    old, new = api.evaluate(asset, v3, anim).animations[0], api.evaluate(asset, v4, anim).animations[0]
-    for m in result.meshes:
-        if m.group.startswith("combo"):
-            continue
+    old = api.evaluate(asset, v3, anim).animations[0]
+    for group, joint in (("Elbow", "Elbow"), ("Wrist", "Wrist")):
+        settings = FitSettings(group=group, drivers=(joint,), sigma=float(stored[group][0].sigma))
+        result = api.fit(asset, [examples], settings)
+        (m,) = result.meshes
+        np.testing.assert_allclose(m.driver_data.centers, stored[group][0].centers, rtol=0, atol=1e-12)
+        v4 = str(tmp_path / f"v4_{group}.usda")
+        api.write_correctives(result, v4)
+        new = api.evaluate(asset, v4, anim).animations[0]
         cols = [old.channels.index(c) for c in m.driver_data.shapes]
         chans = [new.channels.index(c) for c in m.driver_data.channels]
         np.testing.assert_allclose(old.weights[:, cols], column_weights(m.driver_data, new.weights[:, chans]),
                                    rtol=1e-12, atol=1e-15)
-    from pxr import Usd
-    from scipy.spatial.transform import Rotation
 
     stage = Usd.Stage.Open(v3)
     attr = stage.GetPrimAtPath(generate.MESH).GetAttribute("psd:combo_Elbow_Wrist:gatePoses")
@@ -258,13 +288,15 @@ def test_settings_default_is_local():
 
 
 def test_groups_that_will_not_combine_are_warned(rig, run, tmp_path):
-    """Without the bind pose as a zero example, a joint's group is not off at the other
-    joints' examples: the fit says which group spills onto which example (item 4), and since
-    the product then misses that example, the fit is degraded: exit 7, nothing written."""
+    """Groups fitted one at a time (--group/--driver) without the bind pose as a zero example:
+    a joint's group is not off at the other joint's examples, and writing the second into the
+    layer of the first says which group spills onto which example."""
     _, asset, examples, _ = rig
-    code, _, err = run("fit", asset, examples, "--no-rest-example", "-o", tmp_path / "c.usda")
-    assert code == 7 and "DEGRADED: the product misses example examples.usda@3" in err, err
-    assert not (tmp_path / "c.usda").exists()
+    out = tmp_path / "c.usda"
+    code, _, err = run("fit", asset, examples, "--group", "Elbow", "--driver", "Elbow", "--no-rest-example", "-o", out)
+    assert code == 0, err
+    code, _, err = run("fit", asset, examples, "--group", "Wrist", "--driver", "Wrist", "--no-rest-example", "-o", out)
+    assert code == 0, err
     assert re.search(r"psdbake: warning: .*group 'Elbow' moves points by .* at example examples\.usda@3 of group "
                      r"'Wrist' \(its own examples: examples\.usda@1, examples\.usda@2\)", err), err
 

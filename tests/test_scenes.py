@@ -85,7 +85,7 @@ def test_own_joints_pose_fit_eval_cache_and_bake(own, run, tmp_path):
 def test_own_joints_pose_space_and_drivers_are_in_skeleton_order(own, run, tmp_path):
     """The mesh lists Wrist, Shoulder, Elbow; poses, drivers and weights still follow the
     skeleton's order (Shoulder, Elbow, Wrist, Hand), as UsdSkel's own joint mapper does."""
-    result = psdbake.fit(own.asset, [own.examples])
+    result = psdbake.fit(own.asset, [own.examples], psdbake.FitSettings(group="main"))
     (mesh,) = result.meshes
     for example in mesh.examples:
         pose = generate.EXAMPLE_POSES[example.time]

@@ -397,8 +397,20 @@ def test_half_the_poses_sculpted_fits_the_edited_ones_and_names_the_rest(tmp_pat
     assert code == 0, err
     for group in ("R_Elbow", "R_Knee", "R_Shoulder"):
         assert f"group '{group}': none of its" in err
+    for t in right:  # each unedited example named, and kept (a zero corrective at its pose)
+        assert f"half.usda <{BODY}>: example at time {t:g} equals plain skinning; it is kept as a zero example" in err
     assert run_cli("eval", HUMANOID, out, "--anim", half, "-o", weights, "-q")[0] == 0
     baked = bake([str(weights), pose_only(str(half)), str(out), HUMANOID], 1.0, 13.0)
     for t in (1.0, 2.0, 4.0, 5.0, 8.0, 9.0, 12.0):
+        target = sculpt(H_EXAMPLES, BODY, t)
+        assert np.abs(points(baked, BODY, t) - target).max() / diagonal(target) <= 1e-5, t
+    # the other side by mirror: its groups appear, and the right sculpts (of the full,
+    # symmetric EXAMPLES) come back at their single-joint poses
+    both, mirrored = tmp_path / "both.usda", tmp_path / "w_both.usda"
+    code, _, err = run_cli("mirror", HUMANOID, out, "--joints", "L_=R_", "-o", both, "-q")
+    assert code == 0, err
+    assert run_cli("eval", HUMANOID, both, "--anim", H_EXAMPLES, "-o", mirrored, "-q")[0] == 0
+    baked = bake([str(mirrored), pose_only(H_EXAMPLES), str(both), HUMANOID], 1.0, 13.0)
+    for t in (3.0, 6.0, 7.0, 10.0, 11.0):  # the single-joint ones (t=13 bends the right arm unlike the left's)
         target = sculpt(H_EXAMPLES, BODY, t)
         assert np.abs(points(baked, BODY, t) - target).max() / diagonal(target) <= 1e-5, t

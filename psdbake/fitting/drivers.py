@@ -84,7 +84,7 @@ def _centers(info: SkinnedMesh, examples: Sequence[Example], inverses: Sequence[
         return posespace.features(Rotation.from_quat(pose[driver_idx]), settings.pose_space, settings.twist_axis)
 
     centers, labels, outputs, channels = [], [], [], []
-    if settings.rest_example and not region.gated:  # a combination is gated off at bind instead
+    if settings.rest_example:
         centers.append(coordinates(np.tile([0.0, 0.0, 0.0, 1.0], (len(info.joints), 1))))
         labels.append("bind")
     prefix = channel_prefix(info, region.group)
@@ -117,63 +117,35 @@ def _check_model(model: rbf.CardinalRbf, centers: NDArray[np.float64], outputs: 
         _warn(notes, f"{where_}: examples {a} and {b} are only {d:.3g} rad apart in pose space")
 
 
-def _degree(settings: FitSettings, region: Region) -> int | None:
-    """A combination's RBF keeps a constant term (its gates make it vanish at bind instead)."""
-    return max(0, settings.degree if settings.degree is not None else 0) if region.gated else settings.degree
-
-
-def plan_group(asset: str, info: SkinnedMesh, examples: Sequence[Example], settings: FitSettings, region: Region,
-               scale: float | None = None) -> rbf.RbfPlan | None:
+def plan_group(asset: str, info: SkinnedMesh, examples: Sequence[Example], settings: FitSettings, region: Region
+               ) -> rbf.RbfPlan:
     """The group's RBF system, built and checked before any example is solved (a bad
-    setting fails in a second, not after the inverses); None for a one-example combination
-    (the constant 1).
-
-    scale: the character's pose scale (``character_scale``) for local groups: a region sculpted
-    at one or two angles would otherwise get a Gaussian as narrow as its few examples are apart,
-    and its correction would fade past them. Used when its system is well conditioned, else the
-    group's own automatic sigma."""
-    if region.gated and len(examples) == 1:
-        return None
+    setting fails in a second, not after the inverses). A group driven by one joint starts
+    its automatic sigma from ``tol.JOINT_SIGMA``, as the default fit's per-joint groups do, so
+    the same joint's group gets the same sigma fitted alone or in a default fit."""
     driver_idx = _drivers(info, examples, region)
 
     def coordinates(pose: NDArray[np.float64]) -> NDArray[np.float64]:
         return posespace.features(Rotation.from_quat(pose[driver_idx]), settings.pose_space, settings.twist_axis)
 
     centers, labels = [], []
-    if settings.rest_example and not region.gated:
+    if settings.rest_example:
         centers.append(coordinates(np.tile([0.0, 0.0, 0.0, 1.0], (len(info.joints), 1))))
         labels.append("bind")
     centers += [coordinates(e.pose) for e in examples]
     labels += [e.label for e in examples]
     here = f"{where(asset, info.path)} group {region.group!r}"
-    if scale is not None and settings.sigma is None and settings.kernel not in rbf.SCALE_FREE:
-        plan = rbf.plan_rbf(np.array(centers), None, labels, kernel=settings.kernel, sigma=scale,
-                            degree=_degree(settings, region), smoothing=settings.smoothing, where=here,
-                            raise_problem=False)
-        if plan.ok and plan.condition <= tol.RBF_COND_TARGET and not plan.warnings:
-            return plan
+    start = tol.JOINT_SIGMA if len(driver_idx) == 1 else None
     return rbf.plan_rbf(np.array(centers), None, labels, kernel=settings.kernel, sigma=settings.sigma,
-                        degree=_degree(settings, region), smoothing=settings.smoothing, where=here)
-
-
-def character_scale(examples: Sequence[Example], joints: Sequence[int], settings: FitSettings) -> float:
-    """The automatic sigma one global group over these joints would use (the mean pairwise
-    distance of every example pose and the bind pose): the scale local groups share."""
-    bind = np.tile([0.0, 0.0, 0.0, 1.0], (len(examples[0].pose), 1))
-    coords = [posespace.features(Rotation.from_quat(p[list(joints)]), settings.pose_space, settings.twist_axis)
-              for p in [bind, *(e.pose for e in examples)]]
-    return rbf.auto_sigma(np.array(coords))
+                        degree=settings.degree, smoothing=settings.smoothing, where=here, start=start)
 
 
 def _model(full_centers: NDArray[np.float64], outputs: list[int], labels: list[str], settings: FitSettings,
-           region: Region, plan: rbf.RbfPlan | None) -> rbf.CardinalRbf:
-    """The group's cardinal RBF. A combination with one example is the constant 1 (its gates
-    shape it: the product of its joints' activations, as a facial rig's combination shape)."""
-    if region.gated and len(full_centers) == 1:
-        return rbf.constant_one(full_centers)
+           plan: rbf.RbfPlan | None) -> rbf.CardinalRbf:
+    """The group's cardinal RBF."""
     return rbf.fit_cardinal(
         full_centers, outputs, labels, kernel=settings.kernel, sigma=settings.sigma,
-        degree=_degree(settings, region), smoothing=settings.smoothing, plan=plan,
+        degree=settings.degree, smoothing=settings.smoothing, plan=plan,
     )
 
 
@@ -185,7 +157,7 @@ def fit_drivers(asset: str, asset_scene: Scene, info: SkinnedMesh, examples: Seq
     driver_idx = _drivers(info, examples, region)
     centers, labels, outputs, channels = _centers(info, examples, inverses, driver_idx, settings, region, notes)
     full_centers = np.array(centers)
-    model = _model(full_centers, outputs, labels, settings, region, plan)
+    model = _model(full_centers, outputs, labels, settings, plan)
     _check_model(model, full_centers, outputs, labels, where(asset, info.path), settings.smoothing, notes)
     data = DriverData(
         drivers=[info.joints[j] for j in driver_idx],

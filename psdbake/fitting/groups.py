@@ -79,17 +79,24 @@ def read_correctives(asset: str, correctives: str) -> Groups:
 
 
 def _combination_of(data: DriverData) -> bool:
-    return bool(len(data.gates) or data.gate_groups)
+    return bool(len(data.gates) or data.gate_groups or len(data.ramp_gates))
 
 
 def cross_talk(result: FitResult, others: Groups) -> list[str]:
-    """Groups are fitted independently, so another group's correctives must be (nearly) off
-    at this group's examples: its weight times its largest offset, relative to the mesh's
-    diagonal, must stay under the fit tolerance, or that sculpt is not reproduced."""
+    """Groups fitted independently must leave each other's examples alone: another group's
+    correctives must be (nearly) off at this group's examples, its weight times its largest
+    offset, relative to the mesh's diagonal, under the fit tolerance, or that sculpt is not
+    reproduced. The groups of one default fit of a mesh are fitted together, each example
+    against all of them (``decompose``): among themselves there is nothing to check."""
     notes = []
+    together = {(m.mesh, m.group) for m in result.meshes if m.role}
     for m in result.meshes:
         infos = dict(others.get(m.mesh, {}))
         infos.pop(m.group, None)
+        if m.role:
+            infos = {g: v for g, v in infos.items() if (m.mesh, g) not in together}
+            if not infos:
+                continue
         # eval refuses a layer whose drivers are not the mesh's joints, or whose gate groups are missing
         usable = {g: v for g, v in infos.items() if set(v[0].drivers) <= set(m.joints)}
         usable = {g: v for g, v in usable.items() if set(v[0].gate_groups) <= set(usable)}

@@ -107,7 +107,7 @@ class RbfPlan:
         )
 
 
-class _System:
+class System:
     """The interpolation system [[K + smoothing I, P], [P^T, 0]] over fixed centres, for any sigma."""
 
     def __init__(self, centers: NDArray[np.float64], kernel: str, degree: int, smoothing: float) -> None:
@@ -143,7 +143,7 @@ class _System:
         return int(np.linalg.matrix_rank(self.poly)) if len(self.powers) else 0
 
 
-def _adapt_sigma(system: _System, sigma0: float) -> tuple[float, float, int]:
+def _adapt_sigma(system: System, sigma0: float) -> tuple[float, float, int]:
     """The largest sigma0 * STEP^j (j >= 0) whose condition number is <= RBF_COND_TARGET: halving
     first (j += 4), then quarter octaves back up. Stops at RBF_SIGMA_FLOOR_SPACINGS of the closest
     poses' distance (the kernel matrix is then the identity); returns (sigma, condition, j)."""
@@ -194,8 +194,13 @@ def plan_rbf(
     smoothing: float = 0.0,
     where: str = "",
     raise_problem: bool = True,
+    start: float | None = None,
+    start_rule: str = "joint sigma",
 ) -> RbfPlan:
     """Build and check the RBF system before any example is solved (milliseconds; ~0.2 s at 500 poses).
+
+    start: where the automatic sigma starts (sigma0; default the mean pairwise distance), and
+    start_rule what the plan's ``sigma_rule`` calls it.
 
     centers: (k, D) every centre's full pose coordinates (bind pose included), labels name them;
     outputs: the centre indices that will carry a corrective (None: not known yet; the checks
@@ -204,7 +209,8 @@ def plan_rbf(
     ``raise_problem=False`` the plan carries it in ``problem`` instead.
     """
     try:
-        return _plan(np.asarray(centers, dtype=np.float64), labels, kernel, sigma, degree, smoothing, where)
+        return _plan(np.asarray(centers, dtype=np.float64), labels, kernel, sigma, degree, smoothing, where, start,
+                     start_rule)
     except FitError as exc:
         if raise_problem:
             raise
@@ -238,7 +244,7 @@ def _check_settings(full: NDArray[np.float64], labels: Sequence[str], kernel: st
     return deg
 
 
-def _check_polynomial(system: _System, subject: str, deg: int, dims: int) -> None:
+def _check_polynomial(system: System, subject: str, deg: int, dims: int) -> None:
     p, k = len(system.powers), len(system.centers)
     if p > k:
         raise FitError(f"{subject}: a degree-{deg} polynomial term in {dims} pose dimensions has {p} monomials, "
@@ -249,8 +255,8 @@ def _check_polynomial(system: _System, subject: str, deg: int, dims: int) -> Non
                        "varied examples")
 
 
-def _choose_sigma(system: _System, kernel: str, sigma: float | None, subject: str, warnings: list[str]
-                  ) -> tuple[float, float, str]:
+def _choose_sigma(system: System, kernel: str, sigma: float | None, subject: str, warnings: list[str],
+                  start: float | None = None, start_rule: str = "joint sigma") -> tuple[float, float, str]:
     """(sigma, condition number, the rule that chose it): scale-free kernels 1, --sigma as
     given (warned when far narrower than the poses' spacing), else the adaptive rule."""
     k = len(system.centers)
@@ -263,12 +269,13 @@ def _choose_sigma(system: _System, kernel: str, sigma: float | None, subject: st
                             f"({spacing:.3g} rad): each corrective vanishes before the next example; omit --sigma "
                             "for the automatic one")
         return float(sigma), system.condition(float(sigma)), "--sigma"
-    sigma0 = auto_sigma(system.centers)
+    sigma0 = auto_sigma(system.centers) if start is None else float(start)
     sig, cond, j = _adapt_sigma(system, sigma0)
-    return sig, cond, "mean pairwise distance" if j == 0 else f"mean pairwise distance {sigma0:.4g} x 2^(-{j}/4)"
+    rule = "mean pairwise distance" if start is None else start_rule
+    return sig, cond, rule if j == 0 else f"{rule} {sigma0:.4g} x 2^(-{j}/4)"
 
 
-def _advice(system: _System, kernel: str, sigma: float | None, deg: int, cond: float) -> str:
+def _advice(system: System, kernel: str, sigma: float | None, deg: int, cond: float) -> str:
     """The option to change, for a system that is singular or not exact."""
     if kernel not in SCALE_FREE and sigma is not None:
         auto, auto_cond, _ = _adapt_sigma(system, auto_sigma(system.centers))  # eigenvalues only: no solve
@@ -282,15 +289,15 @@ def _advice(system: _System, kernel: str, sigma: float | None, deg: int, cond: f
 
 
 def _plan(full: NDArray[np.float64], labels: Sequence[str], kernel: str, sigma: float | None, degree: int | None,
-          smoothing: float, where_: str) -> RbfPlan:
+          smoothing: float, where_: str, start: float | None = None, start_rule: str = "joint sigma") -> RbfPlan:
     deg = _check_settings(full, labels, kernel, sigma, degree, smoothing, f"{where_}: " if where_ else "")
     dims = np.nonzero(np.ptp(full, axis=0) > tol.DRIVER_ANGLE_ATOL)[0] if deg >= 0 else np.arange(full.shape[1])
     centers = full[:, dims]
     subject = _subject(labels, where_)
-    system = _System(centers, kernel, deg, float(smoothing))
+    system = System(centers, kernel, deg, float(smoothing))
     _check_polynomial(system, subject, deg, len(dims))
     warnings: list[str] = []
-    sig, cond, rule = _choose_sigma(system, kernel, sigma, subject, warnings)
+    sig, cond, rule = _choose_sigma(system, kernel, sigma, subject, warnings, start, start_rule)
     at_sigma = f"with sigma {sig:.3g} rad, kernel {kernel}, degree {deg}"
     if not cond < tol.RBF_COND_MAX:
         raise FitError(f"{subject} is numerically singular (condition number {cond:.1e} {at_sigma}): "
@@ -309,7 +316,7 @@ def _plan(full: NDArray[np.float64], labels: Sequence[str], kernel: str, sigma: 
     )
 
 
-def _solve_checked(system: _System, sig: float, deg: int, smoothing: float, subject: str, at_sigma: str,
+def _solve_checked(system: System, sig: float, deg: int, smoothing: float, subject: str, at_sigma: str,
                    advice: Callable[[], str], cond: float):
     """scipy's solution, copied into the documented formula's terms, and checked exact at the
     examples: (coefficients, powers, shift, scale, error at the examples, round-off scale)."""

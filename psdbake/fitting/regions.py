@@ -1,26 +1,18 @@
-"""Which examples drive which correctives: local, additive regions by default.
+"""Which examples drive which correctives group, when the fit is told (``--driver``, ``--group``).
 
-A pose-space corrective exists for the poses between and across the sculpts: one global
-RBF over every driver treats a pose where several joints bend as far from every example,
-so its correctives fade exactly where a character needs all of them. So by default each
-example's corrective is driven only by the joints it moves (turned more than
-``tol.ACTIVE_JOINT_ANGLE`` from the bind pose):
+By default (neither option) a mesh's correctives are decomposed from all its examples together
+(``decompose``): a group per joint that can explain a sculpted point, and combination groups for
+what those leave. The two options choose instead:
 
-- examples that move one joint ``j`` form the region ``j``: an RBF over that joint's pose
-  alone (bind pose included, at weight 0), so it is exactly off whenever ``j`` is at bind
-  and regions driven by different joints add;
-- an example that moves several joints, each of which has single-joint examples, is a
-  **combination**: fitted on top of those regions (its corrective carries what they do
-  not already give at its pose) and gated by each of its joints, so it vanishes when any
-  of them returns to bind (the way combination shapes work in facial rigs);
-- when some example moves several joints that are not all covered by single-joint
-  examples (an animation frame used as a sculpt, say), local regions cannot be formed:
-  every example goes into one global group, ``main``.
+- ``--driver`` (chosen drivers): one group driven by exactly those joints, over the examples
+  that move only those drivers (and move one of them); without ``--group`` it is named as the
+  default fit names a group of those joints, so a later ``--group`` fit of the same joint
+  replaces it instead of doubling it;
+- ``--group`` without ``--driver``: one group over every example, driven by every joint an
+  example rotates (psdbake 0.1's global RBF).
 
-``--group`` (one named group) and ``--driver`` (chosen drivers) override this; with
-explicit drivers, the group uses exactly the examples that move only those drivers, and
-without ``--group`` it is named as the default fit names a group of those joints, so a later
-``--group`` fit of the same joint replaces it instead of doubling it.
+``--no-rest-example`` without either also makes one global group ``main``: the per-joint terms
+vanish at the bind pose because it is their zero example.
 """
 
 from __future__ import annotations
@@ -43,7 +35,6 @@ class Region:
     group: str
     joints: tuple[int, ...]  # driver joint indices, skeleton order; () = every joint any example rotates
     examples: tuple[int, ...]  # indices into the mesh's examples
-    gated: bool = False  # a combination: fitted on top of the regions of its joints, gated by each
 
 
 def group_name(joints: Sequence[str], chosen: Sequence[int], taken: set[str]) -> str:
@@ -63,8 +54,9 @@ def group_name(joints: Sequence[str], chosen: Sequence[int], taken: set[str]) ->
 
 
 def plan_regions(poses: NDArray[np.float64], labels: Sequence[str], joints: Sequence[str], group: str | None,
-                 drivers: Sequence[int]) -> tuple[list[Region], list[int], str]:
-    """(regions, skipped example indices, why local regions were not formed or "").
+                 drivers: Sequence[int], rest_example: bool = True) -> tuple[list[Region], list[int], str]:
+    """(regions, skipped example indices, why the examples form one global group or "");
+    no regions: the default decomposition (``decompose``).
 
     poses: (examples, j, 4), labels name them. group/drivers: the explicit ``--group`` /
     ``--driver`` choice."""
@@ -77,40 +69,7 @@ def plan_regions(poses: NDArray[np.float64], labels: Sequence[str], joints: Sequ
         return [Region(name, tuple(sorted(chosen)), used)], [i for i in everything if i not in used], ""
     if group is not None:
         return [Region(group, (), everything)], [], ""
-    singles: dict[int, list[int]] = {}
-    for i, a in enumerate(active):
-        if len(a) == 1:
-            singles.setdefault(next(iter(a)), []).append(i)
-    combos: dict[frozenset[int], list[int]] = {}
-    uncovered = []
-    for i, a in enumerate(active):
-        if len(a) > 1 and a <= set(singles):
-            combos.setdefault(a, []).append(i)
-        elif len(a) != 1:
-            uncovered.append(i)
-    if uncovered or not singles:
-        return [Region(DEFAULT_GROUP, (), everything)], [], _why_global(uncovered, active, singles, labels, joints)
-    taken: set[str] = set()
-    regions = []
-    for j in sorted(singles):
-        name = group_name(joints, [j], taken)
-        taken.add(name)
-        regions.append(Region(name, (j,), tuple(singles[j])))
-    for a in sorted(combos, key=sorted):
-        name = group_name(joints, sorted(a), taken)
-        taken.add(name)
-        regions.append(Region(name, tuple(sorted(a)), tuple(combos[a]), gated=True))
-    return regions, [], ""
-
-
-def _why_global(uncovered: list[int], active: list[frozenset[int]], singles: dict[int, list[int]],
-                labels: Sequence[str], joints: Sequence[str]) -> str:
-    """Why the examples went into one global group (for the fit's notes), naming an example."""
-    if not uncovered:
-        return ""
-    i = uncovered[0]
-    if not active[i]:
-        return f"example {labels[i]} is at the bind pose"
-    missing = [joints[j].split("/")[-1] for j in sorted(active[i] - set(singles))]
-    return (f"example {labels[i]} moves {len(active[i])} joints and {', '.join(missing)} "
-            f"{'has' if len(missing) == 1 else 'have'} no single-joint example")
+    if not rest_example:
+        return [Region(DEFAULT_GROUP, (), everything)], [], ("--no-rest-example: the per-joint groups need the bind "
+                                                             "pose as their zero example")
+    return [], [], ""

@@ -106,12 +106,12 @@ def weight_range(data: DriverData, groups: Mapping[str, DriverData]) -> Interval
     """(lo, hi) per output column: bounds of the group's weights b_s over every pose, gates
     (each in [0, its group's largest activation]) and clamp/normalise options included."""
     lo, hi = rbf_range(data)
-    gate = 1.0  # v3 joint gates are in [0, 1]
+    gate = 1.0  # v3 joint gates and v5 ramp gates are in [0, 1]
     for name in data.gate_groups:
         other = groups[name]
         _, top = rbf_range(other, other.coefficients.sum(axis=1, keepdims=True))
         gate *= max(0.0, float(top[0]))
-    if len(data.gate_groups) or len(data.gates):
+    if len(data.gate_groups) or len(data.gates) or len(data.ramp_gates):
         lo, hi = np.minimum(lo, 0.0) * gate, np.maximum(hi, 0.0) * gate
     if data.normalize_weights:  # w / max(1, sum w) lies between 0 and w
         lo, hi = np.minimum(lo, 0.0), np.maximum(hi, 0.0)

@@ -21,10 +21,11 @@ __all__ = ["DEFAULT_GROUP", "PSD_ATTRIBUTES", "PSD_VERSION", "READABLE_PSD_VERSI
            "BlendShapeData", "DriverData"]
 
 #: Version of the psd: attribute schema written by this psdbake.
-PSD_VERSION = 4
+PSD_VERSION = 5
 #: psd: schema versions this psdbake reads (1: one flat group, read as group "main"; 2: groups;
-#: 3: groups with optional joint gates; 4: combinations gated by the groups they sit on).
-READABLE_PSD_VERSIONS = (1, 2, 3, 4)
+#: 3: groups with optional joint gates; 4: combinations gated by the groups they sit on, and
+#: client-safe channels; 5: ramp gates, min(1, |x_j| / r_j) per gate joint).
+READABLE_PSD_VERSIONS = (1, 2, 3, 4, 5)
 #: Group names become attribute namespaces: identifiers, and not the schema's own names.
 RESERVED_GROUP_NAMES = ("version", "groups")
 
@@ -58,6 +59,8 @@ PSD_ATTRIBUTES: dict[str, tuple[str, str, bool]] = {
     "gatePoses": ("DoubleArray", "gate_poses", True),
     "gateGroups": ("TokenArray", "gate_groups", True),
     "gateDirections": ("DoubleArray", "gate_directions", True),
+    "rampGates": ("TokenArray", "ramp_gates", True),
+    "rampRadii": ("DoubleArray", "ramp_radii", True),
     "channels": ("TokenArray", "channels", True),
     "channelColumns": ("IntArray", "channel_columns", True),
     "channelScales": ("DoubleArray", "channel_scales", True),
@@ -65,7 +68,7 @@ PSD_ATTRIBUTES: dict[str, tuple[str, str, bool]] = {
 
 #: Optional attributes written together: each is written when the first of its set is set.
 PSD_OPTIONAL_SETS = (("twistAxis",), ("gates", "gatePoses"), ("gateGroups", "gateDirections"),
-                     ("channels", "channelColumns", "channelScales"))
+                     ("rampGates", "rampRadii"), ("channels", "channelColumns", "channelScales"))
 
 
 @dataclass(frozen=True)
@@ -109,6 +112,10 @@ class DriverData:
     gate_groups: Sequence[str] = ()  # combinations (v4): groups whose activation multiplies the weights
     #: v4: (shapes, coordinates): per shape, its unit direction in each gate group's pose coordinates
     gate_directions: NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, 0)))
+    #: v5: driver joints whose ramp min(1, |x_j| / r_j) multiplies the weights (|x_j| the norm of
+    #: that driver's pose coordinates), and each one's radius r_j > 0
+    ramp_gates: Sequence[str] = ()
+    ramp_radii: NDArray[np.float64] = field(default_factory=lambda: np.zeros(0))
     #: v4: the written channels (client-safe, see channels.py): each carries one output column
     #: times a signed scale, its weight max(0, b_column / scale). Empty: the shapes themselves.
     channels: Sequence[str] = ()

@@ -36,3 +36,13 @@ class BindSpace:
     bind_local: NDArray[np.float64]  # (J, 4, 4) bind local transforms (local_j = bind_j . bind_parent^-1)
     geom_bind: NDArray[np.float64]  # (4, 4) geomBindTransform: mesh points -> skeleton space
     rest: NDArray[np.float64]  # (n, 3) rest points in skeleton space (through geom_bind)
+
+
+@dataclass(frozen=True)
+class Skin:
+    """Which joints deform each point, as UsdSkel binds them: what decides which joints can
+    explain a point's corrective (``fitting.locality``)."""
+
+    indices: NDArray[np.int64]  # (n, k) skeleton-order joint index of each influence (-1: none)
+    weights: NDArray[np.float64]  # (n, k)
+    parents: NDArray[np.int64]  # (J,) each joint's parent index, -1 for a root

@@ -66,6 +66,18 @@ def gate_activation(data: DriverData, x: NDArray[np.float64]) -> NDArray[np.floa
     return out
 
 
+def ramp_gate(data: DriverData, x: NDArray[np.float64]) -> NDArray[np.float64]:
+    """(f,) product over the group's ramp gates (v5) of min(1, |x_j| / r_j): |x_j| the norm of
+    the gate driver's pose coordinates, r_j its radius. 1 without ramp gates; 0 whenever a gate
+    driver is at its bind pose, 1 once each is at least its radius from it, in any direction."""
+    width = posespace.POSE_SPACES[data.pose_space].width
+    out = np.ones(len(x))
+    for gate, radius in zip(data.ramp_gates, data.ramp_radii, strict=True):
+        j = list(data.drivers).index(gate)
+        out = out * np.minimum(1.0, np.linalg.norm(x[:, j * width : (j + 1) * width], axis=1) / float(radius))
+    return out
+
+
 def pose_coordinates(data: DriverData, delta: RotationLike, f: int) -> NDArray[np.float64]:
     """(f, width * d): the group's pose-space coordinates of its drivers' rotations (f * d)."""
     width = posespace.POSE_SPACES[data.pose_space].width
@@ -73,9 +85,14 @@ def pose_coordinates(data: DriverData, delta: RotationLike, f: int) -> NDArray[n
 
 
 def rbf_weights(data: DriverData, x: NDArray[np.float64]) -> NDArray[np.float64]:
-    """(f, s): the group's cardinal RBF at pose coordinates x (times its v3 gates), before
-    group gates and options."""
-    return rbf_from_driver_data(data).weights(x) * gate_activation(data, x)[:, None]
+    """(f, s): the group's cardinal RBF at pose coordinates x (times its v3 gates and its v5
+    ramp gates), before group gates and options."""
+    w = rbf_from_driver_data(data).weights(x)
+    if len(data.gates):
+        w = w * gate_activation(data, x)[:, None]
+    if len(data.ramp_gates):
+        w = w * ramp_gate(data, x)[:, None]
+    return w
 
 
 def activation(raw: NDArray[np.float64], x: NDArray[np.float64], directions: NDArray[np.float64]

@@ -19,7 +19,7 @@ from pxr import Sdf, Usd, UsdGeom, UsdSkel, Vt
 
 from ..errors import InputError, where
 from ..model.posespace import undefined_rotations
-from ..model.rig import SkinnedMesh
+from ..model.rig import Skin, SkinnedMesh
 from .compose import compose
 from .diagnostics import first_line
 from .schema import BlendShapeData, DriverData, read_blend_shape, read_groups
@@ -311,6 +311,27 @@ class Scene:
                 "(restTransforms missing or the wrong size for joints the animation does not cover)"
             )
         return local
+
+    def skin(self, mesh: str) -> Skin:
+        """Each point's joint influences in skeleton order (UsdSkel's own: a rigid binding's one
+        set given to every point, the mesh's own ``skel:joints`` order mapped onto the
+        skeleton's) and the skeleton's parent indices."""
+        query, skel_query = self.query(mesh)
+        count = self.point_count(mesh)
+        influences = query.ComputeVaryingJointInfluences(count, Usd.TimeCode.Default())
+        if influences is None:
+            raise InputError(f"{where(self.label, mesh)}: UsdSkel cannot compute joint influences")
+        skeleton = [str(j) for j in skel_query.GetJointOrder()]
+        own = [str(j) for j in query.GetJointOrder() or []]
+        remap = np.array([skeleton.index(j) if j in skeleton else -1 for j in own] if own else range(len(skeleton)),
+                         dtype=np.int64)
+        per_point = max(len(influences[0]) // max(count, 1), 1)
+        raw = np.array(influences[0], dtype=np.int64).reshape(-1, per_point)
+        valid = (raw >= 0) & (raw < len(remap))
+        indices = np.where(valid, remap[np.clip(raw, 0, max(len(remap) - 1, 0))], -1)
+        weights = np.where(valid, np.array(influences[1], dtype=np.float64).reshape(-1, per_point), 0.0)
+        parents = np.array(skel_query.GetTopology().GetParentIndices(), dtype=np.int64)
+        return Skin(indices=indices, weights=weights, parents=parents)
 
     def bind_local_transforms(self, mesh: str) -> NDArray[np.float64]:
         """Local transforms of the bind pose (where skinning is the identity).

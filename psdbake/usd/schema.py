@@ -90,7 +90,9 @@ def _check_gate_groups(groups: list[tuple[str, DriverData]], label: str, mesh: s
         for gate in data.gate_groups:
             other = by_name.get(gate)
             why = ("is not one of psd:groups" if other is None else "is the group itself" if gate == name
-                   else "is itself gated by groups" if other.gate_groups else "")
+                   else "is itself gated by groups" if other.gate_groups
+                   else "is itself gated (psd:gates or psd:rampGates)" if len(other.gates) or len(other.ramp_gates)
+                   else "")
             if why or other is None:
                 raise InputError(f"{where(label, mesh, f'psd:{name}:gateGroups')}: gate group {gate!r} {why}")
             widths.append(POSE_SPACES[other.pose_space].width * len(other.drivers))
@@ -176,7 +178,7 @@ class _GroupReader:
             example_times=[float(t) for t in self.finite("exampleTimes", self.numbers("exampleTimes"),
                                                          "time codes are finite numbers")],
             example_sources=[str(s) for s in self.get("exampleSources")],
-            **self._gates(drivers, space), **self._gate_groups(), **self._channels(len(shapes)),
+            **self._gates(drivers, space), **self._gate_groups(), **self._ramps(drivers), **self._channels(len(shapes)),
         )
 
     def _rbf_arrays(self, drivers: list[str], space: str):
@@ -216,6 +218,23 @@ class _GroupReader:
         if np.any(np.einsum("ij,ij->i", poses, poses) <= 0):
             raise InputError(f"{self.at('gatePoses')}: a gate pose is the bind pose (zero): its activation is undefined")
         return {"gates": gates, "gate_poses": poses}
+
+    def _ramps(self, drivers: list[str]) -> dict[str, Any]:
+        """psd:rampGates (v5: driver joints, listed once each) and psd:rampRadii (one finite
+        radius > 0 each): each gate's min(1, |x_j| / r_j) multiplies the group's weights."""
+        gates = [str(g) for g in self.get("rampGates", required=False) or []]
+        if not gates:
+            return {}
+        unknown = [g for g in gates if g not in drivers]
+        if unknown or len(set(gates)) != len(gates):
+            raise InputError(f"{self.at('rampGates')}: {unknown[0] if unknown else 'a gate'!r} is not one of psd:drivers "
+                             "(listed once each)")
+        radii = self.finite("rampRadii", self.numbers("rampRadii"))
+        if len(radii) != len(gates):
+            raise InputError(f"{self.at('rampRadii')}: {len(radii)} values for {len(gates)} ramp gates")
+        if np.any(radii <= 0):
+            raise InputError(f"{self.at('rampRadii')}: a radius is not > 0 (the ramp divides by it)")
+        return {"ramp_gates": gates, "ramp_radii": radii}
 
     def _channels(self, columns: int) -> dict[str, Any]:
         """psd:channels, psd:channelColumns (each in [0, shapes)) and psd:channelScales (finite,

@@ -10,6 +10,7 @@ reference evaluator), term by term, from a mesh's ``DriverData`` alone:
     r_s       = sum_i C[i,s] phi(t_i)                   KERNELS[psd:kernel] (phi of t = r^2)
               + sum_m C[k+m,s] prod_d xhat_d^P[m,d]     monomial
               (x) v3 joint gates                        joint_gate
+              (x) v5 ramp gates                         ramp_gate
     w_s       = r_s prod_H a_{s,H}                      gate_activation (v4 combinations)
               then clamp / normalise                    apply_options
     channel c = max(0, w_col / M_c)                     channel_weight (client-safe channels)
@@ -227,9 +228,15 @@ def joint_gate(x: Sequence[Expr], pose: Floats) -> Expr:
     return call("clamp", div(dot, num(float(g @ g))), _zero(), Num(1.0))
 
 
+def ramp_gate(x: Sequence[Expr], radius: float, label: str) -> Expr:
+    """A v5 ramp gate: min(1, |x_j| / r_j), x_j the gate driver's coordinates (``weights.ramp_gate``)."""
+    norm = Named(f"{label}:n", call("sqrt", add(*(square(xd) for xd in x))))
+    return call("min", Num(1.0), div(norm, num(float(radius))))
+
+
 def rbf_outputs(data: DriverData, x: Sequence[Expr], label: str) -> list[Expr]:
-    """r_s: the group's cardinal RBF at x (times its v3 joint gates), before group gates and
-    options (``weights.rbf_weights``)."""
+    """r_s: the group's cardinal RBF at x (times its v3 joint gates and v5 ramp gates), before
+    group gates and options (``weights.rbf_weights``)."""
     if data.kernel not in KERNELS:
         raise CompileError(f"psd:kernel {data.kernel!r} has no Blender expression")
     xs = [x[int(d)] for d in data.dims]
@@ -239,6 +246,9 @@ def rbf_outputs(data: DriverData, x: Sequence[Expr], label: str) -> list[Expr]:
     width = len(x) // max(1, len(data.drivers))
     gates = [joint_gate(x[data.drivers.index(g) * width:(data.drivers.index(g) + 1) * width], pose)
              for g, pose in zip(data.gates, data.gate_poses, strict=True)]
+    gates += [Named(f"{label}:ramp{j}", ramp_gate(x[data.drivers.index(g) * width:(data.drivers.index(g) + 1) * width],
+                                                  float(radius), f"{label}:ramp{j}"))
+              for j, (g, radius) in enumerate(zip(data.ramp_gates, data.ramp_radii, strict=True))]
     coef = np.asarray(data.coefficients)
     return [Named(f"{label}:r{s}", mul(weighted_sum(coef[:, s], [*phi, *monos]), *gates))
             for s in range(len(data.shapes))]
