@@ -117,6 +117,14 @@ def make_cases(tmp: str, only: list[str] | None) -> list[Case]:
                           fixture("humanoid", "humanoid_anim.usda"),
                           "make demo's fit, then psdbake mirror --joints L_=R_: the R groups from the L ones",
                           mirror=("L_=R_",)))
+    if want("humanoid_shots"):
+        sys.path.insert(0, FIXTURES)
+        import humanoid  # fixtures/humanoid.py
+
+        shot = humanoid.write_shot_files(os.path.join(tmp, "humanoid_shots_fixture"), fixture("humanoid", "humanoid.usda"))
+        cases.append(Case("humanoid_shots", fixture("humanoid", "humanoid.usda"), ((None, (shot["additive"],)),),
+                          shot["second"], "10 sculpts on frames of a shot where every region moves, played over "
+                          "another shot: per-joint terms and gated combinations (psd: v5)"))
     if want("arm"):
         cases.append(Case("arm", fixture("arm_lbs.usda"), ((None, (fixture("arm_lbs_examples.usda"),)),),
                           fixture("arm_anim.usda"), "a layout Blender misplaces (psdbake inspect warns)"))
@@ -976,7 +984,8 @@ def to_json(results: list[CaseResult]) -> list[dict]:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--cases", nargs="*", help="subset of: humanoid humanoid_mirrored arm character cesiumman long_path")
+    parser.add_argument("--cases", nargs="*", help="subset of: humanoid humanoid_mirrored humanoid_shots arm character cesiumman "
+                        "long_path")
     parser.add_argument("--out", default=os.path.join(ROOT, os.environ.get("OUT", "out"), "interop"),
                         help="folder for report.md, weights.md, results.json (default: out/interop)")
     parser.add_argument("--keep", help="build in this folder (kept) instead of a temporary one")

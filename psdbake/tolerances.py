@@ -166,6 +166,18 @@ DEFAULT_SIGMA = 1.0
 #: example poses: the mean-pairwise-distance sigma gives 6.8e8 at 32 examples, 2.4e18 at 128.)
 RBF_COND_TARGET = 1e8
 
+#: The condition number a per-joint term's system keeps to: it admits centres only while its
+#: system stays within it (``fitting.additive.choose_centres``). Its weights are also evaluated
+#: live in float32 by Blender's drivers (export-blender), where round-off grows with the
+#: coefficients: at the float64 RBF_COND_TARGET a knee term of the humanoid's shot sculpts
+#: (7 centres, condition 7.8e7) was off by 2.9e-2 through Blender. Measured on those sculpts
+#: (float32 replay of the drivers; the sculpted shot's mean error with the dual-quaternion truth,
+#: against one global group's 5.32% of plain): 1e6 3.8e-4, no worse; 1e5 2.9e-5, no worse; 1e4
+#: 1.2e-5 (the combinations' share from there), 5.38%; 1e3 6.3%; 50 8.3%.
+#: Poses a term does not take as centres are still fitted through its basis, and what it
+#: leaves goes to the combination terms, so the examples stay exact.
+JOINT_TERM_COND_TARGET = 1e5
+
 #: Candidate automatic sigmas: the mean pairwise distance times RBF_SIGMA_STEP**j, j = 0, 1, ...
 #: (quarter octaves). A quarter octave changes the Gaussian condition number by about 10x at
 #: 32-500 bench examples, fine enough to stay within a decade of RBF_COND_TARGET.

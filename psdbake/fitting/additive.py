@@ -23,7 +23,7 @@ point of it a right-hand side):
 
 Centres. A joint's centres are its poses in the examples that move it (those where it moves
 alone, when there are any), farthest from the bind pose and from each other first, each kept
-only while the group's system stays within ``tol.RBF_COND_TARGET``: a regression needs the term
+only while the group's system stays within ``tol.JOINT_TERM_COND_TARGET``: a regression needs the term
 smooth, not a centre per example, and nearly equal poses would otherwise force a narrow kernel.
 sigma is ``tol.JOINT_SIGMA`` (``--sigma`` overrides): a group's centres and sigma depend on its
 own joint's poses alone, whichever other sculpts share the fit.
@@ -73,7 +73,7 @@ def choose_centres(poses: NDArray[np.float64], kernel: str, sigma: float, degree
                    ) -> list[int]:
     """Indices into poses (n, w) of the centres: farthest from the bind pose and the centres so
     far first; a pose is kept when it is not a duplicate (``tol.DUPLICATE_POSE_ATOL``) and the
-    system over the bind pose and the centres stays within ``tol.RBF_COND_TARGET``."""
+    system over the bind pose and the centres stays within ``tol.JOINT_TERM_COND_TARGET``."""
     chosen: list[int] = []
     points = [np.zeros(poses.shape[1])]
     gap = np.linalg.norm(poses, axis=1)
@@ -85,7 +85,7 @@ def choose_centres(poses: NDArray[np.float64], kernel: str, sigma: float, degree
             continue
         trial = np.array([*points, poses[i]])
         system = rbf.System(trial, kernel, degree, smoothing)
-        if len(trial) > len(system.powers) and system.condition(sigma) <= tol.RBF_COND_TARGET:
+        if len(trial) > len(system.powers) and system.condition(sigma) <= tol.JOINT_TERM_COND_TARGET:
             chosen.append(i)
             points.append(poses[i])
             gap = np.minimum(gap, np.linalg.norm(poses - poses[i], axis=1))
