@@ -48,7 +48,8 @@ def command(module: str, argv: Sequence[str] | None) -> str:
     return " ".join(["python", "-m", f"benchmarks.{module}", *(shlex.quote(a) for a in args)])
 
 
-def _cpu_model() -> str:
+def cpu_model() -> str:
+    """The CPU's model name (/proc/cpuinfo), else what platform knows."""
     try:
         with open("/proc/cpuinfo") as f:
             for line in f:
@@ -70,7 +71,8 @@ def _memory_gib() -> float | None:
     return None
 
 
-def _git_revision() -> str:
+def git_revision() -> str:
+    """The short commit of the checkout, +dirty with uncommitted changes to tracked files."""
     try:
         rev = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True,
                              check=True).stdout.strip()
@@ -91,7 +93,7 @@ def machine() -> dict[str, Any]:
 
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
     return {
-        "cpu_model": _cpu_model(),
+        "cpu_model": cpu_model(),
         "cores": cores,
         "memory_gib": _memory_gib(),
         "load_average": round(os.getloadavg()[0], 2) if hasattr(os, "getloadavg") else None,
@@ -100,7 +102,7 @@ def machine() -> dict[str, Any]:
         "scipy": scipy.__version__,
         "usd": ".".join(map(str, Usd.GetVersion())).removeprefix("0."),
         "psdbake": psdbake.__version__,
-        "git": _git_revision(),
+        "git": git_revision(),
     }
 
 

@@ -26,7 +26,7 @@ from ..results import AnimWeights
 from ..usd.blackbox import FLOAT32_MAX, SkinningBlackBox
 from ..usd.posedpoints import PosedPoints, RestPoints
 from ..usd.read import Scene
-from ..usd.validate import check_corrective_indices, require_finite_time_samples, validate_animation
+from ..usd.validate import checked_driver_groups, require_finite_time_samples, validate_animation
 
 Corrected = tuple[SkinnedMesh, list[tuple[str, DriverData]]]  # a mesh and its correctives groups
 
@@ -36,11 +36,9 @@ def correctives_by_animation(scene: Scene, anim_scene: Scene, correctives: str, 
     """SkelAnimation path -> the corrected meshes it poses, each with its groups (checked)."""
     per_anim: dict[str, list[Corrected]] = {}
     for info in scene.skinned_meshes():
-        groups = scene.driver_groups(info.path)
+        groups = checked_driver_groups(scene, info)
         if not groups:
             continue
-        for _, data in groups:
-            check_corrective_indices(scene, info.path, channel_names(data), info.point_count)
         anim_prim = scene.animation_prim(info.path)
         if anim_prim is None:
             raise InputError(f"{where(anim, info.skeleton)}: no SkelAnimation bound (skel:animationSource)")

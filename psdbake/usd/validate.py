@@ -16,6 +16,9 @@ from pxr import Usd, UsdGeom, UsdSkel
 
 from ..arrays import is_singular
 from ..errors import InputError, where
+from ..model.channels import channel_names
+from ..model.data import DriverData
+from ..model.rig import SkinnedMesh
 from .compose import open_layer
 from .inplace import numbers
 from .read import Scene, corrective_targets, matrices
@@ -103,6 +106,15 @@ def check_corrective_indices(scene: Scene, mesh: str, channels: Sequence[str], p
         if len(indices) and (indices.min() < 0 or indices.max() >= point_count):
             raise InputError(f"{where(scene.label, mesh + '/' + prim.GetName(), 'pointIndices')}: indices outside the "
                              f"{point_count} points of the asset's mesh")
+
+
+def checked_driver_groups(scene: Scene, info: SkinnedMesh) -> list[tuple[str, DriverData]]:
+    """The mesh's correctives groups, each group's BlendShapes checked to index only its points
+    (``check_corrective_indices``): what every consumer of a CORRECTIVES layer starts from."""
+    groups = scene.driver_groups(info.path)
+    for _, data in groups:
+        check_corrective_indices(scene, info.path, channel_names(data), info.point_count)
+    return groups
 
 
 def _same_property(prop: Usd.Property, other: Usd.Property | None) -> bool:

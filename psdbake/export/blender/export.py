@@ -32,14 +32,13 @@ import numpy as np
 
 from ... import __version__, atomic
 from ...errors import InputError, PsdError, SettingError, where
-from ...model.channels import channel_names
 from ...model.posespace import rotations
 from ...outputs import BLEND
 from ...usd import provenance
 from ...usd import write as usdwrite
 from ...usd.bindspace import read_bind_space
 from ...usd.read import Scene
-from ...usd.validate import check_corrective_indices, validate_animation
+from ...usd.validate import checked_driver_groups, validate_animation
 from .compiler import compile_mesh
 from .graph import BoneChannel, DriverGraph
 
@@ -129,11 +128,9 @@ def compile_rig(asset: str, correctives: str) -> tuple[list[MeshRig], list[dict]
     scene.require_skinned()
     rigs, entries = [], []
     for info in scene.skinned_meshes():
-        groups = scene.driver_groups(info.path)
+        groups = checked_driver_groups(scene, info)
         if not groups:
             continue
-        for _, data in groups:
-            check_corrective_indices(scene, info.path, channel_names(data), info.point_count)
         space = read_bind_space(scene, info)
         rest_rotations = rotations(space.bind_local).as_quat()
         rest = {j: rest_rotations[i] for i, j in enumerate(info.joints)}
