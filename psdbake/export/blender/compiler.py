@@ -110,7 +110,7 @@ def rotation_vector(q: Quaternion, axis: Sequence[float] | None, label: str) -> 
     s2 = _norm2(x, y, z)
     s = call("sqrt", s2)
     ratio = if_else(div(mul(Num(2.0), call("atan2", s, call("abs", w))), s), cmp(">", s2, _zero()), Num(2.0))
-    f = Named(f"{label}:rv", mul(ratio, canonical_sign(q)))
+    f = Named(f"{label}:rv", mul(ratio, canonical_sign(q)), exact=True)
     return [mul(x, f), mul(y, f), mul(z, f)]
 
 
@@ -139,11 +139,11 @@ def swing_twist(q: Quaternion, axis: Sequence[float] | None, label: str) -> list
     half_turn = Named(f"{label}:st.p", if_else(div(mul(Num(math.pi), canonical_sign(q)), call("sqrt", s2)),
                                                cmp(">", s2, _zero()), _zero()))
     swing = [Named(f"{label}:st.{i}", if_else(
-        mul(h, sub(mul(w, sub(vi, mul(num(ai), t))), mul(t, ci))), cmp(">", n2, _zero()), mul(vi, half_turn)))
+        mul(h, sub(mul(w, sub(vi, mul(num(ai), t))), mul(t, ci))), cmp(">", n2, _zero()), mul(vi, half_turn)), exact=True)
         for i, (vi, ai, ci) in enumerate(zip(v, a, cross, strict=True))]
     shifted = Named(f"{label}:st.m", call("fmod", add(mul(Num(2.0), call("atan2", t, w)), Num(math.pi)), Num(2.0 * math.pi)))
     twist = Named(f"{label}:st.3", sub(if_else(add(shifted, Num(2.0 * math.pi)), cmp("<", shifted, _zero()), shifted),
-                                       Num(math.pi)))
+                                       Num(math.pi)), exact=True)
     return [*swing, twist]
 
 
@@ -162,7 +162,7 @@ def chordal(q: Quaternion, axis: Sequence[float] | None, label: str) -> list[Exp
     out: list[Expr] = []
     for i, entry in enumerate(entries):
         value = div(entry, n2)
-        out.append(Named(f"{label}:m{i // 3}{i % 3}", sub(value, Num(1.0)) if i % 4 == 0 else value))
+        out.append(Named(f"{label}:m{i // 3}{i % 3}", sub(value, Num(1.0)) if i % 4 == 0 else value, exact=True))
     return out
 
 
@@ -186,10 +186,38 @@ def pose_coordinates(data: DriverData, rest: Mapping[str, NDArray[np.float64]]) 
 
 # --- the cardinal RBF -----------------------------------------------------------------------
 
-def squared_distance(x: Sequence[Expr], centre: Floats, epsilon: float, label: str) -> Named:
-    """t = (eps |x - c|)^2, the kernel's argument squared."""
+#: What the squared distances left in one float32 may move a weight by, together, whatever the
+#: pose: half the live rig's weight tolerance (interop's LIVE_WEIGHT_ATOL, 1e-6).
+FLOAT32_DISTANCE_BUDGET = 5e-7
+#: max over t >= 0 of |t phi'(t)|, phi of t = r^2: how much a relative error of t moves phi.
+#: Kernels that grow without bound have none; their squared distances are always exact.
+KERNEL_SLOPES = {"gaussian": 1.0 / math.e, "inverse_multiquadric": 3.0**-1.5,
+                 "inverse_quadratic": 0.25}
+
+
+def exact_centres(coefficients: NDArray[np.float64], kernel: str) -> NDArray[np.bool_]:
+    """Which centres' squared distances are stored exact (two float32, ``graph``).
+
+    A float32 t_i is off by up to 2^-24 t_i, which moves phi(t_i) by 2^-24 |t phi'(t)|
+    (``KERNEL_SLOPES``) and a weight by |C[i, s]| times that. The centres with the largest
+    coefficients are made exact until what the others can move a weight by together is within
+    ``FLOAT32_DISTANCE_BUDGET``: a fit whose coefficients cancel (an ill-conditioned kernel
+    matrix, 10^3 and more) pays a driver per centre, a smooth one (about 10) none."""
+    if kernel not in KERNEL_SLOPES:
+        return np.ones(len(coefficients), dtype=bool)
+    size = np.abs(coefficients).max(axis=1, initial=0.0) * 2.0**-24 * KERNEL_SLOPES[kernel]
+    order = np.argsort(-size, kind="stable")
+    left = np.cumsum(size[order][::-1])[::-1]  # what the centres from the k-th largest on move a weight by
+    exact = np.zeros(len(size), dtype=bool)
+    exact[order[left > FLOAT32_DISTANCE_BUDGET]] = True
+    return exact
+
+
+def squared_distance(x: Sequence[Expr], centre: Floats, epsilon: float, label: str, exact: bool = False) -> Named:
+    """t = (eps |x - c|)^2, the kernel's argument squared; ``exact``: stored in two float32
+    (``graph``), for a centre whose coefficients would amplify t's rounding past a weight's own."""
     total = add(*(square(sub(xd, num(cd))) if cd != 0.0 else square(xd) for xd, cd in zip(x, centre, strict=True)))
-    return Named(label, mul(total, num(epsilon * epsilon)))
+    return Named(label, mul(total, num(epsilon * epsilon)), exact)
 
 
 #: phi as a function of t = r^2 (``rbf_model.KERNELS`` takes r), by ``psd:kernel`` token.
@@ -241,7 +269,10 @@ def rbf_outputs(data: DriverData, x: Sequence[Expr], label: str) -> list[Expr]:
         raise CompileError(f"psd:kernel {data.kernel!r} has no Blender expression")
     xs = [x[int(d)] for d in data.dims]
     eps = 1.0 / data.sigma
-    phi = [KERNELS[data.kernel](squared_distance(xs, c, eps, f"{label}:t{i}")) for i, c in enumerate(data.centers)]
+    coef = np.asarray(data.coefficients)
+    exact = exact_centres(coef[: len(data.centers)], data.kernel)
+    phi = [KERNELS[data.kernel](squared_distance(xs, c, eps, f"{label}:t{i}", bool(exact[i])))
+           for i, c in enumerate(data.centers)]
     monos = [monomial(xs, p, data.shift, data.scale) for p in data.powers]
     width = len(x) // max(1, len(data.drivers))
     gates = [joint_gate(x[data.drivers.index(g) * width:(data.drivers.index(g) + 1) * width], pose)
@@ -249,7 +280,6 @@ def rbf_outputs(data: DriverData, x: Sequence[Expr], label: str) -> list[Expr]:
     gates += [Named(f"{label}:ramp{j}", ramp_gate(x[data.drivers.index(g) * width:(data.drivers.index(g) + 1) * width],
                                                   float(radius), f"{label}:ramp{j}"))
               for j, (g, radius) in enumerate(zip(data.ramp_gates, data.ramp_radii, strict=True))]
-    coef = np.asarray(data.coefficients)
     return [Named(f"{label}:r{s}", mul(weighted_sum(coef[:, s], [*phi, *monos]), *gates))
             for s in range(len(data.shapes))]
 

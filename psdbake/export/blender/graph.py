@@ -16,6 +16,16 @@ are computed in float64 within one expression, nodes are rounded to float32 (``s
 so inlining is both cheaper (Blender pays per driver, measured in docs/decisions/
 blender-live-drivers.md) and more exact. A node, once made, serves every later expression
 that needs the same quantity.
+
+Exact nodes: a float32 node loses 2^-24 of its value, and some quantities pass that loss on
+amplified: a partial sum of a kernel sum whose coefficients cancel (a well-fitted weight of
+0.3 can be the sum of terms of 10^3), or a squared distance multiplied on its way by a large
+coefficient. Those (the compiler's ``Named(..., exact=True)`` and every partial sum made here)
+are stored as two properties, the value v rounded (``name``) and what the rounding lost,
+v - float32(v) rounded (``name~lo``, its driver the same expression minus the first), and read
+as their sum: 48 bits instead of 24, for one more driver. Measured on the shot sculpts
+(docs/decisions/blender-live-drivers.md): weights 2.9e-5 off eval's with every node float32,
+4e-7 with these stored exactly.
 """
 
 from __future__ import annotations
@@ -30,6 +40,7 @@ from .simple import (
     Add,
     Expr,
     Named,
+    Neg,
     TextBounds,
     Var,
     children,
@@ -44,6 +55,9 @@ from .simple import (
 MAX_NAME_BYTES = 63
 #: Quaternion components a bone variable reads (``transform_type`` ``ROT_W`` ...).
 QUATERNION_CHANNELS = ("W", "X", "Y", "Z")
+#: Characters an exact node's remainder driver adds to its value's expression: ``(...)-v``,
+#: v a variable name of at most 3 characters (``simple.variable_names``).
+REMAINDER_MARGIN = 6
 
 
 @dataclass(frozen=True)
@@ -108,7 +122,7 @@ def property_name(name: str) -> str:
 @dataclass
 class _Layout:
     drivers: list[Driver] = field(default_factory=list)
-    made: dict[Expr, str] = field(default_factory=dict)  # a node's expression -> its property name
+    made: dict[Expr, Expr] = field(default_factory=dict)  # a node's expression -> what reads it
     used: set[str] = field(default_factory=set)
     bounds: TextBounds = field(init=False)
 
@@ -116,62 +130,75 @@ class _Layout:
         self.bounds = TextBounds(self.known)
 
     def known(self, n: Named) -> Expr | None:
-        name = self.made.get(_quantity(n))
-        return Var(Prop(name)) if name is not None else None
+        return self.made.get(_quantity(n))
 
-    def fits(self, e: Expr) -> bool:
+    def fits(self, e: Expr, limit: int = EXPRESSION_LIMIT) -> bool:
         """Whether e's text is within the limit: decided by its bounds, rendered only in between."""
         chars, names = self.bounds.of(e)
-        if chars + 2 * names <= EXPRESSION_LIMIT:
+        if chars + 2 * names <= limit:
             return True
-        if chars + names > EXPRESSION_LIMIT:
+        if chars + names > limit:
             return False
-        return len(render(e, self.known)[0]) <= EXPRESSION_LIMIT
+        return len(render(e, self.known)[0]) <= limit
 
-    def node(self, n: Named) -> Var:
-        """n as a node (made once, its own parts laid out first)."""
+    def node(self, n: Named) -> Expr:
+        """n as a node (made once, its own parts laid out first): its property's variable, or
+        for an exact node the sum of its two properties' variables."""
         have = self.known(n)
-        if isinstance(have, Var):
+        if have is not None:
             return have
-        body = self.fit(n.expr, n.name)
-        name, k = property_name(n.name), 1
+        body = self.fit(n.expr, n.name, EXPRESSION_LIMIT - REMAINDER_MARGIN if n.exact else EXPRESSION_LIMIT)
+        name = self.fresh(n.name)
+        self.drivers.append(self.driver("node", name, body))
+        value: Expr = Var(Prop(name))
+        if n.exact:
+            rest = self.fresh(f"{n.name}~lo")
+            self.drivers.append(self.driver("node", rest, Add((body, Neg(value)))))
+            value = Add((value, Var(Prop(rest))))
+        self.made[_quantity(n)] = value
+        self.bounds = TextBounds(self.known)  # n is a variable from now on
+        return value
+
+    def fresh(self, wanted: str) -> str:
+        """A property name not used yet: ``wanted`` as Blender keeps it, else numbered."""
+        name, k = property_name(wanted), 1
         while name in self.used:
             k += 1
-            name = property_name(f"{n.name}~{k}")
+            name = property_name(f"{wanted}~{k}")
         self.used.add(name)
-        self.drivers.append(self.driver("node", name, body))
-        self.made[_quantity(n)] = name
-        self.bounds = TextBounds(self.known)  # n is a variable from now on
-        return Var(Prop(name))
+        return name
 
-    def fit(self, e: Expr, name: str) -> Expr:
-        """e, with enough of its parts made nodes that its text fits the limit: the longest
+    def fit(self, e: Expr, name: str, limit: int = EXPRESSION_LIMIT) -> Expr:
+        """e, with enough of its parts made nodes that its text fits ``limit``: the longest
         part first, then, when no part is left to make, its longest sum split."""
         while isinstance(e, Named):  # a renamed quantity: its node's variable, or what it names
             e = self.known(e) or e.expr
-        while not self.fits(e):
+        while not self.fits(e, limit):
             parts = sorted(named_parts(e, self.known), key=lambda n: (-self.bounds.low(n), n.name))
             if parts:
                 self.node(parts[0])
                 continue
             sums = sorted(_sums(e), key=lambda a: -self.bounds.low(a))
             if not sums or len(sums[0].terms) < 2:
-                raise LayoutError(f"{name}: {render(e, self.known)[0][:80]}... does not fit {EXPRESSION_LIMIT} characters")
+                raise LayoutError(f"{name}: {render(e, self.known)[0][:80]}... does not fit {limit} characters")
             e = _swapped(e, sums[0], self.split(sums[0], name))
         return e
 
     def split(self, e: Add, name: str) -> Expr:
         """A long sum as a sum of partial sums, each filling one expression, or, if it fits
-        one, as a part of its own (made a node by the next step of ``fit``)."""
-        terms = [self.fit(t, name) for t in e.terms]
+        one, as a part of its own (made a node by the next step of ``fit``). Partial sums are
+        exact nodes: their terms may cancel, and each keeps its share of the total's bits."""
+        limit = EXPRESSION_LIMIT - REMAINDER_MARGIN
+        terms = [self.fit(t, name, limit) for t in e.terms]
         chunks: list[list[Expr]] = [[]]
         for t in terms:
-            if chunks[-1] and not self.fits(Add((*chunks[-1], t))):
+            if chunks[-1] and not self.fits(Add((*chunks[-1], t)), limit):
                 chunks.append([])
             chunks[-1].append(t)
         if len(chunks) == 1:  # the sum fits one expression of its own, not inside e: a node
-            return Named(f"{name}+", Add(tuple(terms)))
-        return Add(tuple(Named(f"{name}+{i}", Add(tuple(c)) if len(c) > 1 else c[0]) for i, c in enumerate(chunks)))
+            return Named(f"{name}+", Add(tuple(terms)), exact=True)
+        return Add(tuple(Named(f"{name}+{i}", Add(tuple(c)) if len(c) > 1 else c[0], exact=True)
+                         for i, c in enumerate(chunks)))
 
     def driver(self, kind: str, target: str, e: Expr) -> Driver:
         text, variables = render(e, self.known)

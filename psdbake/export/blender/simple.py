@@ -132,10 +132,13 @@ class IfElse(Expr):
 @dataclass(frozen=True, eq=False)
 class Named(Expr):
     """A quantity that may become a driven property of its own (``graph.lay_out`` decides):
-    rendered inline while it fits, else stored under ``name`` and read through a variable."""
+    rendered inline while it fits, else stored under ``name`` and read through a variable.
+    ``exact``: stored, it takes two float32 properties (value and remainder), because its
+    float32 rounding would be amplified on the way to a weight (``graph``)."""
 
     name: str
     expr: Expr
+    exact: bool = False
 
 
 _PRECEDENCE: dict[type, int] = {Add: _ADD, Mul: _MUL, Div: _MUL, Neg: _NEG, Cmp: _CMP, IfElse: _IF}
@@ -336,7 +339,7 @@ def children(e: Expr) -> tuple[Expr, ...]:
 def with_children(e: Expr, new: Sequence[Expr]) -> Expr:
     """e's node with ``new`` in place of its direct sub-expressions (``children``)."""
     if isinstance(e, Named):
-        return Named(e.name, new[0])
+        return Named(e.name, new[0], e.exact)
     if isinstance(e, Add):
         return Add(tuple(new))
     if isinstance(e, Mul):
