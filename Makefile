@@ -87,7 +87,7 @@ bench: $(STAMP)
 	$(BIN)/python -m benchmarks.evalspeed
 	$(BIN)/python -m benchmarks.fitspeed
 	$(BIN)/python -m benchmarks.sculptspeed
-	$(BIN)/python -m benchmarks.manyjoints --global-joints 120
+	$(BIN)/python -m benchmarks.manyjoints --global-joints 1200
 	$(BIN)/python -m benchmarks.startup
 	$(BIN)/python -m benchmarks.pages
 

@@ -11,8 +11,9 @@ offsets: the ground truth, as every fixture's).
 Measured in a fresh process each (``child``): ``psdbake.api.fit`` with default settings, then
 ``psdbake.api.evaluate`` of the result over the examples' own poses; seconds of each and the
 process's peak resident memory (``VmHWM``), and the groups the fit made (drivers, points moved).
-``--group-main`` also measures one global group (``FitSettings(group="main")``: every joint an
-example moves becomes a driver of one RBF) at ``--global-joints`` joints, for scale.
+``--global-joints N`` also measures one global group (``FitSettings(group="main")``: every joint an
+example moves becomes a driver of one RBF, what a default fit made before per-joint terms) at N
+joints; ``make bench`` runs it at the same 1,200.
 
 Run: ``python -m benchmarks.manyjoints`` (part of ``make bench``).
 """
@@ -186,8 +187,9 @@ ABOUT = (
     f"it, as facial and secondary joints hang from a head), {POINTS_PER_JOINT} points around each joint skinned to it "
     f"and its parent; {EXAMPLES} examples each rotate every joint (5 to 20 degrees, random axes) and sculpt "
     f"{SCULPTED} points at one chain's tip. Each fit and eval runs in a fresh process: seconds, and the process's "
-    "peak resident memory (VmHWM, Python and USD included). One global group (`--group main`: every moved joint a "
-    "driver of one RBF) is measured at a smaller skeleton for scale."
+    "peak resident memory (VmHWM, Python and USD included). Beside it, on the same skeleton, one global group "
+    "(`--group main`: every moved joint a driver of one RBF), which is what a default fit of these examples made "
+    "before per-joint terms."
 )
 
 

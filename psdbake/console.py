@@ -130,7 +130,7 @@ def fit_report(result: FitResult, output: str) -> dict:
             "mesh": m.mesh, "group": m.group, "skeleton": m.skeleton, "points": m.point_count, "drivers": list(m.drivers),
             "kernel": d.kernel, "sigma": d.sigma, "degree": d.degree, "examples": examples,
             "condition": None if m.condition != m.condition else m.condition,
-            "role": m.role or None, "vertices_moved": m.vertices if m.role else None,
+            "role": m.role or None, "vertices_moved": m.vertices,
             "columns": len(d.shapes),
         })
     return {

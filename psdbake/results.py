@@ -48,7 +48,7 @@ class MeshFit:
     #: the default fit's kind of group: "joint" (one joint's term) or "combination" (what the
     #: joints' terms leave, gated); "" for a group of explicit drivers or one global group
     role: str = ""
-    vertices: int = 0  # points the group's BlendShapes move (0: not counted)
+    vertices: int = 0  # points the group's BlendShapes move
 
 
 @dataclass(frozen=True)

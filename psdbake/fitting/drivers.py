@@ -169,9 +169,11 @@ def fit_drivers(asset: str, asset_scene: Scene, info: SkinnedMesh, examples: Seq
         example_times=[e.time for e in examples], example_sources=[os.path.basename(e.source) for e in examples],
     )
     existing, targets = existing_blend_shapes(asset_scene, info.path)
+    moved = [inv.indices[np.any(inv.offsets != 0.0, axis=1)] for ch, inv in zip(channels, inverses, strict=True) if ch]
     return MeshFit(
         mesh=info.path, skeleton=info.skeleton, point_count=info.point_count, examples=tuple(examples),
         inverses=tuple(inverses), channels=tuple(channels), drivers=tuple(data.drivers), driver_data=data,
         existing_channels=tuple(existing), existing_targets=tuple(targets), group=region.group,
         joints=tuple(info.joints), condition=float(model.condition),
+        vertices=len(np.unique(np.concatenate(moved))) if moved else 0,
     )
