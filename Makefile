@@ -88,6 +88,7 @@ bench: $(STAMP)
 	$(BIN)/python -m benchmarks.fitspeed
 	$(BIN)/python -m benchmarks.sculptspeed
 	$(BIN)/python -m benchmarks.manyjoints --global-joints 1200
+	$(BIN)/python -m benchmarks.against
 	$(BIN)/python -m benchmarks.startup
 	$(BIN)/python -m benchmarks.pages
 

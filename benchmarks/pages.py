@@ -33,7 +33,8 @@ PAGES: dict[str, tuple[str, str, list[tuple[str, str]]]] = {
          ("coupled", "A chain that couples vertices"), ("conditioning", "Many examples"),
          ("jobs", "`fit --jobs`"), ("batch", "`batch --workers`"), ("startup", "Start-up"),
          ("evalspeed", "Eval and the points cache at film scale"), ("fitspeed", "Fit at film scale"),
-         ("sculptspeed", "Fit time by kind of sculpt"), ("manyjoints", "A big skeleton, a small sculpt")],
+         ("sculptspeed", "Fit time by kind of sculpt"), ("manyjoints", "A big skeleton, a small sculpt"),
+         ("against", "Against the psdbake before per-joint terms")],
     ),
     "fidelity.md": (
         "Fidelity: the paper's claim, measured",

@@ -67,11 +67,16 @@ class _Mesh:
         self.inverses = [solved[k][0] for k in range(count)]
         shapes = [_sparse(*solved[k]) for k in range(count)]
         self.normals = any(s[2] is not None for s in shapes)
-        self.points = np.unique(np.concatenate([s[0] for s in shapes] or [np.zeros(0, dtype=np.int64)]))
+        sculpted = np.zeros(info.point_count, dtype=bool)  # a mask, not a sort: linear in the points
+        for idx, _, _ in shapes:
+            sculpted[idx] = True
+        self.points = np.flatnonzero(sculpted)
+        row_of = np.full(info.point_count, -1, dtype=np.int64)
+        row_of[self.points] = np.arange(len(self.points))
         width = 6 if self.normals else 3
         self.data = np.zeros((count, len(self.points), width))
         for k, (idx, off, nrm) in enumerate(shapes):
-            rows = np.searchsorted(self.points, idx)
+            rows = row_of[idx]
             self.data[k, rows, :3] = off
             if nrm is not None:
                 self.data[k, rows, 3:] = nrm
@@ -108,10 +113,7 @@ def fit_mesh(asset: str, info: SkinnedMesh, examples: Sequence[Example], solved:
     sets = locality.explaining_joints(skin, own, mesh.moved)
     sets = locality.separate(sets, own, mesh.coords, mesh.data, skin.parents,
                              mesh.moved, mesh.atol, mesh.labels, here)
-    rows_of: dict[Joints, list[int]] = {}
-    for row, joints in enumerate(sets):
-        rows_of.setdefault(joints, []).append(row)
-    signatures = {s: np.array(r, dtype=np.int64) for s, r in sorted(rows_of.items()) if s}
+    signatures = {s: r for s, r in sorted(locality.rows_by_set(sets).items()) if s}
     # 3. per-joint terms
     terms: dict[int, additive.JointTerm] = {}
     for j in sorted({j for s in signatures for j in s}):

@@ -41,7 +41,7 @@ def keys(signatures: Mapping[Joints, NDArray[np.int64]], active: Sequence[frozen
     signatures (-> their point rows) whose residual (K, n, c) is not negligible. solo: the
     joints sculpted alone."""
     out: Keyed = {}
-    largest = np.maximum(residual.max(axis=(0, 2), initial=0.0), -residual.min(axis=(0, 2), initial=0.0))  # per point
+    largest = np.abs(residual).max(axis=(0, 2), initial=0.0)  # per point
     for joints, rows in sorted(signatures.items()):
         if not len(rows) or float(largest[rows].max(initial=0.0)) <= negligible:
             continue
@@ -102,7 +102,7 @@ def solve(signatures: Mapping[Joints, NDArray[np.int64]], keyed: Keyed, column: 
         if not condition < tol.RBF_COND_MAX:
             raise FitError(f"{where_}: the combination terms over {len(cols)} example poses cannot be solved "
                            f"(condition number {condition:.1e}): examples too alike in the joints they move")
-        rhs = residual[examples][:, rows].reshape(len(examples), -1)
+        rhs = residual[np.ix_(examples, rows)].reshape(len(examples), -1)
         shapes = np.linalg.solve(t, rhs).reshape(len(examples), len(rows), c)
         for (b, col), s in zip(cols, shapes, strict=True):
             out[b][col][rows] = s

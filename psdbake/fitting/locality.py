@@ -48,6 +48,15 @@ def influences(skin: Skin, points: NDArray[np.int64]) -> list[Joints]:
     return [sets[i] for i in np.asarray(inverse).reshape(-1)]
 
 
+def rows_by_set(sets: Sequence[Joints]) -> dict[Joints, NDArray[np.int64]]:
+    """Each distinct set -> the rows holding it, in row order (one pass over the rows, then numpy)."""
+    ids: dict[Joints, int] = {}
+    key = np.fromiter((ids.setdefault(s, len(ids)) for s in sets), dtype=np.int64, count=len(sets))
+    order = np.argsort(key, kind="stable")
+    bounds = np.searchsorted(key[order], np.arange(len(ids) + 1))
+    return {s: order[bounds[i]:bounds[i + 1]] for s, i in ids.items()}
+
+
 def explaining_joints(skin: Skin, own: Sequence[Joints], moved: Sequence[int]) -> list[Joints]:
     """Per point: the moved joints that can explain its corrective (sorted), from its
     influences ``own`` (``influences``)."""
@@ -127,10 +136,7 @@ def separate(sets: list[Joints], anchors: Sequence[Joints], coords: NDArray[np.f
     offsets = np.concatenate([np.zeros((1, *data.shape[1:])), data])
     for _ in range(coords.shape[1] + 1):
         grown = False
-        by_set: dict[Joints, list[int]] = {}
-        for v, s in enumerate(sets):
-            by_set.setdefault(s, []).append(v)
-        for joints, points in sorted(by_set.items()):
+        for joints, points in sorted(rows_by_set(sets).items()):
             for members in _agreeing(poses, joints):
                 mine = offsets[np.ix_(members, points)]
                 spread = np.abs(mine - mine[:1]).max(axis=(0, 2))
@@ -146,8 +152,12 @@ def separate(sets: list[Joints], anchors: Sequence[Joints], coords: NDArray[np.f
                 start = joints or tuple(sorted({j for b in bad for j in anchors[points[b]]}))
                 dist = tree_distances(start, parents)[differ]
                 nearest = tuple(int(j) for j in differ[dist == dist.min()])
-                for b in bad:
-                    sets[points[b]] = tuple(sorted(set(sets[points[b]]) | set(nearest)))
+                grown_to: dict[Joints, Joints] = {}  # the points of a group share a few sets
+                for p in points[bad]:
+                    now = sets[p]
+                    if now not in grown_to:
+                        grown_to[now] = tuple(sorted(set(now) | set(nearest)))
+                    sets[p] = grown_to[now]
                 grown = True
         if not grown:
             return sets
