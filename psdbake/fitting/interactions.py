@@ -102,7 +102,7 @@ def solve(signatures: Mapping[Joints, NDArray[np.int64]], keyed: Keyed, column: 
         if not condition < tol.RBF_COND_MAX:
             raise FitError(f"{where_}: the combination terms over {len(cols)} example poses cannot be solved "
                            f"(condition number {condition:.1e}): examples too alike in the joints they move")
-        rhs = residual[np.ix_(examples, rows)].reshape(len(examples), -1)
+        rhs = residual[np.ix_(np.asarray(examples, dtype=np.int64), rows)].reshape(len(examples), -1)
         shapes = np.linalg.solve(t, rhs).reshape(len(examples), len(rows), c)
         for (b, col), s in zip(cols, shapes, strict=True):
             out[b][col][rows] = s

@@ -138,7 +138,7 @@ def separate(sets: list[Joints], anchors: Sequence[Joints], coords: NDArray[np.f
         grown = False
         for joints, points in sorted(rows_by_set(sets).items()):
             for members in _agreeing(poses, joints):
-                mine = offsets[np.ix_(members, points)]
+                mine = offsets[np.ix_(np.asarray(members, dtype=np.int64), points)]
                 spread = np.abs(mine - mine[:1]).max(axis=(0, 2))
                 bad = np.nonzero(spread > atol)[0]
                 if not len(bad):
