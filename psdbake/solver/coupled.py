@@ -20,6 +20,12 @@ per-vertex solver measured is reused: the chain at rest, the per-vertex 3x3 bloc
 moving *every* sculpted vertex along x, then y, then z: the row sums of the coupled chain's
 Jacobian, for a smoothing deformer the skinning's own blocks) and its linearised start.
 
+0. **Small pieces of the mesh** (``_small_pieces_first``, ``psdbake.solver.pieces``): where the
+   region holds pieces of at most ``pieces.SMALL_PIECE`` vertices (a character's small UV
+   shells, which Delta Mush rotates rather than smooths), their exact Jacobians (3 calls a
+   vertex of the largest, shared by all pieces) and damped Gauss-Newton. Where they reach the
+   tolerance, the stages below solve the rest of the region with them held; otherwise the
+   stages below solve the whole region and each small piece keeps the better solution.
 1. **The smooth start** (``smooth_start``, ``psdbake.solver.smoothstart``): Levenberg-Marquardt over
    the region's smoothest fields (``psdbake.solver.smoothbasis``, sized to the region), first the
    coarsest quarter of them, then all, on a model of the chain's Jacobian that knows how much
@@ -71,7 +77,7 @@ from threadpoolctl import threadpool_limits
 
 from .. import tolerances as tol
 from ..arrays import Points, is_singular
-from . import powell, smoothstart
+from . import pieces, powell, smoothstart
 from .inverse import COUPLING_SEEN, BlackBox, Counted, InverseResult, invert_example_with, sculpted_vertices
 from .smoothbasis import basis_sizes, smooth_bases, smooth_basis
 
@@ -246,6 +252,12 @@ def invert(blackbox: BlackBox, rest: Points, sculpt: Points, *, rtol: float = to
     with threadpool_limits(limits=1, user_api="blas"):
         if not read:
             adjacency = neighbours() if neighbours is not None else None
+        small: tuple[list[pieces.Piece], pieces.PiecesResult] | None = None
+        if adjacency is not None:  # 0. the mesh's small pieces by their own Jacobians, the rest as below
+            split, small = _small_pieces_first(call, blackbox, rest, sculpt, base, idx, diagonal, floor, adjacency,
+                                               first, rtol=rtol, started=started)
+            if split is not None:
+                return split
         # the per-vertex 3x3 blocks, shared by every stage: the per-vertex solver's own, else 3 calls
         blocks = measured.blocks if measured is not None else chain_blocks(call, rest, base, idx, diagonal, floor)
         candidates: list[InverseResult] = []
@@ -276,8 +288,96 @@ def invert(blackbox: BlackBox, rest: Points, sculpt: Points, *, rtol: float = to
                 candidates.extend(_from_per_vertex(call, blackbox, rest, sculpt, base, idx, diagonal, floor, first,
                                                    blocks, rtol=rtol, started=started))
     best = min(candidates, key=_rank)
+    if small is not None:
+        best = _keep_better_pieces(call, rest, sculpt, idx, best, *small)
     return dataclasses.replace(best, evaluations=call.calls, seconds=time.perf_counter() - started,
                                sculpt_rms=first.sculpt_rms)
+
+
+def _small_pieces_first(call: Counted, blackbox: BlackBox, rest: Points, sculpt: Points, base: Points,
+                        idx: NDArray[np.int64], diagonal: float, floor: float, adjacency: sp.csr_matrix,
+                        first: InverseResult, *, rtol: float, started: float
+                        ) -> tuple[InverseResult | None, tuple[list[pieces.Piece], pieces.PiecesResult] | None]:
+    """The sculpted region's small pieces of the mesh (``pieces.SMALL_PIECE`` vertices or fewer)
+    solved with their exact Jacobians (``pieces.solve_small_pieces``). On CesiumMan the smooth
+    start's model is off by up to 1e6 there, and with them in the region the later stages
+    leave more of the large pieces above the tolerance too (docs/decisions/coupled-inverse-cesiumman.md).
+
+    Where every small piece reaches the tolerance (the sculpt is the chain's own output there),
+    the rest of the region is solved by ``invert`` through the chain with those offsets held
+    (the sculpt there replaced by the chain's output, so it is not sculpted again), and one call
+    checks every vertex at the combined offsets: (result, None). Where they do not (a sculpt
+    the chain cannot reproduce), the whole region is solved as before and each small piece
+    keeps the better of the two solutions (``_keep_better_pieces``): (None, (pieces, their
+    solution)); on CesiumMan's shipped sculpts solving the rest alone left a larger RMS on the
+    large pieces than the whole solve. (None, None) where the region holds no small piece, or
+    the pieces turn out not to be independent."""
+    found = pieces.small_pieces(adjacency, idx)
+    if not found:
+        return None, None
+    atol = max(rtol * diagonal, floor)
+    solved = pieces.solve_small_pieces(call, rest, sculpt, base, idx, found, diagonal, atol)
+    if solved is None:
+        return None, None
+    reached = np.linalg.norm(sculpt[idx[solved.members]] - solved.outputs[idx[solved.members]], axis=1) <= atol
+    if not reached.all():
+        return None, (found, solved)
+    offsets = np.zeros((len(idx), 3))
+    offsets[solved.members] = solved.offsets
+    others = np.setdiff1d(np.arange(len(idx)), solved.members)
+    inner: InverseResult | None = None
+    if len(others):
+        shift = np.zeros_like(rest)
+        shift[idx[solved.members]] = solved.offsets
+        held = sculpt.copy()
+        for piece in found:
+            held[piece.vertices] = solved.outputs[piece.vertices]
+        inner = invert(lambda points: blackbox(points + shift), rest, held, rtol=rtol, neighbours=lambda: adjacency)
+        where = np.searchsorted(idx, inner.indices)
+        if len(where) and (where.max() >= len(idx) or not np.array_equal(idx[where], inner.indices)):
+            return None, (found, solved)
+        offsets[where] = inner.offsets
+    moved = rest.copy()
+    moved[idx] += offsets
+    out = call(moved)
+    residual = np.linalg.norm(sculpt[idx] - out[idx], axis=1)
+    status = np.full(len(idx), powell.STALLED, dtype=np.int8)
+    if inner is not None:
+        status[np.searchsorted(idx, inner.indices)] = inner.status
+    status[residual <= atol] = powell.CONVERGED
+    status[(residual > atol) & (status == powell.CONVERGED)] = powell.STALLED
+    regime = "coupled, small pieces by their Jacobians" + (f"; the rest {inner.regime}" if inner is not None else "")
+    return InverseResult(idx, offsets, residual, status, call.calls + (inner.evaluations if inner is not None else 0),
+                         diagonal, atol, time.perf_counter() - started, regime=regime,
+                         qn_steps=inner.qn_steps if inner is not None else 0, sculpt_rms=first.sculpt_rms,
+                         at_optimum=bool(inner is not None and inner.at_optimum)), None
+
+
+def _keep_better_pieces(call: Counted, rest: Points, sculpt: Points, idx: NDArray[np.int64], best: InverseResult,
+                        found: list[pieces.Piece], solved: pieces.PiecesResult) -> InverseResult:
+    """``best`` with each small piece's offsets replaced by its own solution where that leaves
+    the piece a smaller residual (pieces do not move each other), checked by one call."""
+    if not np.array_equal(best.indices, idx):
+        return best
+    row = np.full(len(idx), -1)
+    row[solved.members] = np.arange(len(solved.members))
+    mine = np.linalg.norm(sculpt[idx] - solved.outputs[idx], axis=1)
+    offsets = best.offsets.copy()
+    changed = False
+    for piece in found:
+        if float(np.sum(mine[piece.positions] ** 2)) < float(np.sum(best.residual[piece.positions] ** 2)):
+            offsets[piece.positions] = solved.offsets[row[piece.positions]]
+            changed = True
+    if not changed:
+        return best
+    moved = rest.copy()
+    moved[idx] += offsets
+    residual = np.linalg.norm(sculpt[idx] - call(moved)[idx], axis=1)
+    status = best.status.copy()
+    status[residual <= best.atol] = powell.CONVERGED
+    status[(residual > best.atol) & (status == powell.CONVERGED)] = powell.STALLED
+    return dataclasses.replace(best, offsets=offsets, residual=residual, status=status,
+                               regime=best.regime + "; small pieces by their Jacobians")
 
 
 def _rank(result: InverseResult) -> tuple[int, float]:
