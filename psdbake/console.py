@@ -374,9 +374,11 @@ def say_groups(ui: Ui, file: str, groups: list[dict]) -> None:
     width = max((len(g["group"]) for g in groups), default=5)
     for g in groups:
         drivers = ", ".join(d.split("/")[-1] for d in g["drivers"])
-        gates = f"  gated by {', '.join(g['gate_groups'])}" if g.get("gate_groups") else ""
+        gates = (f"  gated by {', '.join(g['gate_groups'])}" if g.get("gate_groups")
+                 else "  ramp-gated" if g.get("ramp_gates") else "")
         ui.say(f"  {g['group']:<{width}}  <{g['mesh']}>  drivers {drivers}  {len(g['channels'])} channel(s), "
-               f"{g['examples']} example(s), {g['kernel']} sigma {g['sigma']:.4g}{gates}  [{g['origin']}]")
+               f"{g['points']} point(s), {g['examples']} example(s), {g['kernel']} sigma {g['sigma']:.4g}{gates}  "
+               f"[{g['origin']}]")
 
 
 # --- inspect and batch -----------------------------------------------------------------------

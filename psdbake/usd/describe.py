@@ -140,15 +140,19 @@ def _correctives(prim: Usd.Prim, label: str) -> list[dict]:
     out = []
     for group, data in groups:
         offsets = {}
+        moved: set[int] = set()
         written = list(data.channels) or list(data.shapes)  # v4 writes channels; before, the shapes
         for channel in written:
             target = prim.GetStage().GetPrimAtPath(targets[channel]) if channel in targets else None
             if target and target.IsA(UsdSkel.BlendShape):
-                offsets[target.GetName()] = len(UsdSkel.BlendShape(target).GetPointIndicesAttr().Get() or [])
+                indices = list(UsdSkel.BlendShape(target).GetPointIndicesAttr().Get() or [])
+                offsets[target.GetName()] = len(indices)
+                moved.update(indices)
         out.append({
             "mesh": str(prim.GetPath()), "group": group, "version": version, "drivers": list(data.drivers),
             "pose_space": data.pose_space, "kernel": data.kernel, "sigma": data.sigma, "degree": data.degree,
             "shapes": list(data.shapes), "channels": written, "examples": len(data.example_times),
-            "offsets": offsets, "gate_groups": list(data.gate_groups),
+            "offsets": offsets, "points": len(moved), "gate_groups": list(data.gate_groups),
+            "ramp_gates": list(data.ramp_gates),
         })
     return out
