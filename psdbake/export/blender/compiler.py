@@ -187,7 +187,8 @@ def pose_coordinates(data: DriverData, rest: Mapping[str, NDArray[np.float64]]) 
 # --- the cardinal RBF -----------------------------------------------------------------------
 
 #: What the squared distances left in one float32 may move a weight by, together, whatever the
-#: pose: half the live rig's weight tolerance (interop's LIVE_WEIGHT_ATOL, 1e-6).
+#: pose: half of the 1e-6 within which the drivers, replayed in float32, must give eval's
+#: weights (tests/test_blender_compiler.py).
 FLOAT32_DISTANCE_BUDGET = 5e-7
 #: max over t >= 0 of |t phi'(t)|, phi of t = r^2: how much a relative error of t moves phi.
 #: Kernels that grow without bound have none; their squared distances are always exact.
