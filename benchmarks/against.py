@@ -23,12 +23,11 @@ import json
 import os
 import statistics
 import subprocess
-import sys
 import tarfile
 import tempfile
 import time
 
-from . import results, rigs, sculptspeed
+from . import processes, results, rigs, sculptspeed
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.dirname(HERE)
@@ -75,12 +74,7 @@ def unpack(rev: str, folder: str) -> str:
 
 def measure(path: str, asset: str, examples: str, folder: str) -> dict:
     env = dict(os.environ, PYTHONPATH=os.pathsep.join([path, ROOT]))  # psdbake from path, benchmarks from ROOT
-    code = "import sys, benchmarks.against as m; m.child(sys.argv[1], sys.argv[2], sys.argv[3])"
-    proc = subprocess.run([sys.executable, "-c", code, asset, examples, folder], env=env, cwd=folder,
-                          capture_output=True, text=True, check=False)
-    if proc.returncode:
-        raise RuntimeError(proc.stderr[-2000:])
-    return json.loads(proc.stdout.strip().splitlines()[-1])
+    return processes.in_child("against", [asset, examples, folder], env=env, cwd=folder)
 
 
 ABOUT = (

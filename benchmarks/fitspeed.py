@@ -51,7 +51,7 @@ import tempfile
 import time
 from typing import Any
 
-from . import results, rigs
+from . import processes, results, rigs
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -62,14 +62,6 @@ FORMATS = (".usda", ".usdc")
 SKIN_CALLS = 15
 #: The inputs' probe verdicts not yet cached (an empty cache folder), then cached (the same folder).
 STATES = ("first read", "verified")
-
-
-def _vm_hwm_mib() -> float:
-    with open("/proc/self/status") as fh:
-        for line in fh:
-            if line.startswith("VmHWM:"):
-                return int(line.split()[1]) / 1024.0
-    return float("nan")
 
 
 def skinning_seconds(asset: str, examples: str, time_code: float, calls: int = SKIN_CALLS) -> list[float]:
@@ -178,7 +170,8 @@ def child(asset: str, examples: str, out: str, warm: list[str], skin_time: float
         seconds = time.perf_counter() - started
     import resource
 
-    record = {"seconds": seconds, "probe_seconds": sum(probes), "lookup_seconds": sum(lookups), "rss_mib": _vm_hwm_mib(),
+    record = {"seconds": seconds, "probe_seconds": sum(probes), "lookup_seconds": sum(lookups),
+              "rss_mib": processes.peak_rss_mib(),
               "children_rss_mib": resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024.0}
     if skin_time is not None:
         record["skin_seconds"] = statistics.median(skins)

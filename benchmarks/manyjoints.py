@@ -23,7 +23,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import subprocess
 import sys
 import tempfile
 import time
@@ -32,7 +31,7 @@ import numpy as np
 from pxr import Gf, Sdf, Usd, UsdGeom, UsdSkel, Vt
 from scipy.spatial.transform import Rotation
 
-from . import results
+from . import processes, results
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.dirname(HERE)
@@ -142,22 +141,14 @@ def build(folder: str, count: int = JOINTS, seed: int = 0) -> tuple[str, str, li
     return asset, examples, sculpted
 
 
-def _vm_hwm_mib() -> float:
-    with open("/proc/self/status") as f:
-        for line in f:
-            if line.startswith("VmHWM:"):
-                return int(line.split()[1]) / 1024.0
-    return float("nan")
-
-
-def child(asset: str, examples: str, folder: str, group: str | None) -> None:
-    """One fit and one eval in this process: prints a JSON line."""
+def child(asset: str, examples: str, folder: str, group: str) -> None:
+    """One fit and one eval in this process (group "": the default fit): prints a JSON line."""
     from psdbake import api
     from psdbake.settings import FitSettings
 
-    out: dict = {"start_mib": _vm_hwm_mib()}
+    out: dict = {"start_mib": processes.peak_rss_mib()}
     t0 = time.perf_counter()
-    result = api.fit(asset, [examples], FitSettings(group=group))
+    result = api.fit(asset, [examples], FitSettings(group=group or None))
     out["fit_seconds"] = time.perf_counter() - t0
     path = os.path.join(folder, f"correctives_{group or 'default'}.usda")
     api.write_correctives(result, path)
@@ -165,7 +156,7 @@ def child(asset: str, examples: str, folder: str, group: str | None) -> None:
     weights = api.evaluate(asset, path, examples)
     out["eval_seconds"] = time.perf_counter() - t0
     out["eval_frames"] = len(weights.animations[0].times)
-    out["peak_mib"] = _vm_hwm_mib()
+    out["peak_mib"] = processes.peak_rss_mib()
     out["roundtrip_max"] = max(c.error for c in result.checks)
     out["groups"] = [{"group": m.group, "drivers": len(m.drivers), "points": m.vertices, "role": m.role}
                      for m in result.meshes]
@@ -173,13 +164,7 @@ def child(asset: str, examples: str, folder: str, group: str | None) -> None:
 
 
 def measure(asset: str, examples: str, folder: str, group: str | None = None) -> dict:
-    code = ("import sys, benchmarks.manyjoints as m; m.child(sys.argv[1], sys.argv[2], sys.argv[3], "
-            "sys.argv[4] or None)")
-    proc = subprocess.run([sys.executable, "-c", code, asset, examples, folder, group or ""], cwd=ROOT,
-                          capture_output=True, text=True, check=False)
-    if proc.returncode:
-        raise RuntimeError(proc.stderr[-2000:])
-    return json.loads(proc.stdout.strip().splitlines()[-1])
+    return processes.in_child("manyjoints", [asset, examples, folder, group or ""])
 
 
 ABOUT = (

@@ -20,7 +20,6 @@ angle (psd: v5 ``rampGates``), which needs no other group and is 1 at every one 
 from __future__ import annotations
 
 import dataclasses
-import os
 import warnings
 from collections.abc import Sequence
 
@@ -40,7 +39,7 @@ from ..settings import FitSettings
 from ..solver.inverse import InverseResult
 from . import additive, interactions, locality
 from . import rbf_fit as rbf
-from .drivers import channel_prefix
+from .drivers import channel_prefix, model_data
 from .regions import group_name
 
 Solved = tuple[InverseResult, CorrectiveNormals | None]
@@ -179,16 +178,13 @@ class _Group:
         info = mesh.info
         prefix = channel_prefix(info, self.name)
         channels = [f"{prefix}_{col:02d}" for col in range(len(self.centres))]
-        outputs = list(range(len(self.centres)))
-        data = self.data
         shapes = []
         nonzero = np.any(self.values != 0.0, axis=2)  # (columns, points)
-        for col in outputs:
-            v = self.values[col]
+        for col, v in enumerate(self.values):
             keep = np.flatnonzero(nonzero[col])
             shapes.append(BlendShapeData(name=channels[col], channel=channels[col], indices=mesh.points[keep],
                                          offsets=v[keep, :3], normal_offsets=v[keep, 3:] if mesh.normals else None))
-        data = _with_shapes(data, channels)
+        data = dataclasses.replace(self.data, shapes=channels)
         per_example = [""] * len(mesh.examples)
         for col, k in enumerate(self.centres):
             per_example[k] = channels[col]
@@ -200,10 +196,6 @@ class _Group:
             existing_channels=(), existing_targets=(), group=self.name, joints=tuple(info.joints),
             shapes=tuple(shapes), condition=self.condition, role=self.role, vertices=moved,
         )
-
-
-def _with_shapes(data: DriverData, channels: list[str]) -> DriverData:
-    return dataclasses.replace(data, shapes=channels)
 
 
 def _kept(group: _Group, negligible: float) -> _Group | None:
@@ -221,21 +213,6 @@ def _kept(group: _Group, negligible: float) -> _Group | None:
     return _Group(group.name, group.role, data, group.values[big], [group.centres[c] for c in big], group.condition)
 
 
-def _base_data(mesh: _Mesh, drivers: Sequence[int], model: rbf.CardinalRbf, labels: Sequence[str],
-               centres: Sequence[int], bind_local: NDArray[np.float64]) -> DriverData:
-    s = mesh.settings
-    return DriverData(
-        drivers=[mesh.info.joints[j] for j in drivers],
-        bind_rotations=posespace.rotations(bind_local[list(drivers)]).as_quat(),
-        pose_space=s.pose_space, twist_axis=s.twist_axis, clamp_weights=s.clamp_weights,
-        normalize_weights=s.normalize_weights, kernel=model.kernel, sigma=model.sigma, degree=model.degree,
-        smoothing=model.smoothing, centers=model.centers, center_labels=list(labels), shapes=[],
-        coefficients=model.coefficients, powers=model.powers, shift=model.shift, scale=model.scale, dims=model.dims,
-        example_times=[mesh.examples[k].time for k in centres],
-        example_sources=[os.path.basename(mesh.examples[k].source) for k in centres],
-    )
-
-
 def _joint_groups(mesh: _Mesh, terms: dict[int, additive.JointTerm], values: dict[int, NDArray[np.float64]],
                   bind_local: NDArray[np.float64], names: dict[int, str], named_out: set[str], notes: list[str],
                   asset: str, left_out: list[str] | None) -> dict[int, _Group]:
@@ -248,7 +225,8 @@ def _joint_groups(mesh: _Mesh, terms: dict[int, additive.JointTerm], values: dic
                 _left_out(asset, mesh, name, [j], [k for k, a in enumerate(mesh.active) if j in a], notes, left_out)
             continue
         labels = ["bind", *(mesh.labels[k] for k in term.centres)]
-        data = _base_data(mesh, [j], term.model, labels, term.centres, bind_local)
+        data = model_data(mesh.info.joints, [j], bind_local, mesh.settings, term.model, labels,
+                          [mesh.examples[k] for k in term.centres], [])
         out[j] = _Group(name, JOINT, data, values[j], term.centres, term.plan.condition)
     return out
 
@@ -274,7 +252,7 @@ def _combination(mesh: _Mesh, joints: Joints, centres: Sequence[int], joint_grou
                             smoothing=0.0, where=f"{here} group {name!r}", start=start,
                             start_rule=f"{tol.COMBINATION_SIGMA_FRACTION:g} x mean pairwise distance")
         model, condition = plan.model(list(range(len(x)))), plan.condition
-    data = _base_data(mesh, joints, model, labels, centres, bind_local)
+    data = model_data(mesh.info.joints, joints, bind_local, s, model, labels, [mesh.examples[k] for k in centres], [])
     gated = _activation_gated(mesh, data, joints, centres, joint_groups)
     if gated is None:
         norms = np.linalg.norm(mesh.coords[list(centres)][:, list(joints)], axis=2)  # (centres, joints)

@@ -149,6 +149,23 @@ def _model(full_centers: NDArray[np.float64], outputs: list[int], labels: list[s
     )
 
 
+def model_data(joints: Sequence[str], driver_idx: Sequence[int], bind_local: NDArray[np.float64],
+               settings: FitSettings, model: rbf.CardinalRbf, labels: Sequence[str], examples: Sequence[Example],
+               shapes: Sequence[str]) -> DriverData:
+    """The psd: data of a group driven by ``driver_idx`` whose weights are ``model``, with a
+    centre labelled ``labels`` per example of ``examples`` (the bind pose's label first when it
+    is a centre): what both a ``--group`` fit and the default fit's groups write."""
+    return DriverData(
+        drivers=[joints[j] for j in driver_idx],
+        bind_rotations=posespace.rotations(bind_local[list(driver_idx)]).as_quat(),
+        pose_space=settings.pose_space, twist_axis=settings.twist_axis, clamp_weights=settings.clamp_weights,
+        normalize_weights=settings.normalize_weights, kernel=model.kernel, sigma=model.sigma, degree=model.degree,
+        smoothing=model.smoothing, centers=model.centers, center_labels=list(labels), shapes=list(shapes),
+        coefficients=model.coefficients, powers=model.powers, shift=model.shift, scale=model.scale, dims=model.dims,
+        example_times=[e.time for e in examples], example_sources=[os.path.basename(e.source) for e in examples],
+    )
+
+
 def fit_drivers(asset: str, asset_scene: Scene, info: SkinnedMesh, examples: Sequence[Example],
                 inverses: Sequence[InverseResult], bind_local: NDArray[np.float64], settings: FitSettings,
                 region: Region, notes: list[str], plan: rbf.RbfPlan | None = None) -> MeshFit:
@@ -159,15 +176,8 @@ def fit_drivers(asset: str, asset_scene: Scene, info: SkinnedMesh, examples: Seq
     full_centers = np.array(centers)
     model = _model(full_centers, outputs, labels, settings, plan)
     _check_model(model, full_centers, outputs, labels, where(asset, info.path), settings.smoothing, notes)
-    data = DriverData(
-        drivers=[info.joints[j] for j in driver_idx],
-        bind_rotations=posespace.rotations(bind_local[driver_idx]).as_quat(),
-        pose_space=settings.pose_space, twist_axis=settings.twist_axis, clamp_weights=settings.clamp_weights,
-        normalize_weights=settings.normalize_weights, kernel=model.kernel, sigma=model.sigma, degree=model.degree,
-        smoothing=model.smoothing, centers=model.centers, center_labels=labels, shapes=[c for c in channels if c],
-        coefficients=model.coefficients, powers=model.powers, shift=model.shift, scale=model.scale, dims=model.dims,
-        example_times=[e.time for e in examples], example_sources=[os.path.basename(e.source) for e in examples],
-    )
+    data = model_data(info.joints, driver_idx, bind_local, settings, model, labels, examples,
+                      [c for c in channels if c])
     existing, targets = existing_blend_shapes(asset_scene, info.path)
     moved = [inv.indices[np.any(inv.offsets != 0.0, axis=1)] for ch, inv in zip(channels, inverses, strict=True) if ch]
     return MeshFit(

@@ -325,6 +325,7 @@ def _small_pieces_first(call: Counted, blackbox: BlackBox, rest: Points, sculpt:
     offsets = np.zeros((len(idx), 3))
     offsets[solved.members] = solved.offsets
     others = np.setdiff1d(np.arange(len(idx)), solved.members)
+    status = np.full(len(idx), powell.STALLED, dtype=np.int8)
     inner: InverseResult | None = None
     if len(others):
         shift = np.zeros_like(rest)
@@ -337,15 +338,9 @@ def _small_pieces_first(call: Counted, blackbox: BlackBox, rest: Points, sculpt:
         if len(where) and (where.max() >= len(idx) or not np.array_equal(idx[where], inner.indices)):
             return None, (found, solved)
         offsets[where] = inner.offsets
-    moved = rest.copy()
-    moved[idx] += offsets
-    out = call(moved)
-    residual = np.linalg.norm(sculpt[idx] - out[idx], axis=1)
-    status = np.full(len(idx), powell.STALLED, dtype=np.int8)
-    if inner is not None:
-        status[np.searchsorted(idx, inner.indices)] = inner.status
-    status[residual <= atol] = powell.CONVERGED
-    status[(residual > atol) & (status == powell.CONVERGED)] = powell.STALLED
+        status[where] = inner.status
+    residual = np.linalg.norm(sculpt[idx] - _outputs(call, rest, idx, offsets), axis=1)
+    status = _checked(status, residual, atol)
     regime = "coupled, small pieces by their Jacobians" + (f"; the rest {inner.regime}" if inner is not None else "")
     return InverseResult(idx, offsets, residual, status, call.calls + (inner.evaluations if inner is not None else 0),
                          diagonal, atol, time.perf_counter() - started, regime=regime,
@@ -370,12 +365,8 @@ def _keep_better_pieces(call: Counted, rest: Points, sculpt: Points, idx: NDArra
             changed = True
     if not changed:
         return best
-    moved = rest.copy()
-    moved[idx] += offsets
-    residual = np.linalg.norm(sculpt[idx] - call(moved)[idx], axis=1)
-    status = best.status.copy()
-    status[residual <= best.atol] = powell.CONVERGED
-    status[(residual > best.atol) & (status == powell.CONVERGED)] = powell.STALLED
+    residual = np.linalg.norm(sculpt[idx] - _outputs(call, rest, idx, offsets), axis=1)
+    status = _checked(best.status, residual, best.atol)
     return dataclasses.replace(best, offsets=offsets, residual=residual, status=status,
                                regime=best.regime + "; small pieces by their Jacobians")
 
@@ -436,11 +427,8 @@ def _polish(call: Counted, rest: Points, sculpt: Points, idx: NDArray[np.int64],
         n_trial = np.linalg.norm(r_trial, axis=1)
         if rank(n_trial) < rank(norms):
             offsets, out, r, norms = trial, out_trial, r_trial, n_trial
-    status = result.status.copy()
-    status[norms <= atol] = powell.CONVERGED
-    status[(norms > atol) & (status == powell.CONVERGED)] = powell.STALLED
-    return [InverseResult(indices=idx, offsets=offsets, residual=norms, status=status, evaluations=call.calls,
-                          diagonal=result.diagonal, atol=atol, seconds=time.perf_counter() - started,
+    return [InverseResult(indices=idx, offsets=offsets, residual=norms, status=_checked(result.status, norms, atol),
+                          evaluations=call.calls, diagonal=result.diagonal, atol=atol, seconds=time.perf_counter() - started,
                           regime=result.regime + POLISHED)]
 
 
@@ -552,6 +540,15 @@ def _from_per_vertex(call: Counted, blackbox: BlackBox, rest: Points, sculpt: Po
                               regularised=regularised)
         found.append(dataclasses.replace(warm, regime="coupled, from the per-vertex solution"))
     return found
+
+
+def _checked(status: NDArray[np.int8], residual: NDArray[np.float64], atol: float) -> NDArray[np.int8]:
+    """Statuses after the chain was run on the final offsets: CONVERGED where the residual is
+    within atol, STALLED where a vertex that had converged no longer is, the others kept."""
+    out = status.copy()
+    out[residual <= atol] = powell.CONVERGED
+    out[(residual > atol) & (out == powell.CONVERGED)] = powell.STALLED
+    return out
 
 
 def _outputs(call: Counted, rest: Points, idx: NDArray[np.int64], offsets: Points) -> Points:

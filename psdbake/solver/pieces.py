@@ -113,6 +113,13 @@ def solve_small_pieces(call: BlackBox, rest: Points, sculpt: Points, base: Point
             for q in moving:
                 jac[q][:, 3 * j + axis] = ((out[vertex[q]] - base[vertex[q]]) / h).ravel()
     offsets = [np.zeros((len(v), 3)) for v in vertex]
+
+    def accepted() -> Points:  # rest with every piece at its accepted offsets
+        moved = rest.copy()
+        for v, o in zip(vertex, offsets, strict=True):
+            moved[v] += o
+        return moved
+
     current = [base[v].copy() for v in vertex]
     scale = [1.0] * len(vertex)
     stalled = 0
@@ -122,9 +129,7 @@ def solve_small_pieces(call: BlackBox, rest: Points, sculpt: Points, base: Point
         if not active:
             break
         steps = {}
-        moved = rest.copy()
-        for q, v in enumerate(vertex):
-            moved[v] += offsets[q]
+        moved = accepted()
         for q in active:
             a = jac[q]
             damping = (SMALL_RIDGE * np.linalg.norm(a, 2)) ** 2
@@ -151,10 +156,7 @@ def solve_small_pieces(call: BlackBox, rest: Points, sculpt: Points, base: Point
         stalled = 0 if improved else stalled + 1
         if stalled >= STALL_STEPS:
             break
-    moved = rest.copy()
-    for q, v in enumerate(vertex):
-        moved[v] += offsets[q]
-    outputs = call(moved)  # every piece at its accepted offsets, in one call
+    outputs = call(accepted())  # every piece at its accepted offsets, in one call
     calls += 1
     if not np.all(np.isfinite(outputs)):
         return None

@@ -202,13 +202,9 @@ class _GroupReader:
     def _gates(self, drivers: list[str], space: str) -> dict[str, Any]:
         """psd:gates (driver joints) and psd:gatePoses (g x width): each gate's activation
         clamp(x_j . g_j / g_j . g_j, 0, 1) multiplies the group's weights (docs/reference/psd-schema.md)."""
-        gates = [str(g) for g in self.get("gates", required=False) or []]
+        gates = self._some_drivers("gates", drivers)
         if not gates:
             return {}
-        unknown = [g for g in gates if g not in drivers]
-        if unknown or len(set(gates)) != len(gates):
-            raise InputError(f"{self.at('gates')}: {unknown[0] if unknown else 'a gate'!r} is not one of psd:drivers "
-                             "(listed once each)")
         width = POSE_SPACES[space].width
         poses = self.finite("gatePoses", self.numbers("gatePoses"))
         if poses.size != len(gates) * width:
@@ -219,16 +215,21 @@ class _GroupReader:
             raise InputError(f"{self.at('gatePoses')}: a gate pose is the bind pose (zero): its activation is undefined")
         return {"gates": gates, "gate_poses": poses}
 
+    def _some_drivers(self, name: str, drivers: list[str]) -> list[str]:
+        """psd:<name>, an optional list of some of psd:drivers, each listed once (empty if absent)."""
+        gates = [str(g) for g in self.get(name, required=False) or []]
+        unknown = [g for g in gates if g not in drivers]
+        if unknown or len(set(gates)) != len(gates):
+            raise InputError(f"{self.at(name)}: {unknown[0] if unknown else 'a gate'!r} is not one of psd:drivers "
+                             "(listed once each)")
+        return gates
+
     def _ramps(self, drivers: list[str]) -> dict[str, Any]:
         """psd:rampGates (v5: driver joints, listed once each) and psd:rampRadii (one finite
         radius > 0 each): each gate's min(1, |x_j| / r_j) multiplies the group's weights."""
-        gates = [str(g) for g in self.get("rampGates", required=False) or []]
+        gates = self._some_drivers("rampGates", drivers)
         if not gates:
             return {}
-        unknown = [g for g in gates if g not in drivers]
-        if unknown or len(set(gates)) != len(gates):
-            raise InputError(f"{self.at('rampGates')}: {unknown[0] if unknown else 'a gate'!r} is not one of psd:drivers "
-                             "(listed once each)")
         radii = self.finite("rampRadii", self.numbers("rampRadii"))
         if len(radii) != len(gates):
             raise InputError(f"{self.at('rampRadii')}: {len(radii)} values for {len(gates)} ramp gates")
