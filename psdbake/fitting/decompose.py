@@ -20,7 +20,6 @@ angle (psd: v5 ``rampGates``), which needs no other group and is 1 at every one 
 from __future__ import annotations
 
 import dataclasses
-import warnings
 from collections.abc import Sequence
 
 import numpy as np
@@ -28,7 +27,7 @@ from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
 from .. import tolerances as tol
-from ..errors import PsdWarning, where
+from ..errors import where
 from ..model import posespace
 from ..model.data import BlendShapeData, DriverData
 from ..model.rig import Skin, SkinnedMesh
@@ -39,7 +38,7 @@ from ..settings import FitSettings
 from ..solver.inverse import InverseResult
 from . import additive, interactions, locality
 from . import rbf_fit as rbf
-from .drivers import channel_prefix, model_data
+from .drivers import channel_prefix, model_data, note_unedited, noted
 from .regions import group_name
 
 Solved = tuple[InverseResult, CorrectiveNormals | None]
@@ -297,23 +296,18 @@ def _activation_gated(mesh: _Mesh, data: DriverData, joints: Joints, centres: Se
 
 # --- what the TD is told -------------------------------------------------------------------------
 
-def _warn(notes: list[str], msg: str) -> None:
-    notes.append(msg)
-    warnings.warn(msg, PsdWarning, stacklevel=4)
-
-
 def _warn_unedited(mesh: _Mesh, notes: list[str]) -> None:
     for example, inverse in zip(mesh.examples, mesh.inverses, strict=True):
         if not len(inverse.indices):
-            _warn(notes, f"{where(example.source, mesh.info.path)}: example at time {example.time:g} equals plain "
-                         "skinning; it is kept as a zero example")
+            note_unedited(notes, example, mesh.info.path, 4)
 
 
 def _left_out(asset: str, mesh: _Mesh, name: str, joints: Sequence[int], examples: Sequence[int], notes: list[str],
               left_out: list[str] | None) -> None:
     labels = ", ".join(mesh.labels[k] for k in examples)
-    _warn(notes, f"{where(asset, mesh.info.path)} group {name!r}: none of its {len(examples)} example(s) ({labels}) "
-                 "differs from plain skinning (sculpt them, or mirror the other side's): no corrective written for it")
+    noted(notes, f"{where(asset, mesh.info.path)} group {name!r}: none of its {len(examples)} example(s) ({labels}) "
+                 "differs from plain skinning (sculpt them, or mirror the other side's): no corrective written for it",
+          4)
     if left_out is not None:
         leaves = ", ".join(_leaf(mesh.info, j) for j in joints)
         left_out.append(f"group {name!r} ({leaves}) on <{mesh.info.path}>: no example differs from plain skinning")

@@ -69,9 +69,17 @@ def channel_prefix(info: SkinnedMesh, group: str) -> str:
     return f"psd_{group}_{_safe_token(root_rel)}"
 
 
-def _warn(notes: list[str], msg: str) -> None:
+def noted(notes: list[str], msg: str, stacklevel: int = 3) -> None:
+    """A warning for the TD: kept in ``notes`` (the summary, --json and --report) and raised as a
+    PsdWarning (stderr, -q included) at ``stacklevel`` (as ``warnings.warn``'s, from here)."""
     notes.append(msg)
-    warnings.warn(msg, PsdWarning, stacklevel=3)
+    warnings.warn(msg, PsdWarning, stacklevel=stacklevel)
+
+
+def note_unedited(notes: list[str], example: Example, mesh: str, stacklevel: int) -> None:
+    """The warning for an example that equals plain skinning (kept as a zero example)."""
+    noted(notes, f"{where(example.source, mesh)}: example at time {example.time:g} equals plain skinning; it is kept "
+                 "as a zero example", stacklevel + 1)
 
 
 def _centers(info: SkinnedMesh, examples: Sequence[Example], inverses: Sequence[InverseResult], driver_idx: list[int],
@@ -90,8 +98,7 @@ def _centers(info: SkinnedMesh, examples: Sequence[Example], inverses: Sequence[
     prefix = channel_prefix(info, region.group)
     for k, (example, inverse) in enumerate(zip(examples, inverses, strict=True)):
         if len(inverse.indices) == 0:
-            _warn(notes, f"{where(example.source, info.path)}: example at time {example.time:g} equals plain "
-                         "skinning; it is kept as a zero example")
+            note_unedited(notes, example, info.path, 3)
             channels.append("")
         else:
             outputs.append(len(centers))
@@ -111,10 +118,10 @@ def _check_model(model: rbf.CardinalRbf, centers: NDArray[np.float64], outputs: 
     self_weights = model.weights(centers[outputs])
     for col, row in enumerate(outputs):
         if self_weights[col, col] < tol.SELF_WEIGHT_MIN:
-            _warn(notes, f"{where_}: example {labels[row]} reaches a weight of only {self_weights[col, col]:.3f} at its "
+            noted(notes, f"{where_}: example {labels[row]} reaches a weight of only {self_weights[col, col]:.3f} at its "
                          f"own pose (smoothing {smoothing:g})")
     for a, b, d in rbf.check_distinct(centers, labels):
-        _warn(notes, f"{where_}: examples {a} and {b} are only {d:.3g} rad apart in pose space")
+        noted(notes, f"{where_}: examples {a} and {b} are only {d:.3g} rad apart in pose space")
 
 
 def plan_group(asset: str, info: SkinnedMesh, examples: Sequence[Example], settings: FitSettings, region: Region
