@@ -591,9 +591,9 @@ def smooth_start(call: Counted, rest: Points, sculpt: Points, base: Points, idx:
     steps = reach.steps if reach.misfit <= smoothstart.REACH_MAX_MISFIT else 0.0
     believe = reach.misfit <= smoothstart.BELIEVE_MISFIT
     gain = smoothstart.gains(freqs, steps)
-    cols = smoothstart.model_columns(blocks, basis, gain)
+    model = smoothstart.SpanModel(blocks, basis, gain)
     gram = smoothstart.model_gram(blocks, basis, gain)
-    first, first_gram = cols[: 3 * coarse].copy(), gram[: 3 * coarse, : 3 * coarse].copy()
+    first, first_gram = model.leading(coarse), gram[: 3 * coarse, : 3 * coarse].copy()
     ridge = smoothstart.ridge(blocks)
     span = smoothstart.span_solve(call, rest, sculpt, idx, basis[:, :coarse], first, atol, ridge, COARSE_SPAN_CALLS,
                                   start_outputs=base[idx], gram=first_gram, believe=believe)
@@ -602,13 +602,8 @@ def smooth_start(call: Counted, rest: Points, sculpt: Points, base: Points, idx:
     outputs = span.outputs
     done = bool(np.all(np.linalg.norm(sculpt[idx] - outputs, axis=1) <= atol))
     if not done and basis.shape[1] > coarse:
-        # the coarse solve's Broyden-corrected rows carried over, the Gram matrix with them
-        cols[: 3 * coarse] = first
-        gram[: 3 * coarse, : 3 * coarse] = first_gram
-        cross = first @ cols[3 * coarse:].T
-        gram[: 3 * coarse, 3 * coarse:] = cross
-        gram[3 * coarse:, : 3 * coarse] = cross.T
-        span = smoothstart.span_solve(call, rest, sculpt, idx, basis, cols, atol, ridge, FINE_SPAN_CALLS, start=x,
+        model.carry(first, gram, first_gram)  # the coarse solve's Broyden corrections carried over
+        span = smoothstart.span_solve(call, rest, sculpt, idx, basis, model, atol, ridge, FINE_SPAN_CALLS, start=x,
                                       start_outputs=outputs, gram=gram, believe=believe)
         x, outputs = span.coefficients, span.outputs
     return basis @ x, outputs
