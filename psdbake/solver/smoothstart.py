@@ -229,12 +229,12 @@ def model_gram(blocks: NDArray[np.float64], basis: NDArray[np.float64], gain: ND
     return gram
 
 
-def ridge(blocks: NDArray[np.float64]) -> float:
-    """The regularisation's weight: ``SPAN_RIDGE**2`` times the square of the blocks' median
-    spectral norm (the chain's gain on a smooth move), in the units of |r|^2 / |D|^2."""
+def ridge(blocks: NDArray[np.float64], scale: float = SPAN_RIDGE) -> float:
+    """The regularisation's weight: ``scale**2`` (``SPAN_RIDGE``) times the square of the blocks'
+    median spectral norm (the chain's gain on a smooth move), in the units of |r|^2 / |D|^2."""
     if not len(blocks) or not np.all(np.isfinite(blocks)):
         return 0.0
-    return SPAN_RIDGE**2 * float(np.median(np.linalg.norm(blocks, ord=2, axis=(1, 2)))) ** 2
+    return scale**2 * float(np.median(np.linalg.norm(blocks, ord=2, axis=(1, 2)))) ** 2
 
 
 def span_solve(call: BlackBox, rest: Points, sculpt: Points, idx: NDArray[np.int64], basis: NDArray[np.float64],
