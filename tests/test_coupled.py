@@ -20,7 +20,7 @@ from psdbake.solver.inverse import invert_example, sculpted_vertices
 from psdbake.solver.smoothbasis import edge_adjacency
 
 sys.path.insert(0, ROOT)
-from benchmarks import rigs
+from benchmarks import characters, rigs
 
 pytestmark = pytest.mark.slow  # make test-fast leaves this module out (make test runs it)
 
@@ -325,6 +325,7 @@ def test_a_sculpt_the_chain_smooths_away_is_reported_as_such(run, tmp_path):
     code, _, err = run("fit", rig.asset, examples, "-o", corr, "--deformer", rigs.DELTA_MUSH_SPEC)
     assert code == 7 and not corr.exists()  # the degraded-fit rule: the product misses the example
     assert "of the sculpt not reproduced" in err and "--allow-degraded" in err
+    assert err.count("of the sculpt not reproduced") == 1  # once for the example, not once per group
     code, _, err = run("fit", rig.asset, examples, "-o", corr, "--deformer", rigs.DELTA_MUSH_SPEC, "--report", report,
                        "--allow-degraded", "--group", "main")  # one cardinal RBF: its shape is the inverse's offsets
     assert code == 0, err
@@ -395,3 +396,48 @@ def test_small_pieces_of_the_mesh_are_solved_by_their_own_jacobians():
     assert residual.max() <= max(tol.INVERSE_RTOL * diagonal, floor)
     assert not len(res.missed)
     assert res.evaluations <= SMALL_PIECES_BUDGET
+
+
+#: Calls for CesiumMan@12 through LBS + Delta Mush (measured 2,748: the fast stages' 551, then
+#: its pieces' exact Jacobians, 3 calls a sculpted vertex of the largest, 731, and the chord
+#: steps).
+CESIUM_BUDGET = 3000
+
+
+def test_cesiumman_through_delta_mush_reaches_every_vertex_on_its_pieces_exact_jacobians():
+    """CesiumMan (the shipped DCC character, 138 pieces of the mesh) behind LBS + Delta Mush,
+    its swelling sculpted through the chain, so an exact answer exists: the fast stages leave
+    hundreds of its large pieces' vertices at up to 3e-5 of the diagonal (the directions they
+    need pass the chain at 1e-3 of its gain); the pieces' exact Jacobians bring every sculpted
+    vertex within the tolerance, checked by running the chain on rest + offsets."""
+    case = characters.cesium()[0]
+    res = coupled.invert(case.box, case.rest, case.sculpt, neighbours=lambda: case.adjacency)
+    base = case.box(case.rest)
+    diagonal, floor, idx = sculpted_vertices(case.rest, base, case.sculpt)
+    moved = case.rest.copy()
+    moved[res.indices] += res.offsets
+    residual = np.linalg.norm(case.box(moved)[idx] - case.sculpt[idx], axis=1)
+    assert np.array_equal(res.indices, idx) and coupled.EXACT in res.regime
+    assert residual.max() <= max(tol.INVERSE_RTOL * diagonal, floor)  # measured 1.63e-6 of the diagonal, atol 1.66e-6
+    assert not len(res.missed)
+    assert res.evaluations <= CESIUM_BUDGET
+
+
+def test_cesiummans_shipped_sculpts_end_at_an_optimum_with_bounded_offsets(run, tmp_path):
+    """CesiumMan's own sculpts, made on the plain-skinned mesh as an artist makes them, through
+    LBS + Delta Mush: no offset reproduces them (47% and 30% of the sculpt is detail the chain
+    smooths away). The fit ends at the regularised optimum and says so once per example, and
+    its offsets stay bounded: within OFFSET_BOUND of the sculpt's largest move (measured 2.1x;
+    17x before pieces the chain cannot reproduce were solved on coupled.UNREACHABLE_RIDGE)."""
+    asset = os.path.join(ROOT, "fixtures", "cesiumman", rigs.generate.CESIUM)
+    examples = os.path.join(ROOT, "fixtures", "cesiumman", "cesiumman_examples.usda")
+    corr, report = tmp_path / "c.usda", tmp_path / "r.json"
+    code, _, err = run("fit", asset, examples, "-o", corr, "--deformer", rigs.DELTA_MUSH_SPEC, "--allow-degraded",
+                       "--group", "main", "--report", report)  # one cardinal RBF: its shapes are the inverse's offsets
+    assert code == 0, err
+    assert err.count("at a least-squares optimum: the deformer chain cannot reproduce it") == 2, err
+    found = json.loads(report.read_text())["meshes"][0]["examples"]
+    assert [ex["at_optimum"] for ex in found] == [True, True]
+    assert all(0.2 < ex["unreachable_fraction"] < 0.6 for ex in found)  # measured 0.472 and 0.300
+    largest_move = max(float(np.abs(case.sculpt - case.box(case.rest)).max()) for case in characters.cesium(shipped=True))
+    assert np.abs(_blend_shape_offsets(str(corr))).max() <= OFFSET_BOUND * largest_move

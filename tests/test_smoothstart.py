@@ -60,17 +60,50 @@ def test_one_probe_measures_how_far_the_chain_smooths(steps):
     assert abs(reach.steps - steps) <= 1.0 and reach.misfit < 0.2, reach  # measured: 0, 4, 10 exactly (misfit 0-0.04)
 
 
-def test_the_model_gram_is_its_columns_gram():
+def _columns(blocks, basis, gain):
+    """The model's Jacobian on the span written out: row 3j + a is the blocks' response to
+    field j along axis a, times its gain."""
+    k, b = basis.shape
+    cols = np.empty((3 * b, 3 * k))
+    for j in range(b):
+        for axis in range(3):
+            field = np.zeros((k, 3))
+            field[:, axis] = basis[:, j]
+            cols[3 * j + axis] = gain[j] * np.einsum("kab,kb->ka", blocks, field).ravel()
+    return cols
+
+
+def test_the_span_model_is_its_columns_and_keeps_its_gram_through_broyden_updates():
+    """The model is applied, never formed: its products, its Gram matrix, its Broyden updates
+    and the coarse span's updates carried into the fine one are those of the written-out
+    columns (float64 round-off)."""
     rng = np.random.default_rng(3)
-    blocks = rng.normal(size=(60, 3, 3))
-    basis = np.linalg.qr(rng.normal(size=(60, 9)))[0]
-    gain = rng.uniform(0.1, 1.0, size=9)
-    cols = smoothstart.model_columns(blocks, basis, gain)
-    np.testing.assert_allclose(smoothstart.model_gram(blocks, basis, gain), cols @ cols.T, atol=1e-12)
-    # row 3j + a is the blocks' response to field j along axis a, times its gain
-    field = np.zeros((60, 3))
-    field[:, 1] = basis[:, 4]
-    np.testing.assert_allclose(cols[3 * 4 + 1], gain[4] * np.einsum("kab,kb->ka", blocks, field).ravel(), atol=1e-14)
+    k, b, coarse = 60, 9, 3
+    blocks = rng.normal(size=(k, 3, 3))
+    basis = np.linalg.qr(rng.normal(size=(k, b)))[0]
+    gain = rng.uniform(0.1, 1.0, size=b)
+    cols = _columns(blocks, basis, gain)
+    model = smoothstart.SpanModel(blocks, basis, gain)
+    gram = smoothstart.model_gram(blocks, basis, gain)
+    np.testing.assert_allclose(gram, cols @ cols.T, atol=1e-12)
+    r, y = rng.normal(size=3 * k), rng.normal(size=3 * b)
+    np.testing.assert_allclose(model.apply(r), cols @ r, atol=1e-12)
+    np.testing.assert_allclose(model.respond(y), y @ cols, atol=1e-12)
+    # two Broyden updates on the coarse span, then carried into the whole span
+    first, first_gram = model.leading(coarse), gram[: 3 * coarse, : 3 * coarse].copy()
+    dense = cols[: 3 * coarse].copy()
+    for _ in range(2):
+        step, observed = rng.normal(size=3 * coarse), rng.normal(size=3 * k)
+        first.update(first_gram, step, observed)
+        dense += np.outer(step, observed - step @ dense) / float(step @ step)
+        np.testing.assert_allclose(step @ dense, observed, atol=1e-12)  # the secant equation
+    np.testing.assert_allclose(first.respond(y[: 3 * coarse]), y[: 3 * coarse] @ dense, atol=1e-12)
+    np.testing.assert_allclose(first_gram, dense @ dense.T, atol=1e-11)
+    model.carry(first, gram, first_gram)
+    cols[: 3 * coarse] = dense
+    np.testing.assert_allclose(model.apply(r), cols @ r, atol=1e-12)
+    np.testing.assert_allclose(model.respond(y), y @ cols, atol=1e-12)
+    np.testing.assert_allclose(gram, cols @ cols.T, atol=1e-11)
 
 
 def test_the_span_solve_reaches_a_sculpt_in_its_span_on_a_smoothing_chain():
@@ -94,9 +127,10 @@ def test_the_span_solve_reaches_a_sculpt_in_its_span_on_a_smoothing_chain():
     worst = {}
     for reach in (0.0, float(steps)):
         call = Counted(chain)
-        cols = smoothstart.model_columns(blocks, basis, smoothstart.gains(freqs, reach))
-        found = smoothstart.span_solve(call, rest, sculpt, region, basis, cols, 1e-9 * diagonal, smoothstart.ridge(blocks),
-                                       3, start_outputs=base[region])
+        gain = smoothstart.gains(freqs, reach)
+        found = smoothstart.span_solve(call, rest, sculpt, region, basis, smoothstart.SpanModel(blocks, basis, gain),
+                                       1e-9 * diagonal, smoothstart.ridge(blocks), 3, start_outputs=base[region],
+                                       gram=smoothstart.model_gram(blocks, basis, gain))
         worst[reach] = float(np.linalg.norm(sculpt[region] - found.outputs, axis=1).max()) / diagonal
         assert found.calls == call.calls == 3
     # measured after 3 calls: 1.3e-7 against 5.7e-6 of the diagonal (after 6: 4.9e-9 against 4.3e-7)

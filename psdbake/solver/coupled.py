@@ -47,9 +47,18 @@ Jacobian, for a smoothing deformer the skinning's own blocks) and its linearised
    fields, Newton-Krylov from zero, the span's Jacobian measured), then the polish of the best.
    The fast path alone costs a few dozen calls; these cost hundreds where they run, and the
    best of every result is kept, so an example never ends worse than the fast path left it.
+4. Where vertices still miss on pieces of the mesh of at most ``pieces.EXACT_PIECE`` vertices:
+   **those pieces' exact Jacobians** (``_exact_pieces``, ``pieces.solve_exactly``), measured
+   where the stages above left them (3 calls a sculpted vertex of the largest, shared by all
+   pieces), and chord Gauss-Newton steps per piece. A piece still far above the tolerance at
+   its optimum holds what the chain cannot produce, and is solved on the stronger
+   ``UNREACHABLE_RIDGE`` so that its offsets stay bounded. Thousands of calls on CesiumMan
+   (its large pieces need ~2,500 directions the chain passes at 1e-3 of its gain), none where
+   the stages above reach the tolerance.
 
 The result is ``at_optimum`` when the last Krylov space could not lower the residual's linear
-model by ``OPTIMUM_RTOL``: what is left is orthogonal to everything the chain produced from
+model by ``OPTIMUM_RTOL``, or when every vertex still above the tolerance is on a piece whose
+stage-4 solve settled: what is left is orthogonal to everything the chain produced from
 the directions tried, so vertices still above the tolerance there are what the chain smooths
 away rather than what the solver failed to reach (``fit``'s report says which). Without edges
 (no smooth start), Newton-Krylov from zero runs instead, then the per-vertex solve and a
@@ -137,6 +146,16 @@ POLISH_STEPS = 3
 POLISH_RCOND = 1e-6
 #: What a polished result's regime says after the regime it was polished from.
 POLISHED = ", polished per vertex"
+#: And one whose pieces were solved on their exact Jacobians (``_exact_pieces``).
+EXACT = "; pieces by their exact Jacobians"
+#: A piece of the mesh that ``pieces.solve_exactly`` finds the chain cannot reproduce (still
+#: ``pieces.REACHABLE_SLACK`` times the tolerance away at the objective's optimum) is solved on
+#: ``|r|^2 + rho |D|^2`` with rho ``smoothstart.ridge(blocks, UNREACHABLE_RIDGE)``: along any
+#: direction of the chain's Jacobian an offset removes at least a fifth of itself from the
+#: residual (1 / (2 x 0.1) = 5). On CesiumMan's shipped sculpts the objective's own ridge let
+#: offsets reach 3.7 of the diagonal for RMS 1.52e-3; 1e-2, 0.44 for 1.77e-3; this, 0.06 for
+#: 2.13e-3 (docs/decisions/coupled-inverse-cesiumman.md).
+UNREACHABLE_RIDGE = 0.1
 #: Smooth fields of the measured smooth start (``measured_smooth_start``, 3 calls each, one
 #: per axis), the last of the escalation's stages (``_escalate``).
 MEASURED_FIELDS = 64
@@ -290,6 +309,9 @@ def invert(blackbox: BlackBox, rest: Points, sculpt: Points, *, rtol: float = to
     best = min(candidates, key=_rank)
     if small is not None:
         best = _keep_better_pieces(call, rest, sculpt, idx, best, *small)
+    if len(best.missed) and adjacency is not None:  # 4. the pieces still missing, by their exact Jacobians
+        with threadpool_limits(limits=1, user_api="blas"):
+            best = _exact_pieces(call, rest, sculpt, idx, best, adjacency, blocks)
     return dataclasses.replace(best, evaluations=call.calls, seconds=time.perf_counter() - started,
                                sculpt_rms=first.sculpt_rms)
 
@@ -369,6 +391,46 @@ def _keep_better_pieces(call: Counted, rest: Points, sculpt: Points, idx: NDArra
     status = _checked(best.status, residual, best.atol)
     return dataclasses.replace(best, offsets=offsets, residual=residual, status=status,
                                regime=best.regime + "; small pieces by their Jacobians")
+
+
+def _exact_pieces(call: Counted, rest: Points, sculpt: Points, idx: NDArray[np.int64], best: InverseResult,
+                  adjacency: sp.csr_matrix, blocks: NDArray[np.float64]) -> InverseResult:
+    """``best`` with the pieces of the mesh (at most ``pieces.EXACT_PIECE`` vertices) where it
+    leaves vertices above the tolerance solved on their exact Jacobians, measured at its
+    offsets (``pieces.solve_exactly``). On CesiumMan's large pieces the stages above stop at
+    1e-5 of the diagonal: reaching the tolerance there takes ~2,500 directions the chain passes
+    at 1e-3 of its gain, which only the Jacobian holds (docs/decisions/coupled-inverse-cesiumman.md).
+    A piece the chain cannot reproduce is solved on ``UNREACHABLE_RIDGE``, so its offsets stay
+    bounded; where every vertex still above the tolerance is on a piece settled at its
+    objective's optimum, the result is ``at_optimum``."""
+    if not np.array_equal(best.indices, idx) or not np.all(np.isfinite(best.offsets)):
+        return best
+    missing = best.status != powell.CONVERGED
+    chosen = [p for p in pieces.small_pieces(adjacency, idx, pieces.EXACT_PIECE) if missing[p.positions].any()]
+    if not chosen:
+        return best
+    moved = rest.copy()
+    moved[idx] += best.offsets
+    start_outputs = call(moved)
+    if not np.all(np.isfinite(start_outputs)):
+        return best
+    solved = pieces.solve_exactly(call, rest, sculpt, idx, chosen, best.offsets, start_outputs, best.diagonal,
+                                  best.atol, smoothstart.ridge(blocks), smoothstart.ridge(blocks, UNREACHABLE_RIDGE))
+    if solved is None:
+        return best
+    offsets = best.offsets.copy()
+    offsets[solved.members] = solved.offsets
+    residual = np.linalg.norm(sculpt[idx] - solved.outputs[idx], axis=1)
+    status = _checked(best.status, residual, best.atol)
+    explained = np.zeros(len(idx), dtype=bool)  # on a piece whose objective is at its optimum
+    explained[solved.members] = solved.settled
+    above = status != powell.CONVERGED
+    status[above & explained] = powell.STALLED  # at its optimum, not out of budget
+    inside = np.zeros(len(idx), dtype=bool)
+    inside[solved.members] = True
+    at_optimum = bool(np.all(explained[above & inside])) and (best.at_optimum or not np.any(above & ~inside))
+    return dataclasses.replace(best, offsets=offsets, residual=residual, status=status, at_optimum=at_optimum,
+                               regime=best.regime + EXACT)
 
 
 def _rank(result: InverseResult) -> tuple[int, float]:
@@ -591,9 +653,9 @@ def smooth_start(call: Counted, rest: Points, sculpt: Points, base: Points, idx:
     steps = reach.steps if reach.misfit <= smoothstart.REACH_MAX_MISFIT else 0.0
     believe = reach.misfit <= smoothstart.BELIEVE_MISFIT
     gain = smoothstart.gains(freqs, steps)
-    cols = smoothstart.model_columns(blocks, basis, gain)
+    model = smoothstart.SpanModel(blocks, basis, gain)
     gram = smoothstart.model_gram(blocks, basis, gain)
-    first, first_gram = cols[: 3 * coarse].copy(), gram[: 3 * coarse, : 3 * coarse].copy()
+    first, first_gram = model.leading(coarse), gram[: 3 * coarse, : 3 * coarse].copy()
     ridge = smoothstart.ridge(blocks)
     span = smoothstart.span_solve(call, rest, sculpt, idx, basis[:, :coarse], first, atol, ridge, COARSE_SPAN_CALLS,
                                   start_outputs=base[idx], gram=first_gram, believe=believe)
@@ -602,13 +664,8 @@ def smooth_start(call: Counted, rest: Points, sculpt: Points, base: Points, idx:
     outputs = span.outputs
     done = bool(np.all(np.linalg.norm(sculpt[idx] - outputs, axis=1) <= atol))
     if not done and basis.shape[1] > coarse:
-        # the coarse solve's Broyden-corrected rows carried over, the Gram matrix with them
-        cols[: 3 * coarse] = first
-        gram[: 3 * coarse, : 3 * coarse] = first_gram
-        cross = first @ cols[3 * coarse:].T
-        gram[: 3 * coarse, 3 * coarse:] = cross
-        gram[3 * coarse:, : 3 * coarse] = cross.T
-        span = smoothstart.span_solve(call, rest, sculpt, idx, basis, cols, atol, ridge, FINE_SPAN_CALLS, start=x,
+        model.carry(first, gram, first_gram)  # the coarse solve's Broyden corrections carried over
+        span = smoothstart.span_solve(call, rest, sculpt, idx, basis, model, atol, ridge, FINE_SPAN_CALLS, start=x,
                                       start_outputs=outputs, gram=gram, believe=believe)
         x, outputs = span.coefficients, span.outputs
     return basis @ x, outputs

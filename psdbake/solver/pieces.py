@@ -51,6 +51,22 @@ SMALL_RIDGE = 1e-3
 MAX_STEPS = 48
 STALL_STEPS = 4
 
+#: Pieces of at most this many vertices can have their exact Jacobians measured where the
+#: other stages leave vertices above the tolerance (``solve_exactly``: 3 calls a sculpted
+#: vertex of the largest, so at most 3,000; CesiumMan's largest piece, 731 vertices, costs 2,193).
+EXACT_PIECE = 1000
+#: Chord steps (one call each, shared by all pieces) on the Jacobians measured at the start,
+#: in each of ``solve_exactly``'s two phases. A piece settles (its optimum) when an accepted
+#: step lowers its objective by less than CHORD_MIN_GAIN of it, or its step has been cut
+#: below CHORD_MIN_SCALE.
+CHORD_STEPS = 30
+CHORD_MIN_GAIN = 1e-4
+CHORD_MIN_SCALE = 1.0 / 64.0
+#: A piece still above REACHABLE_SLACK times the tolerance after the chord steps on the
+#: objective's ridge holds what the chain cannot produce (measured on CesiumMan: sculpts made
+#: through the chain end within 1.8x the tolerance, its shipped sculpts at 1e3-1e4x).
+REACHABLE_SLACK = 10.0
+
 
 @dataclass(frozen=True)
 class Piece:
@@ -85,33 +101,47 @@ def small_pieces(adjacency: sp.csr_matrix, idx: NDArray[np.int64], limit: int = 
     return pieces
 
 
+def jacobians(call: BlackBox, at: Points, out: Points, pieces: list[Piece], vertex: list[NDArray[np.int64]],
+              h: float) -> tuple[list[NDArray[np.float64]], int] | None:
+    """Each piece's exact Jacobian at the points ``at`` (whose outputs are ``out``): forward
+    differences of step ``h``, one call moving one vertex of every piece along one axis
+    (``vertex[q]``: piece q's sculpted vertices in the mesh), so 3 calls a vertex of the
+    largest piece. With the calls made; None where an output outside the moved pieces changed
+    (the pieces are not independent) or the chain returned non-finite values."""
+    jac = [np.zeros((3 * len(v), 3 * len(v))) for v in vertex]
+    calls = 0
+    for j in range(max(len(v) for v in vertex)):  # 3 calls per j: column (j, axis) of every piece at once
+        moving = [q for q, v in enumerate(vertex) if j < len(v)]
+        others = np.ones(len(at), dtype=bool)
+        for q in moving:
+            others[pieces[q].vertices] = False
+        for axis in range(3):
+            moved = at.copy()
+            for q in moving:
+                moved[vertex[q][j], axis] += h
+            change = call(moved)
+            calls += 1
+            if not np.all(np.isfinite(change)):
+                return None
+            change -= out
+            size = np.abs(change)
+            if float(size[others].max(initial=0.0)) > COUPLING_RTOL * float(size[~others].max(initial=0.0)):
+                return None  # a piece moved another: not independent
+            for q in moving:
+                jac[q][:, 3 * j + axis] = (change[vertex[q]] / h).ravel()
+    return jac, calls
+
+
 def solve_small_pieces(call: BlackBox, rest: Points, sculpt: Points, base: Points, idx: NDArray[np.int64],
                        pieces: list[Piece], diagonal: float, atol: float) -> PiecesResult | None:
     """Offsets for the small pieces (module docstring), from zero (``base``: the chain at rest).
     None where the calls show that the pieces are not independent, or the chain returns
     non-finite values."""
     vertex = [idx[p.positions] for p in pieces]
-    h = STEP_RTOL * diagonal
-    jac = [np.zeros((3 * len(v), 3 * len(v))) for v in vertex]
-    calls = 0
-    for j in range(max(len(v) for v in vertex)):  # 3 calls per j: column (j, axis) of every piece at once
-        moving = [q for q, v in enumerate(vertex) if j < len(v)]
-        others = np.ones(len(rest), dtype=bool)
-        for q in moving:
-            others[pieces[q].vertices] = False
-        for axis in range(3):
-            moved = rest.copy()
-            for q in moving:
-                moved[vertex[q][j], axis] += h
-            out = call(moved)
-            calls += 1
-            if not np.all(np.isfinite(out)):
-                return None
-            change = np.abs(out - base)
-            if float(change[others].max(initial=0.0)) > COUPLING_RTOL * float(change[~others].max(initial=0.0)):
-                return None  # a piece moved another: not independent
-            for q in moving:
-                jac[q][:, 3 * j + axis] = ((out[vertex[q]] - base[vertex[q]]) / h).ravel()
+    measured = jacobians(call, rest, base, pieces, vertex, STEP_RTOL * diagonal)
+    if measured is None:
+        return None
+    jac, calls = measured
     offsets = [np.zeros((len(v), 3)) for v in vertex]
 
     def accepted() -> Points:  # rest with every piece at its accepted offsets
@@ -162,3 +192,124 @@ def solve_small_pieces(call: BlackBox, rest: Points, sculpt: Points, base: Point
         return None
     members = np.concatenate([p.positions for p in pieces])
     return PiecesResult(members, np.concatenate(offsets), outputs, calls)
+
+
+@dataclass(frozen=True)
+class ExactResult:
+    """Offsets for some pieces from their exact Jacobians (``solve_exactly``): ``members``
+    (positions in the region's indices), their ``offsets``, the chain's outputs with every
+    piece at its offsets (all n points), the calls made, and which members belong to a piece
+    the chain cannot reproduce (``unreachable``: solved on the stronger ridge) and to a piece
+    whose solve ended at its optimum rather than on the step budget (``settled``)."""
+
+    members: NDArray[np.int64]
+    offsets: NDArray[np.float64]
+    outputs: Points
+    calls: int
+    unreachable: NDArray[np.bool_]
+    settled: NDArray[np.bool_]
+
+
+def solve_exactly(call: BlackBox, rest: Points, sculpt: Points, idx: NDArray[np.int64], pieces: list[Piece],
+                  start: NDArray[np.float64], start_outputs: Points, diagonal: float, atol: float, ridge: float,
+                  unreachable_ridge: float) -> ExactResult | None:
+    """Pieces whose vertices other stages left above the tolerance, on their exact Jacobians
+    measured at ``start`` (the region's offsets, (len(idx), 3); ``start_outputs`` the chain
+    there, all n points): chord Gauss-Newton steps (each Jacobian's SVD computed once) on each
+    piece's ``|r|^2 + rho |D|^2``, one call a step for all pieces, each piece's step accepted
+    or cut on its own; a piece that has not settled after ``CHORD_STEPS`` has its Jacobian
+    measured again where it is, once. ``rho`` is ``ridge`` (the objective's), and where a
+    piece still misses the tolerance by more than ``REACHABLE_SLACK`` times after that, the
+    sculpt asks what the chain cannot produce there: that piece goes on with
+    ``unreachable_ridge``, which bounds its offsets (``coupled.UNREACHABLE_RIDGE``). None where
+    the pieces turn out not to be independent or the chain returns non-finite values."""
+    count = len(pieces)
+    vertex = [idx[p.positions] for p in pieces]
+    offsets = [start[p.positions].ravel().copy() for p in pieces]
+    current = [start_outputs[v].ravel().copy() for v in vertex]
+    targets = [sculpt[v].ravel() for v in vertex]
+    rho, hard, settled = [ridge] * count, [False] * count, [False] * count
+    factors: list[tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]] | None] = [None] * count
+    calls = 0
+
+    def moved_by(changes: dict[int, NDArray[np.float64]] | None = None) -> Points:
+        moved = rest.copy()
+        for q, v in enumerate(vertex):
+            moved[v] += (offsets[q] if changes is None or q not in changes else changes[q]).reshape(-1, 3)
+        return moved
+
+    def worst(q: int) -> float:
+        return float(np.max(np.linalg.norm((targets[q] - current[q]).reshape(-1, 3), axis=1)))
+
+    def objective(q: int, out: NDArray[np.float64], off: NDArray[np.float64]) -> float:
+        return float(np.sum((targets[q] - out) ** 2)) + rho[q] * float(off @ off)
+
+    def measure(which: list[int]) -> bool:
+        """The Jacobians of pieces ``which`` where they are now, and their SVDs."""
+        nonlocal calls
+        at = moved_by()
+        found = jacobians(call, at, call(at), [pieces[q] for q in which], [vertex[q] for q in which],
+                          STEP_RTOL * diagonal)
+        calls += 1
+        if found is None:
+            return False
+        calls += found[1]
+        for q, a in zip(which, found[0], strict=True):
+            factors[q] = np.linalg.svd(a)
+        return True
+
+    def chord(which: list[int]) -> bool:
+        """Up to CHORD_STEPS steps on pieces ``which`` until each is within the tolerance or settled."""
+        nonlocal calls
+        scale = dict.fromkeys(which, 1.0)
+        for _ in range(CHORD_STEPS):
+            which = [q for q in which if worst(q) > atol and not settled[q]]
+            if not which:
+                break
+            trial = {}
+            for q in which:
+                factor = factors[q]
+                assert factor is not None  # measured before any chord on it
+                u, sv, vt = factor
+                r = targets[q] - current[q]
+                step = vt.T @ ((sv * (u.T @ r) - rho[q] * (vt @ offsets[q])) / (sv**2 + rho[q]))
+                trial[q] = offsets[q] + scale[q] * step
+            out = call(moved_by(trial))
+            calls += 1
+            if not np.all(np.isfinite(out)):
+                return False
+            for q, off in trial.items():
+                before, after = objective(q, current[q], offsets[q]), objective(q, out[vertex[q]].ravel(), off)
+                if after < before:
+                    offsets[q], current[q] = off, out[vertex[q]].ravel()
+                    scale[q] = min(1.0, 2.0 * scale[q])
+                    settled[q] = before - after <= CHORD_MIN_GAIN * before
+                else:
+                    scale[q] *= 0.25
+                    settled[q] = scale[q] < CHORD_MIN_SCALE
+        return True
+
+    for phase in range(2):
+        if phase == 0:
+            todo = [q for q in range(count) if worst(q) > atol]
+        else:  # the pieces the chain cannot reproduce, on the stronger ridge
+            todo = [q for q in range(count) if worst(q) > REACHABLE_SLACK * atol]
+            for q in todo:
+                rho[q], hard[q], settled[q] = unreachable_ridge, True, False
+        if not todo:
+            continue
+        if phase == 0 and not measure(todo):
+            return None
+        if not chord(todo):
+            return None
+        again = [q for q in todo if worst(q) > atol and not settled[q]]
+        if again and not (measure(again) and chord(again)):
+            return None
+    outputs = call(moved_by())
+    calls += 1
+    if not np.all(np.isfinite(outputs)):
+        return None
+    members = np.concatenate([p.positions for p in pieces])
+    sizes = [len(p.positions) for p in pieces]
+    return ExactResult(members, np.concatenate(offsets).reshape(-1, 3), outputs, calls,
+                       np.repeat(hard, sizes).astype(bool), np.repeat(settled, sizes).astype(bool))
