@@ -156,6 +156,10 @@ EXACT = "; pieces by their exact Jacobians"
 #: offsets reach 3.7 of the diagonal for RMS 1.52e-3; 1e-2, 0.44 for 1.77e-3; this, 0.06 for
 #: 2.13e-3 (docs/decisions/coupled-inverse-cesiumman.md).
 UNREACHABLE_RIDGE = 0.1
+#: Calls the pieces' exact Jacobians may take an example (``_exact_pieces``), beyond the
+#: stages before them: CesiumMan takes 2,197-2,288 (one batch); a mesh of many large pieces
+#: stops after the batches that fit, and those it leaves are not at an optimum.
+EXACT_CALLS = 6000
 #: Smooth fields of the measured smooth start (``measured_smooth_start``, 3 calls each, one
 #: per axis), the last of the escalation's stages (``_escalate``).
 MEASURED_FIELDS = 64
@@ -409,25 +413,32 @@ def _exact_pieces(call: Counted, rest: Points, sculpt: Points, idx: NDArray[np.i
     chosen = [p for p in pieces.small_pieces(adjacency, idx, pieces.EXACT_PIECE) if missing[p.positions].any()]
     if not chosen:
         return best
-    moved = rest.copy()
-    moved[idx] += best.offsets
-    start_outputs = call(moved)
-    if not np.all(np.isfinite(start_outputs)):
-        return best
-    solved = pieces.solve_exactly(call, rest, sculpt, idx, chosen, best.offsets, start_outputs, best.diagonal,
-                                  best.atol, smoothstart.ridge(blocks), smoothstart.ridge(blocks, UNREACHABLE_RIDGE))
-    if solved is None:
-        return best
     offsets = best.offsets.copy()
-    offsets[solved.members] = solved.offsets
-    residual = np.linalg.norm(sculpt[idx] - solved.outputs[idx], axis=1)
-    status = _checked(best.status, residual, best.atol)
+    moved = rest.copy()
+    moved[idx] += offsets
+    outputs = call(moved)
+    if not np.all(np.isfinite(outputs)):
+        return best
     explained = np.zeros(len(idx), dtype=bool)  # on a piece whose objective is at its optimum
-    explained[solved.members] = solved.settled
+    inside = np.zeros(len(idx), dtype=bool)
+    budget = call.calls + EXACT_CALLS
+    for batch in pieces.batches(chosen):  # the pieces are independent: each batch from where the last left them
+        if call.calls + pieces.jacobian_calls(batch) > budget:
+            break
+        solved = pieces.solve_exactly(call, rest, sculpt, idx, batch, offsets, outputs, best.diagonal, best.atol,
+                                      smoothstart.ridge(blocks), smoothstart.ridge(blocks, UNREACHABLE_RIDGE))
+        if solved is None:
+            break
+        offsets[solved.members] = solved.offsets
+        outputs = solved.outputs
+        explained[solved.members] = solved.settled
+        inside[solved.members] = True
+    if not inside.any():
+        return best
+    residual = np.linalg.norm(sculpt[idx] - outputs[idx], axis=1)
+    status = _checked(best.status, residual, best.atol)
     above = status != powell.CONVERGED
     status[above & explained] = powell.STALLED  # at its optimum, not out of budget
-    inside = np.zeros(len(idx), dtype=bool)
-    inside[solved.members] = True
     at_optimum = bool(np.all(explained[above & inside])) and (best.at_optimum or not np.any(above & ~inside))
     return dataclasses.replace(best, offsets=offsets, residual=residual, status=status, at_optimum=at_optimum,
                                regime=best.regime + EXACT)

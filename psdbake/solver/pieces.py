@@ -55,6 +55,10 @@ STALL_STEPS = 4
 #: other stages leave vertices above the tolerance (``solve_exactly``: 3 calls a sculpted
 #: vertex of the largest, so at most 3,000; CesiumMan's largest piece, 731 vertices, costs 2,193).
 EXACT_PIECE = 1000
+#: Jacobian entries held at once (each piece's (3m)^2, and its SVD's two factors as many
+#: again: at most ~600 MB): pieces beyond it are solved in further batches, each its own
+#: Jacobian calls (``batches``). CesiumMan's pieces hold 8.1M-9.7M entries, one batch.
+EXACT_ENTRIES = 25_000_000
 #: Chord steps (one call each, shared by all pieces) on the Jacobians measured at the start,
 #: in each of ``solve_exactly``'s two phases. A piece settles (its optimum) when an accepted
 #: step lowers its objective by less than CHORD_MIN_GAIN of it, or its step has been cut
@@ -194,6 +198,27 @@ def solve_small_pieces(call: BlackBox, rest: Points, sculpt: Points, base: Point
     return PiecesResult(members, np.concatenate(offsets), outputs, calls)
 
 
+def batches(pieces: list[Piece]) -> list[list[Piece]]:
+    """``pieces`` in batches whose Jacobians hold at most ``EXACT_ENTRIES`` entries together
+    (a piece larger than that alone), largest first: a batch costs 3 calls a sculpted vertex of
+    its largest piece."""
+    found: list[list[Piece]] = []
+    held = EXACT_ENTRIES + 1
+    for piece in sorted(pieces, key=lambda p: -len(p.positions)):  # alike sizes together: fewer calls
+        entries = (3 * len(piece.positions)) ** 2
+        if held + entries > EXACT_ENTRIES:
+            found.append([])
+            held = 0
+        found[-1].append(piece)
+        held += entries
+    return found
+
+
+def jacobian_calls(pieces: list[Piece]) -> int:
+    """Calls ``solve_exactly`` spends on measuring these pieces' Jacobians once."""
+    return 3 * max((len(p.positions) for p in pieces), default=0) + 1
+
+
 @dataclass(frozen=True)
 class ExactResult:
     """Offsets for some pieces from their exact Jacobians (``solve_exactly``): ``members``
@@ -214,11 +239,11 @@ def solve_exactly(call: BlackBox, rest: Points, sculpt: Points, idx: NDArray[np.
                   start: NDArray[np.float64], start_outputs: Points, diagonal: float, atol: float, ridge: float,
                   unreachable_ridge: float) -> ExactResult | None:
     """Pieces whose vertices other stages left above the tolerance, on their exact Jacobians
-    measured at ``start`` (the region's offsets, (len(idx), 3); ``start_outputs`` the chain
-    there, all n points): chord Gauss-Newton steps (each Jacobian's SVD computed once) on each
-    piece's ``|r|^2 + rho |D|^2``, one call a step for all pieces, each piece's step accepted
-    or cut on its own; a piece that has not settled after ``CHORD_STEPS`` has its Jacobian
-    measured again where it is, once. ``rho`` is ``ridge`` (the objective's), and where a
+    measured at ``start`` (the region's offsets, (len(idx), 3), which the other pieces keep;
+    ``start_outputs`` the chain there, all n points): chord Gauss-Newton steps (each
+    Jacobian's SVD computed once) on each piece's ``|r|^2 + rho |D|^2``, one call a step for
+    all pieces, each piece's step accepted or cut on its own; a piece that has not settled
+    after ``CHORD_STEPS`` has its Jacobian measured again where it is, once. ``rho`` is ``ridge`` (the objective's), and where a
     piece still misses the tolerance by more than ``REACHABLE_SLACK`` times after that, the
     sculpt asks what the chain cannot produce there: that piece goes on with
     ``unreachable_ridge``, which bounds its offsets (``coupled.UNREACHABLE_RIDGE``). None where
@@ -232,10 +257,13 @@ def solve_exactly(call: BlackBox, rest: Points, sculpt: Points, idx: NDArray[np.
     factors: list[tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]] | None] = [None] * count
     calls = 0
 
+    held = rest.copy()  # every other sculpted vertex where ``start`` has it
+    held[idx] += start
+
     def moved_by(changes: dict[int, NDArray[np.float64]] | None = None) -> Points:
-        moved = rest.copy()
+        moved = held.copy()
         for q, v in enumerate(vertex):
-            moved[v] += (offsets[q] if changes is None or q not in changes else changes[q]).reshape(-1, 3)
+            moved[v] = rest[v] + (offsets[q] if changes is None or q not in changes else changes[q]).reshape(-1, 3)
         return moved
 
     def worst(q: int) -> float:
