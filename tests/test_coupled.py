@@ -485,3 +485,24 @@ def test_pieces_exact_jacobians_reach_a_sculpt_in_batches(monkeypatch):
     small = np.concatenate([p.positions for p in found if p is not tube])
     assert not np.any(capped.offsets[small]) and np.all(capped.status[small] == powell.MAX_CYCLES)
     assert not capped.at_optimum and np.all(capped.status[tube.positions] == powell.CONVERGED)
+
+
+def test_a_snapping_chain_on_small_pieces_is_not_called_an_optimum():
+    """A chain whose outputs snap to a 1e-3 grid, on a mesh small enough for the pieces' exact
+    Jacobians: its finite differences say nothing of its response at the scale of a step, so
+    every step is cut. The solve must not claim an optimum there (the summary would tell the
+    TD the deformer smooths the sculpt away): the vertices stay max_cycles and at_optimum is
+    False."""
+    rest, topology = _tube()
+    mush = DeltaMush(rest, topology)
+    turn = np.array([[0.8, -0.6, 0.0], [0.6, 0.8, 0.0], [0.0, 0.0, 1.0]])
+
+    def chain(points: np.ndarray) -> np.ndarray:
+        return np.round(mush(points @ turn.T + 0.25) / 1e-3) * 1e-3
+
+    bump = np.exp(-((np.linalg.norm(rest - rest.mean(axis=0), axis=1) / 1.5) ** 2))
+    target = mush((rest + 0.03 * bump[:, None] * np.array([0.2, 1.0, 0.5])) @ turn.T + 0.25) + 3e-4  # off the grid
+    adjacency = edge_adjacency(topology)
+    res = coupled.invert(chain, rest, target, neighbours=lambda: adjacency)
+    assert coupled.EXACT in res.regime and len(res.missed) == len(res.indices)
+    assert not res.at_optimum and set(res.missed_statuses) == {"max_cycles"}
