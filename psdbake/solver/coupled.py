@@ -152,9 +152,10 @@ EXACT = "; pieces by their exact Jacobians"
 #: ``pieces.REACHABLE_SLACK`` times the tolerance away at the objective's optimum) is solved on
 #: ``|r|^2 + rho |D|^2`` with rho ``smoothstart.ridge(blocks, UNREACHABLE_RIDGE)``: along any
 #: direction of the chain's Jacobian an offset removes at least a fifth of itself from the
-#: residual (1 / (2 x 0.1) = 5). On CesiumMan's shipped sculpts the objective's own ridge let
-#: offsets reach 3.7 of the diagonal for RMS 1.52e-3; 1e-2, 0.44 for 1.77e-3; this, 0.06 for
-#: 2.13e-3 (docs/decisions/coupled-inverse-cesiumman.md).
+#: residual (1 / (2 x 0.1) = 5). On CesiumMan's shipped @12, measured with one Jacobian per
+#: piece, the objective's own ridge let offsets reach 3.7 of the diagonal for RMS 1.52e-3;
+#: 1e-2, 0.44 for 1.77e-3; this, 0.06 for 2.13e-3 (0.087 as shipped, each piece at its optimum;
+#: docs/decisions/coupled-inverse-cesiumman.md).
 UNREACHABLE_RIDGE = 0.1
 #: After the pieces' exact Jacobians, an example is at an optimum where the vertices above the
 #: tolerance on pieces not settled at theirs hold at most this share of the squared residual

@@ -235,9 +235,9 @@ class ExactResult:
     (positions in the region's indices), their ``offsets``, the chain's outputs with every
     piece at its offsets (all n points), the calls made, and which members belong to a piece
     the chain cannot reproduce (``unreachable``: solved on the stronger ridge) and to a piece
-    whose solve ended at its optimum (``settled``: a step that gained next to nothing), not on
-    its step budget or on steps cut until they vanished (a chain whose small moves say nothing
-    of its large ones, as one that snaps its outputs to a grid)."""
+    whose solve ended at its optimum (``settled``: its model saw nothing left to gain, or a step
+    gained next to nothing), not on its step budget or on steps cut until they vanished (a
+    chain whose small moves say nothing of its large ones, as one that snaps to a grid)."""
 
     members: NDArray[np.int64]
     offsets: NDArray[np.float64]
@@ -258,11 +258,11 @@ def solve_exactly(call: BlackBox, rest: Points, sculpt: Points, idx: NDArray[np.
     took steps has its Jacobian measured again where they left it (a large piece only where it
     holds ``REMEASURE_SHARE`` of the residual), up to ``REMEASURES`` times while ``max_calls``
     allows (one whose every step was cut is not: its Jacobian says nothing of the chain at the
-    scale of a step). ``rho`` is ``ridge`` (the objective's), and where a
-    piece still misses the tolerance by more than ``REACHABLE_SLACK`` times after that, the
-    sculpt asks what the chain cannot produce there: that piece goes on with
-    ``unreachable_ridge``, which bounds its offsets (``coupled.UNREACHABLE_RIDGE``). None where
-    the pieces turn out not to be independent or the chain returns non-finite values."""
+    scale of a step). ``rho`` is ``ridge`` (the objective's), and where a piece still misses the
+    tolerance by more than ``REACHABLE_SLACK`` times after that, the sculpt asks what the chain
+    cannot produce there: that piece goes on with ``unreachable_ridge``, which bounds its
+    offsets (``coupled.UNREACHABLE_RIDGE``). None where the pieces turn out not to be
+    independent or the chain returns non-finite values."""
     count = len(pieces)
     vertex = [idx[p.positions] for p in pieces]
     offsets = [start[p.positions].ravel().copy() for p in pieces]
