@@ -51,8 +51,9 @@ Jacobian, for a smoothing deformer the skinning's own blocks) and its linearised
    measures, the slower stages are left out for it (``_exact_pieces_instead``).
 4. Where vertices still miss on pieces of the mesh of at most ``pieces.EXACT_PIECE`` vertices:
    **those pieces' exact Jacobians** (``_exact_pieces``, ``pieces.solve_exactly``), measured
-   where the stages above left them (3 calls a sculpted vertex of the largest, shared by all
-   pieces), and chord Gauss-Newton steps per piece. A piece still far above the tolerance at
+   where the stages above left them (3 calls a colour of the largest piece, its vertices
+   coloured by the chain's measured reach, shared by all pieces), and chord Gauss-Newton steps
+   per piece. A piece still far above the tolerance at
    its optimum holds what the chain cannot produce, and is solved on the stronger
    ``UNREACHABLE_RIDGE`` so that its offsets stay bounded. Thousands of calls on CesiumMan
    (its large pieces need ~2,500 directions the chain passes at 1e-3 of its gain), none where
@@ -435,7 +436,7 @@ def _exact_pieces(call: Counted, rest: Points, sculpt: Points, idx: NDArray[np.i
             break
         solved = pieces.solve_exactly(call, rest, sculpt, idx, batch, offsets, outputs, best.diagonal, best.atol,
                                       smoothstart.ridge(blocks), smoothstart.ridge(blocks, UNREACHABLE_RIDGE),
-                                      budget - call.calls)
+                                      budget - call.calls, adjacency)
         if solved is None:
             break
         offsets[solved.members] = solved.offsets
@@ -461,8 +462,8 @@ def _exact_pieces_instead(result: InverseResult, adjacency: sp.csr_matrix, idx: 
     is on a piece the exact stage measures. There the slower stages cost hundreds of calls and
     leave most of them (CesiumMan from known offsets: 425 and 662 vertices after ~400 calls),
     and the exact stage reaches the tolerance from the fast path's result as well: CesiumMan
-    2,749 / 2,853 -> 2,350 / 2,378 calls, the character fixture's 135 degree elbow 757 -> 560,
-    every vertex within the tolerance."""
+    2,749 / 2,853 -> 2,350 / 2,378 calls (a vertex a call), the character fixture's 135 degree
+    elbow 757 -> 560, every vertex within the tolerance."""
     missing = result.status != powell.CONVERGED
     if np.count_nonzero(missing) <= POLISH_VERTICES:
         return False
