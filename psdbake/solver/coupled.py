@@ -47,10 +47,13 @@ Jacobian, for a smoothing deformer the skinning's own blocks) and its linearised
    fields, Newton-Krylov from zero, the span's Jacobian measured), then the polish of the best.
    The fast path alone costs a few dozen calls; these cost hundreds where they run, and the
    best of every result is kept, so an example never ends worse than the fast path left it.
+   Where more vertices miss than the polish takes and all of them are on pieces that stage 4
+   measures, the slower stages are left out for it (``_exact_pieces_instead``).
 4. Where vertices still miss on pieces of the mesh of at most ``pieces.EXACT_PIECE`` vertices:
    **those pieces' exact Jacobians** (``_exact_pieces``, ``pieces.solve_exactly``), measured
-   where the stages above left them (3 calls a sculpted vertex of the largest, shared by all
-   pieces), and chord Gauss-Newton steps per piece. A piece still far above the tolerance at
+   where the stages above left them (3 calls a colour of the largest piece, its vertices
+   coloured by the chain's measured reach, shared by all pieces), and chord Gauss-Newton steps
+   per piece. A piece still far above the tolerance at
    its optimum holds what the chain cannot produce, and is solved on the stronger
    ``UNREACHABLE_RIDGE`` so that its offsets stay bounded. Thousands of calls on CesiumMan
    (its large pieces need ~2,500 directions the chain passes at 1e-3 of its gain), none where
@@ -163,8 +166,10 @@ UNREACHABLE_RIDGE = 0.1
 #: output is a rigid turn of the piece and whose steps end cut, hold 1e-4 of it).
 OPTIMUM_SHARE = 0.01
 #: Calls the pieces' exact Jacobians may take an example (``_exact_pieces``), beyond the
-#: stages before them: CesiumMan takes 2,197-2,288 (one batch); a mesh of many large pieces
-#: stops after the batches that fit, and those it leaves are not at an optimum.
+#: stages before them; a batch is started only where its Jacobian a vertex a call would fit.
+#: CesiumMan's examples take 1,271-1,299 calls in all through the chain, 3,938-4,510 on its
+#: shipped sculpts (one batch, its re-measures included); a mesh of many large pieces stops
+#: after the batches that fit, and those it leaves are not at an optimum.
 EXACT_CALLS = 6000
 #: Smooth fields of the measured smooth start (``measured_smooth_start``, 3 calls each, one
 #: per axis), the last of the escalation's stages (``_escalate``).
@@ -302,7 +307,7 @@ def invert(blackbox: BlackBox, rest: Points, sculpt: Points, *, rtol: float = to
                 if len(smooth.missed) and not smooth.at_optimum:  # 1b. polish, then escalate
                     candidates.extend(_polish(call, rest, sculpt, idx, max(diagonal, floor), candidates[-1],
                                               started=started))
-                    if len(candidates[-1].missed):
+                    if len(candidates[-1].missed) and not _exact_pieces_instead(candidates[-1], adjacency, idx):
                         candidates.extend(_escalate(call, blackbox, rest, sculpt, base, idx, diagonal, floor, first,
                                                     blocks, adjacency, rtol=rtol, started=started))
                         best = min(candidates, key=_rank)
@@ -433,7 +438,7 @@ def _exact_pieces(call: Counted, rest: Points, sculpt: Points, idx: NDArray[np.i
             break
         solved = pieces.solve_exactly(call, rest, sculpt, idx, batch, offsets, outputs, best.diagonal, best.atol,
                                       smoothstart.ridge(blocks), smoothstart.ridge(blocks, UNREACHABLE_RIDGE),
-                                      budget - call.calls)
+                                      budget - call.calls, adjacency)
         if solved is None:
             break
         offsets[solved.members] = solved.offsets
@@ -451,6 +456,23 @@ def _exact_pieces(call: Counted, rest: Points, sculpt: Points, idx: NDArray[np.i
     at_optimum = unsettled <= OPTIMUM_SHARE * left and (best.at_optimum or not np.any(above & ~inside))
     return dataclasses.replace(best, offsets=offsets, residual=residual, status=status, at_optimum=at_optimum,
                                regime=best.regime + EXACT)
+
+
+def _exact_pieces_instead(result: InverseResult, adjacency: sp.csr_matrix, idx: NDArray[np.int64]) -> bool:
+    """Whether the slower stages (``_escalate``) are left out for the pieces' exact Jacobians
+    (``_exact_pieces``): where more vertices miss than the polish takes and every one of them
+    is on a piece the exact stage measures. There the slower stages cost hundreds of calls and
+    leave most of them (CesiumMan from known offsets: 425 and 662 vertices after ~400 calls),
+    and the exact stage reaches the tolerance from the fast path's result as well: CesiumMan
+    2,749 / 2,853 -> 2,350 / 2,378 calls (a vertex a call), the character fixture's 135 degree
+    elbow 757 -> 560, every vertex within the tolerance."""
+    missing = result.status != powell.CONVERGED
+    if np.count_nonzero(missing) <= POLISH_VERTICES:
+        return False
+    covered = np.zeros(len(idx), dtype=bool)
+    for p in pieces.small_pieces(adjacency, idx, pieces.EXACT_PIECE):
+        covered[p.positions] = True
+    return bool(np.all(covered[missing]))
 
 
 def _rank(result: InverseResult) -> tuple[int, float]:

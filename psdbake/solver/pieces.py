@@ -1,4 +1,4 @@
-"""Small disconnected pieces of a sculpted region, solved with their exact Jacobians.
+"""Disconnected pieces of a sculpted region, solved with their exact Jacobians.
 
 A real character's mesh is split into pieces (connected components of its edges: UV shells,
 parts). CesiumMan's sculpted region touches 136, 124 of them of 3-25 vertices. A chain that
@@ -10,7 +10,17 @@ those pieces (docs/decisions/coupled-inverse-cesiumman.md); their exact Jacobian
 instead: one call moves one vertex of *every* small piece along one axis, and each piece reads
 its own column from its own outputs, so all pieces of at most m sculpted vertices cost 3m calls
 together. Then damped Gauss-Newton on each piece, one call a step for all of them, each call a
-Broyden secant for every piece, each piece's step accepted or cut on its own.
+Broyden secant for every piece, each piece's step accepted or cut on its own
+(``solve_small_pieces``, the coupled inverse's first stage).
+
+Its last stage (``solve_exactly``) does the same for pieces of up to ``EXACT_PIECE`` vertices
+where the other stages leave vertices above the tolerance: on CesiumMan's large pieces the
+sculpt needs ~2,500 directions the chain passes at 1e-3 of its gain, which no span of a few
+dozen calls holds. There the Jacobian is coloured (Curtis, Powell and Reid's sparse
+differences): one call measures how far a vertex's move reaches (``measure_reach``), and
+vertices more than twice that apart move in one call (``colouring``); the chord steps run on
+each piece's regularised misfit, and a piece the chain cannot reproduce goes on with a stronger
+ridge, which bounds its offsets.
 
 Only the chain is called. Whether the pieces really are independent shows in those calls: an
 output outside the moved vertices' pieces that changes means they are not, and the stage gives
@@ -24,7 +34,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 from numpy.typing import NDArray
-from scipy.sparse.csgraph import connected_components
+from scipy.sparse.csgraph import connected_components, shortest_path
 
 from ..arrays import Points
 from .inverse import BlackBox
@@ -59,6 +69,11 @@ EXACT_PIECE = 1000
 #: again: at most ~600 MB): pieces beyond it are solved in further batches, each its own
 #: Jacobian calls (``batches``). CesiumMan's pieces hold 8.1M-9.7M entries, one batch.
 EXACT_ENTRIES = 25_000_000
+#: Rings added to the chain's measured reach (``measure_reach``) before colouring a piece's
+#: vertices for its Jacobian (``colouring``): a vertex whose reach is a little longer than the
+#: probed one's still stays within its colour's rows; one much longer shows as a stray output
+#: and the Jacobian is measured a vertex a call instead.
+REACH_MARGIN = 1
 #: Chord steps (one call each, shared by all pieces) on the Jacobians measured at the start,
 #: in each of ``solve_exactly``'s two phases. A piece settles (its optimum) when an accepted
 #: step lowers its objective by less than CHORD_MIN_GAIN of it, or its step has been cut
@@ -115,24 +130,92 @@ def small_pieces(adjacency: sp.csr_matrix, idx: NDArray[np.int64], limit: int = 
     return pieces
 
 
+@dataclass(frozen=True)
+class Colouring:
+    """Which of a piece's sculpted vertices move together in one Jacobian call: ``classes[k]``
+    (positions among them), and for each class each vertex's column, ``owner[k][i]``: the
+    moved vertex whose reach holds vertex i's output (-1: none does)."""
+
+    classes: list[NDArray[np.int64]]
+    owner: list[NDArray[np.int64]]
+
+    @staticmethod
+    def plain(m: int) -> Colouring:
+        """One vertex a call."""
+        return Colouring([np.array([j]) for j in range(m)], [np.full(m, j) for j in range(m)])
+
+
+def colouring(adjacency: sp.csr_matrix, piece: Piece, idx: NDArray[np.int64], reach: int) -> Colouring:
+    """Greedy colouring of ``piece``'s sculpted vertices so that two of one colour are more than
+    ``2 * reach`` edges apart (through the whole piece): moved together, no output within
+    ``reach`` edges of one is within ``reach`` of another, so each output changes for one of
+    them only and is that one's column (Curtis-Powell-Reid's idea for sparse Jacobians)."""
+    inside = np.searchsorted(piece.vertices, idx[piece.positions])  # the sculpted vertices, in the piece
+    graph = adjacency[piece.vertices][:, piece.vertices]
+    rings = shortest_path(graph, unweighted=True, directed=False, indices=inside)[:, inside]  # (m, m)
+    colour = np.full(len(inside), -1)
+    for v in range(len(inside)):
+        near = colour[rings[v] <= 2 * reach]
+        taken = np.zeros(len(inside) + 1, dtype=bool)
+        taken[near[near >= 0]] = True
+        colour[v] = int(np.argmin(taken))
+    classes = [np.nonzero(colour == c)[0] for c in range(int(colour.max()) + 1)]
+    owner = []
+    for members in classes:
+        close = rings[:, members] <= reach  # (m, len(members))
+        found = np.where(close.any(axis=1), members[np.argmax(close, axis=1)], -1)
+        owner.append(found.astype(np.int64))
+    return Colouring(classes, owner)
+
+
+def measure_reach(call: BlackBox, at: Points, out: Points, adjacency: sp.csr_matrix, pieces: list[Piece],
+                  vertex: list[NDArray[np.int64]], h: float) -> int | None:
+    """How many edges an input vertex's move reaches through the chain: one call moving the
+    first sculpted vertex of every piece along a diagonal, the farthest changed output (more
+    than ``COUPLING_RTOL`` of the piece's largest change) counted in edges through its piece.
+    None where nothing changed or the chain returned non-finite values."""
+    moved = at.copy()
+    for v in vertex:
+        moved[v[0]] += h * np.array([0.8, 0.5, 0.3]) / np.sqrt(0.98)
+    change = call(moved)
+    if not np.all(np.isfinite(change)):
+        return None
+    size = np.linalg.norm(change - out, axis=1)
+    farthest = -1
+    for piece, v in zip(pieces, vertex, strict=True):
+        local = size[piece.vertices]
+        changed = np.nonzero(local > COUPLING_RTOL * float(local.max(initial=0.0)))[0]
+        if not len(changed):
+            continue
+        start = int(np.searchsorted(piece.vertices, v[0]))
+        rings = shortest_path(adjacency[piece.vertices][:, piece.vertices], unweighted=True, directed=False,
+                              indices=[start])[0]
+        farthest = max(farthest, int(np.max(rings[changed])))
+    return farthest if farthest >= 0 else None
+
+
 def jacobians(call: BlackBox, at: Points, out: Points, pieces: list[Piece], vertex: list[NDArray[np.int64]],
-              h: float) -> tuple[list[NDArray[np.float64]], int] | None:
+              h: float, colours: list[Colouring] | None = None) -> tuple[list[NDArray[np.float64]], int] | None:
     """Each piece's exact Jacobian at the points ``at`` (whose outputs are ``out``): forward
     differences of step ``h``, one call moving one vertex of every piece along one axis
     (``vertex[q]``: piece q's sculpted vertices in the mesh), so 3 calls a vertex of the
-    largest piece. With the calls made; None where an output outside the moved pieces changed
-    (the pieces are not independent) or the chain returned non-finite values."""
+    largest piece; with ``colours`` (``colouring``), one call moves a whole colour of every
+    piece, so 3 calls a colour. With the calls made; None where an output outside the moved
+    pieces changed (the pieces are not independent), an output farther from the moved
+    vertices than the colouring's reach did (it does not hold), or the chain returned
+    non-finite values."""
     jac = [np.zeros((3 * len(v), 3 * len(v))) for v in vertex]
+    plan = colours or [Colouring.plain(len(v)) for v in vertex]
     calls = 0
-    for j in range(max(len(v) for v in vertex)):  # 3 calls per j: column (j, axis) of every piece at once
-        moving = [q for q, v in enumerate(vertex) if j < len(v)]
+    for k in range(max(len(c.classes) for c in plan)):  # 3 calls per colour: its columns of every piece at once
+        moving = [q for q, c in enumerate(plan) if k < len(c.classes)]
         others = np.ones(len(at), dtype=bool)
         for q in moving:
             others[pieces[q].vertices] = False
         for axis in range(3):
             moved = at.copy()
             for q in moving:
-                moved[vertex[q][j], axis] += h
+                moved[vertex[q][plan[q].classes[k]], axis] += h
             change = call(moved)
             calls += 1
             if not np.all(np.isfinite(change)):
@@ -142,7 +225,15 @@ def jacobians(call: BlackBox, at: Points, out: Points, pieces: list[Piece], vert
             if float(size[others].max(initial=0.0)) > COUPLING_RTOL * float(size[~others].max(initial=0.0)):
                 return None  # a piece moved another: not independent
             for q in moving:
-                jac[q][:, 3 * j + axis] = (change[vertex[q]] / h).ravel()
+                rows = change[vertex[q]] / h  # (m, 3)
+                owner = plan[q].owner[k]  # each row's moved vertex (column), -1: none within reach
+                if np.any(owner < 0):
+                    stray = float(np.abs(rows[owner < 0]).max())
+                    if stray > COUPLING_RTOL * float(np.abs(rows).max(initial=0.0)):
+                        return None  # an output beyond the reach moved: the colouring does not hold
+                mine = np.nonzero(owner >= 0)[0]
+                for a in range(3):
+                    jac[q][3 * mine + a, 3 * owner[mine] + axis] = rows[mine, a]
     return jac, calls
 
 
@@ -249,7 +340,7 @@ class ExactResult:
 
 def solve_exactly(call: BlackBox, rest: Points, sculpt: Points, idx: NDArray[np.int64], pieces: list[Piece],
                   start: NDArray[np.float64], start_outputs: Points, diagonal: float, atol: float, ridge: float,
-                  unreachable_ridge: float, max_calls: int) -> ExactResult | None:
+                  unreachable_ridge: float, max_calls: int, adjacency: sp.csr_matrix) -> ExactResult | None:
     """Pieces whose vertices other stages left above the tolerance, on their exact Jacobians
     measured at ``start`` (the region's offsets, (len(idx), 3), which the other pieces keep;
     ``start_outputs`` the chain there, all n points): chord Gauss-Newton steps (each
@@ -289,13 +380,28 @@ def solve_exactly(call: BlackBox, rest: Points, sculpt: Points, idx: NDArray[np.
     def objective(q: int, out: NDArray[np.float64], off: NDArray[np.float64]) -> float:
         return float(np.sum((targets[q] - out) ** 2)) + rho[q] * float(off @ off)
 
+    reach: list[int | None] = []  # measured once, by the first measure
+
     def measure(which: list[int]) -> bool:
-        """The Jacobians of pieces ``which`` where they are now, and their SVDs."""
+        """The Jacobians of pieces ``which`` where they are now (coloured by the chain's
+        measured reach, else a vertex a call), and their SVDs."""
         nonlocal calls
         at = moved_by()
-        found = jacobians(call, at, call(at), [pieces[q] for q in which], [vertex[q] for q in which],
-                          STEP_RTOL * diagonal)
+        base = call(at)
         calls += 1
+        chosen, where = [pieces[q] for q in which], [vertex[q] for q in which]
+        if not reach:
+            reach.append(measure_reach(call, at, base, adjacency, chosen, where, STEP_RTOL * diagonal))
+            calls += 1
+        found = None
+        if reach[0] is not None:
+            plan = [colouring(adjacency, p, idx, reach[0] + REACH_MARGIN) for p in chosen]
+            if max(len(c.classes) for c in plan) < max(len(v) for v in where):
+                found = jacobians(call, at, base, chosen, where, STEP_RTOL * diagonal, plan)
+                if found is None:  # an output beyond the reach moved: a vertex a call (its calls, at most)
+                    calls += 3 * max(len(c.classes) for c in plan)
+        if found is None:
+            found = jacobians(call, at, base, chosen, where, STEP_RTOL * diagonal)
         if found is None:
             return False
         calls += found[1]
