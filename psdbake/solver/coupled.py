@@ -53,15 +53,14 @@ Jacobian, for a smoothing deformer the skinning's own blocks) and its linearised
    **those pieces' exact Jacobians** (``_exact_pieces``, ``pieces.solve_exactly``), measured
    where the stages above left them (3 calls a colour of the largest piece, its vertices
    coloured by the chain's measured reach, shared by all pieces), and chord Gauss-Newton steps
-   per piece. A piece still far above the tolerance at
-   its optimum holds what the chain cannot produce, and is solved on the stronger
-   ``UNREACHABLE_RIDGE`` so that its offsets stay bounded. Thousands of calls on CesiumMan
-   (its large pieces need ~2,500 directions the chain passes at 1e-3 of its gain), none where
-   the stages above reach the tolerance.
+   per piece. A piece still far above the tolerance at its optimum holds what the chain cannot
+   produce, and is solved on the stronger ``UNREACHABLE_RIDGE`` so that its offsets stay
+   bounded. About 1,100 calls on CesiumMan (its large pieces need ~2,500 directions the chain
+   passes at 1e-3 of its gain), none where the stages above reach the tolerance.
 
 The result is ``at_optimum`` when the last Krylov space could not lower the residual's linear
-model by ``OPTIMUM_RTOL``, or when every vertex still above the tolerance is on a piece whose
-stage-4 solve settled: what is left is orthogonal to everything the chain produced from
+model by ``OPTIMUM_RTOL``, or when the pieces stage 4 could not settle at their optimum hold at
+most ``OPTIMUM_SHARE`` of the residual left: what is left is orthogonal to everything the chain produced from
 the directions tried, so vertices still above the tolerance there are what the chain smooths
 away rather than what the solver failed to reach (``fit``'s report says which). Without edges
 (no smooth start), Newton-Krylov from zero runs instead, then the per-vertex solve and a
