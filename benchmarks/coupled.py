@@ -178,42 +178,46 @@ class Optimum:
     objective: float
 
 
-def unreachable_objective(case: characters.Case) -> Callable[[NDArray[np.float64]], Optimum]:
+@dataclass(frozen=True)
+class UnreachableObjective:
     """psdbake's objective for a sculpt the chain cannot reproduce, ``|r|^2 + ridge |D|^2`` over
-    the sculpted vertices (``smoothstart.ridge`` of the chain's own blocks at
+    the sculpted vertices ``idx`` (``smoothstart.ridge`` of the chain's own blocks at
     ``coupled.UNREACHABLE_RIDGE``, as psdbake solves every piece of CesiumMan's shipped
-    sculpts), judged by running the chain on rest + offsets (len(idx), 3)."""
-    from psdbake.solver import smoothstart
+    sculpts); called with offsets (len(idx), 3), it runs the chain on rest + offsets."""
 
-    base = case.box(case.rest)
-    diagonal, floor, idx = sculpted_vertices(case.rest, base, case.sculpt)
-    ridge = smoothstart.ridge(coupled.chain_blocks(case.box, case.rest, base, idx, diagonal, floor),
-                              coupled.UNREACHABLE_RIDGE)
+    case: characters.Case
+    idx: NDArray[np.int64]
+    diagonal: float
+    ridge: float
 
-    def judge(offsets: NDArray[np.float64]) -> Optimum:
+    @staticmethod
+    def of(case: characters.Case) -> UnreachableObjective:
+        from psdbake.solver import smoothstart
+
+        base = case.box(case.rest)
+        diagonal, floor, idx = sculpted_vertices(case.rest, base, case.sculpt)
+        blocks = coupled.chain_blocks(case.box, case.rest, base, idx, diagonal, floor)
+        return UnreachableObjective(case, idx, diagonal, smoothstart.ridge(blocks, coupled.UNREACHABLE_RIDGE))
+
+    def __call__(self, offsets: NDArray[np.float64]) -> Optimum:
+        case = self.case
         moved = case.rest.copy()
-        moved[idx] += offsets
-        r = np.linalg.norm(case.sculpt[idx] - case.box(moved)[idx], axis=1)
+        moved[self.idx] += offsets
+        r = np.linalg.norm(case.sculpt[self.idx] - case.box(moved)[self.idx], axis=1)
         size = np.linalg.norm(offsets, axis=1)
-        return Optimum(float(np.sqrt(np.mean(r**2))) / diagonal, float(size.max()) / diagonal,
-                       float(np.sum(r**2) + ridge * np.sum(size**2)) / diagonal**2)
-
-    return judge
+        return Optimum(float(np.sqrt(np.mean(r**2))) / self.diagonal, float(size.max()) / self.diagonal,
+                       float(np.sum(r**2) + self.ridge * np.sum(size**2)) / self.diagonal**2)
 
 
-def reference(case: characters.Case, iterations: int) -> tuple[Optimum, int, float]:
-    """A long-run reference optimiser on psdbake's objective for a sculpt the chain cannot
-    reproduce (``unreachable_objective``): scipy's trust-region least squares
+def reference(objective: UnreachableObjective, iterations: int) -> tuple[Optimum, int, float]:
+    """A long-run reference optimiser on ``objective``: scipy's trust-region least squares
     (``least_squares(method="trf")``) from zero, its Jacobian by finite differences over Delta
     Mush's reach, coloured (``jac_sparsity``: one call per colour). Only the chain is called,
-    as psdbake does. Returns (where it ended, calls, seconds)."""
-    from psdbake.solver import smoothstart
-
+    as psdbake does; its calls include the 4 that measure the objective's ridge. Returns (where
+    it ended, calls, seconds)."""
+    case, idx, diagonal = objective.case, objective.idx, objective.diagonal
     started = time.perf_counter()
-    base = case.box(case.rest)
-    diagonal, floor, idx = sculpted_vertices(case.rest, base, case.sculpt)
-    blocks = coupled.chain_blocks(case.box, case.rest, base, idx, diagonal, floor)
-    weight = np.sqrt(smoothstart.ridge(blocks, coupled.UNREACHABLE_RIDGE))
+    weight = np.sqrt(objective.ridge)
     pattern = characters.reach_pattern(case.adjacency, idx, characters.DELTA_MUSH_RINGS)
     k = len(idx)
     augmented = pattern.tolil()
@@ -232,7 +236,7 @@ def reference(case: characters.Case, iterations: int) -> tuple[Optimum, int, flo
         found = least_squares(misfit, np.zeros(3 * k), jac_sparsity=augmented.tocsr(), method="trf", tr_solver="lsmr",
                               x_scale="jac", max_nfev=iterations, diff_step=1e-4)
     seconds = time.perf_counter() - started
-    return unreachable_objective(case)(found.x.reshape(k, 3)), calls[0], seconds
+    return objective(found.x.reshape(k, 3)), calls[0], seconds
 
 
 def bench_shipped(iterations: int, raw: list[dict]) -> list[list[str]]:
@@ -244,8 +248,9 @@ def bench_shipped(iterations: int, raw: list[dict]) -> list[list[str]]:
         seconds = time.perf_counter() - started
         residual, atol, diagonal = residuals(case.box, case.rest, case.sculpt, res.indices, res.offsets)
         rms = float(np.sqrt(np.mean(residual**2))) / diagonal
-        ours = unreachable_objective(case)(res.offsets)
-        ref, ref_calls, ref_seconds = (reference(case, iterations) if iterations > 0 else
+        objective = UnreachableObjective.of(case)
+        ours = objective(res.offsets)
+        ref, ref_calls, ref_seconds = (reference(objective, iterations) if iterations > 0 else
                                        (Optimum(float("nan"), float("nan"), float("nan")), 0, 0.0))
         optimum, unreachable = getattr(res, "at_optimum", None), getattr(res, "unreachable_fraction", None)
         rows.append([case.name.removesuffix(" shipped"), str(res.evaluations), f"{seconds:.1f}", f"{rms:.3e}",

@@ -270,12 +270,9 @@ def say_fit(ui: Ui, result: FitResult, output: str, changes: GroupChanges | None
         detail = ", ".join(f"{name} {count}" for name, count in sorted(why.items()))
         ui.warn(f"{output}: {result.missed} vertices missed the fit tolerance ({detail}; see --report; --strict makes "
                 "this fatal)")
-        said: set[tuple[str, str, float]] = set()  # each example once: a default fit's groups all carry it
-        for m in result.meshes:
-            for ex, inv in zip(m.examples, m.inverses, strict=True):
-                if len(inv.missed) and inv.regime != "per-vertex" and (m.mesh, ex.source, ex.time) not in said:
-                    said.add((m.mesh, ex.source, ex.time))
-                    ui.warn(f"{output}: {_unreachable_line(ex.label, inv)}")
+        for ex, inv in result.solved.values():  # each example once: a default fit's groups all carry it
+            if len(inv.missed) and inv.regime != "per-vertex":
+                ui.warn(f"{output}: {_unreachable_line(ex.label, inv)}")
     if result.settings.smoothing > 0 and result.checks:
         worst = max(result.checks, key=lambda c: c.error)
         ui.warn(f"{output}: --smoothing {result.settings.smoothing:g}: the product approximates the examples "

@@ -110,11 +110,16 @@ class FitResult:
     splits: tuple[ExampleSplit, ...] = ()
 
     @property
-    def solves(self) -> dict[tuple[str, str, float], InverseResult]:
-        """Each example's inverse once, by (mesh, source, time): the groups of one default fit of
-        a mesh all carry every example of it."""
-        return {(m.mesh, ex.source, ex.time): inv for m in self.meshes
+    def solved(self) -> dict[tuple[str, str, float], tuple[Example, InverseResult]]:
+        """Each example and its inverse once, by (mesh, source, time): the groups of one default
+        fit of a mesh all carry every example of it."""
+        return {(m.mesh, ex.source, ex.time): (ex, inv) for m in self.meshes
                 for ex, inv in zip(m.examples, m.inverses, strict=True)}
+
+    @property
+    def solves(self) -> dict[tuple[str, str, float], InverseResult]:
+        """Each example's inverse once, by (mesh, source, time) (``solved``)."""
+        return {key: inv for key, (_, inv) in self.solved.items()}
 
     @property
     def missed(self) -> int:

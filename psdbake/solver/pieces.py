@@ -109,13 +109,12 @@ class Piece:
 @dataclass(frozen=True)
 class PiecesResult:
     """The small pieces' offsets: ``members`` (positions in the region's indices), their
-    ``offsets`` (len(members), 3), the chain's outputs at rest + offsets (all n points, from one
-    call) and the calls made."""
+    ``offsets`` (len(members), 3) and the chain's outputs at rest + offsets (all n points, from
+    one call)."""
 
     members: NDArray[np.int64]
     offsets: NDArray[np.float64]
     outputs: Points
-    calls: int
 
 
 def small_pieces(adjacency: sp.csr_matrix, idx: NDArray[np.int64], limit: int = SMALL_PIECE) -> list[Piece]:
@@ -145,14 +144,20 @@ class Colouring:
         return Colouring([np.array([j]) for j in range(m)], [np.full(m, j) for j in range(m)])
 
 
+def _rings(adjacency: sp.csr_matrix, piece: Piece, sources: NDArray[np.int64]) -> NDArray[np.float64]:
+    """Edges between ``sources`` (positions in ``piece.vertices``) and every vertex of the piece,
+    through the piece: (len(sources), len(piece.vertices))."""
+    graph = adjacency[piece.vertices][:, piece.vertices]
+    return np.asarray(shortest_path(graph, unweighted=True, directed=False, indices=sources), dtype=np.float64)
+
+
 def colouring(adjacency: sp.csr_matrix, piece: Piece, idx: NDArray[np.int64], reach: int) -> Colouring:
     """Greedy colouring of ``piece``'s sculpted vertices so that two of one colour are more than
     ``2 * reach`` edges apart (through the whole piece): moved together, no output within
     ``reach`` edges of one is within ``reach`` of another, so each output changes for one of
     them only and is that one's column (Curtis-Powell-Reid's idea for sparse Jacobians)."""
     inside = np.searchsorted(piece.vertices, idx[piece.positions])  # the sculpted vertices, in the piece
-    graph = adjacency[piece.vertices][:, piece.vertices]
-    rings = shortest_path(graph, unweighted=True, directed=False, indices=inside)[:, inside]  # (m, m)
+    rings = _rings(adjacency, piece, inside)[:, inside]  # (m, m)
     colour = np.full(len(inside), -1)
     for v in range(len(inside)):
         near = colour[rings[v] <= 2 * reach]
@@ -187,10 +192,8 @@ def measure_reach(call: BlackBox, at: Points, out: Points, adjacency: sp.csr_mat
         changed = np.nonzero(local > COUPLING_RTOL * float(local.max(initial=0.0)))[0]
         if not len(changed):
             continue
-        start = int(np.searchsorted(piece.vertices, v[0]))
-        rings = shortest_path(adjacency[piece.vertices][:, piece.vertices], unweighted=True, directed=False,
-                              indices=[start])[0]
-        farthest = max(farthest, int(np.max(rings[changed])))
+        start = np.searchsorted(piece.vertices, v[:1])
+        farthest = max(farthest, int(np.max(_rings(adjacency, piece, start)[0, changed])))
     return farthest if farthest >= 0 else None
 
 
@@ -246,7 +249,7 @@ def solve_small_pieces(call: BlackBox, rest: Points, sculpt: Points, base: Point
     measured = jacobians(call, rest, base, pieces, vertex, STEP_RTOL * diagonal)
     if measured is None:
         return None
-    jac, calls = measured
+    jac = measured[0]
     offsets = [np.zeros((len(v), 3)) for v in vertex]
 
     def accepted() -> Points:  # rest with every piece at its accepted offsets
@@ -272,7 +275,6 @@ def solve_small_pieces(call: BlackBox, rest: Points, sculpt: Points, base: Point
             steps[q] = scale[q] * s
             moved[vertex[q]] += steps[q].reshape(-1, 3)
         out = call(moved)
-        calls += 1
         if not np.all(np.isfinite(out)):
             return None
         improved = False
@@ -292,11 +294,10 @@ def solve_small_pieces(call: BlackBox, rest: Points, sculpt: Points, base: Point
         if stalled >= STALL_STEPS:
             break
     outputs = call(accepted())  # every piece at its accepted offsets, in one call
-    calls += 1
     if not np.all(np.isfinite(outputs)):
         return None
     members = np.concatenate([p.positions for p in pieces])
-    return PiecesResult(members, np.concatenate(offsets), outputs, calls)
+    return PiecesResult(members, np.concatenate(offsets), outputs)
 
 
 def batches(pieces: list[Piece]) -> list[list[Piece]]:
@@ -324,17 +325,14 @@ def jacobian_calls(pieces: list[Piece]) -> int:
 class ExactResult:
     """Offsets for some pieces from their exact Jacobians (``solve_exactly``): ``members``
     (positions in the region's indices), their ``offsets``, the chain's outputs with every
-    piece at its offsets (all n points), the calls made, and which members belong to a piece
-    the chain cannot reproduce (``unreachable``: solved on the stronger ridge) and to a piece
-    whose solve ended at its optimum (``settled``: its model saw nothing left to gain, or a step
+    piece at its offsets (all n points), and which members belong to a piece whose solve ended
+    at its optimum (``settled``: its model saw nothing left to gain, or a step
     gained next to nothing), not on its step budget or on steps cut until they vanished (a
     chain whose small moves say nothing of its large ones, as one that snaps to a grid)."""
 
     members: NDArray[np.int64]
     offsets: NDArray[np.float64]
     outputs: Points
-    calls: int
-    unreachable: NDArray[np.bool_]
     settled: NDArray[np.bool_]
 
 
@@ -359,7 +357,7 @@ def solve_exactly(call: BlackBox, rest: Points, sculpt: Points, idx: NDArray[np.
     offsets = [start[p.positions].ravel().copy() for p in pieces]
     current = [start_outputs[v].ravel().copy() for v in vertex]
     targets = [sculpt[v].ravel() for v in vertex]
-    rho, hard, settled = [ridge] * count, [False] * count, [False] * count
+    rho, settled = [ridge] * count, [False] * count
     optimal = [False] * count  # settled by a step that gained next to nothing, not by cut steps
     gained = [False] * count
     factors: list[tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]] | None] = [None] * count
@@ -381,6 +379,7 @@ def solve_exactly(call: BlackBox, rest: Points, sculpt: Points, idx: NDArray[np.
         return float(np.sum((targets[q] - out) ** 2)) + rho[q] * float(off @ off)
 
     reach: list[int | None] = []  # measured once, by the first measure
+    plans: dict[int, Colouring] = {}  # each piece's colouring, for its measures again
 
     def measure(which: list[int]) -> bool:
         """The Jacobians of pieces ``which`` where they are now (coloured by the chain's
@@ -395,7 +394,10 @@ def solve_exactly(call: BlackBox, rest: Points, sculpt: Points, idx: NDArray[np.
             calls += 1
         found = None
         if reach[0] is not None:
-            plan = [colouring(adjacency, p, idx, reach[0] + REACH_MARGIN) for p in chosen]
+            for q in which:
+                if q not in plans:
+                    plans[q] = colouring(adjacency, pieces[q], idx, reach[0] + REACH_MARGIN)
+            plan = [plans[q] for q in which]
             if max(len(c.classes) for c in plan) < max(len(v) for v in where):
                 found = jacobians(call, at, base, chosen, where, STEP_RTOL * diagonal, plan)
                 if found is None:  # an output beyond the reach moved: a vertex a call (its calls, at most)
@@ -456,7 +458,7 @@ def solve_exactly(call: BlackBox, rest: Points, sculpt: Points, idx: NDArray[np.
         else:  # the pieces the chain cannot reproduce, on the stronger ridge
             todo = [q for q in range(count) if worst(q) > REACHABLE_SLACK * atol]
             for q in todo:
-                rho[q], hard[q], settled[q], optimal[q] = unreachable_ridge, True, False, False
+                rho[q], settled[q], optimal[q] = unreachable_ridge, False, False
         if not todo:
             continue
         if phase == 0 and not measure(todo):
@@ -480,5 +482,5 @@ def solve_exactly(call: BlackBox, rest: Points, sculpt: Points, idx: NDArray[np.
         return None
     members = np.concatenate([p.positions for p in pieces])
     sizes = [len(p.positions) for p in pieces]
-    return ExactResult(members, np.concatenate(offsets).reshape(-1, 3), outputs, calls,
-                       np.repeat(hard, sizes).astype(bool), np.repeat(optimal, sizes).astype(bool))
+    return ExactResult(members, np.concatenate(offsets).reshape(-1, 3), outputs,
+                       np.repeat(optimal, sizes).astype(bool))

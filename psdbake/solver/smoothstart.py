@@ -190,7 +190,7 @@ class SpanModel:
         cu = self.apply(u)
         self.steps.append(y / yy)
         self.changes.append(u)
-        gram += (np.outer(cu, y) + np.outer(y, cu)) / yy + np.outer(y, y) * (float(u @ u) / yy**2)
+        _gram_update(gram, y, u, cu)
 
     def leading(self, fields: int) -> SpanModel:
         """The model on the first ``fields`` fields only (the coarse span), without updates."""
@@ -320,5 +320,13 @@ def broyden(cols: NDArray[np.float64], gram: NDArray[np.float64], y: NDArray[np.
     cu = cols @ u
     for j in np.nonzero(y)[0]:
         cols[j] += (y[j] / yy) * u
+    _gram_update(gram, y, u, cu)
+
+
+def _gram_update(gram: NDArray[np.float64], y: NDArray[np.float64], u: NDArray[np.float64],
+                 cu: NDArray[np.float64]) -> None:
+    """``G = C C^T`` after Broyden's ``C += y u^T / (y.y)``, in place (``cu`` is ``C u`` before):
+    ``G += (C u y^T + y (C u)^T) / (y.y) + y y^T (u.u) / (y.y)^2``."""
+    yy = float(y @ y)
     gram += (np.outer(cu, y) + np.outer(y, cu)) / yy + np.outer(y, y) * (float(u @ u) / yy**2)
 
