@@ -51,12 +51,13 @@ Jacobian, for a smoothing deformer the skinning's own blocks) and its linearised
    measures, the slower stages are left out for it (``_exact_pieces_instead``).
 4. Where vertices still miss on pieces of the mesh of at most ``pieces.EXACT_PIECE`` vertices:
    **those pieces' exact Jacobians** (``_exact_pieces``, ``pieces.solve_exactly``), measured
-   where the stages above left them (3 calls a colour of the largest piece, its vertices
-   coloured by the chain's measured reach, shared by all pieces), and chord Gauss-Newton steps
-   per piece. A piece still far above the tolerance at its optimum holds what the chain cannot
-   produce, and is solved on the stronger ``UNREACHABLE_RIDGE`` so that its offsets stay
-   bounded. About 1,100 calls on CesiumMan (its large pieces need ~2,500 directions the chain
-   passes at 1e-3 of its gain), none where the stages above reach the tolerance.
+   where the stages above left them, on the vertices still above the tolerance and their
+   1-ring (3 calls a colour of the largest piece, its vertices coloured by the chain's measured
+   reach, shared by all pieces), and chord Gauss-Newton steps per piece. A piece still far
+   above the tolerance at its optimum holds what the chain cannot produce, and is solved on the
+   stronger ``UNREACHABLE_RIDGE``, every vertex an unknown, so that its offsets stay bounded.
+   About 750 calls on CesiumMan (its large pieces need ~2,500 directions the chain passes at
+   1e-3 of its gain), none where the stages above reach the tolerance.
 
 The result is ``at_optimum`` when the last Krylov space could not lower the residual's linear
 model by ``OPTIMUM_RTOL``, or when the pieces stage 4 could not settle at their optimum hold at

@@ -18,9 +18,12 @@ where the other stages leave vertices above the tolerance: on CesiumMan's large 
 sculpt needs ~2,500 directions the chain passes at 1e-3 of its gain, which no span of a few
 dozen calls holds. There the Jacobian is coloured (Curtis, Powell and Reid's sparse
 differences): one call measures how far a vertex's move reaches (``measure_reach``), and
-vertices more than twice that apart move in one call (``colouring``); the chord steps run on
-each piece's regularised misfit, and a piece the chain cannot reproduce goes on with a stronger
-ridge, which bounds its offsets.
+vertices more than twice that apart move in one call (``colouring``). Its columns are those
+of the vertices still above the tolerance and their 1-ring (on CesiumMan 103 of the 731-vertex
+piece's vertices miss when the stage starts), read on every sculpted vertex's output, and
+widened where others go above it; the chord steps run on each piece's regularised misfit, and
+a piece the chain cannot reproduce goes on with a stronger ridge and every vertex an unknown,
+which bounds its offsets.
 
 Only the chain is called. Whether the pieces really are independent shows in those calls: an
 output outside the moved vertices' pieces that changes means they are not, and the stage gives
@@ -74,6 +77,13 @@ EXACT_ENTRIES = 25_000_000
 #: probed one's still stays within its colour's rows; one much longer shows as a stray output
 #: and the Jacobian is measured a vertex a call instead.
 REACH_MARGIN = 1
+#: ``solve_exactly``'s unknowns: a piece's vertices within this many edges of those above the
+#: tolerance where the stage starts (then within one more of those above it after the steps).
+#: CesiumMan through the chain, calls an example (every vertex within the tolerance): 902 and
+#: 939 with 1 ring; 1,147 and 942 with 2; every vertex of a piece an unknown, 1,271 and 1,299;
+#: only the vertices above it, 775 and 1,526 with 4 and 7 vertices left (their neighbours'
+#: offsets are needed too).
+UNKNOWN_RINGS = 1
 #: Chord steps (one call each, shared by all pieces) on the Jacobians measured at the start,
 #: in each of ``solve_exactly``'s two phases. A piece settles (its optimum) when an accepted
 #: step lowers its objective by less than CHORD_MIN_GAIN of it, or its step has been cut
@@ -139,9 +149,9 @@ class Colouring:
     owner: list[NDArray[np.int64]]
 
     @staticmethod
-    def plain(m: int) -> Colouring:
-        """One vertex a call."""
-        return Colouring([np.array([j]) for j in range(m)], [np.full(m, j) for j in range(m)])
+    def plain(m: int, rows: int | None = None) -> Colouring:
+        """One vertex a call (of ``m`` moved; ``rows`` outputs read, ``m`` unless given)."""
+        return Colouring([np.array([j]) for j in range(m)], [np.full(m if rows is None else rows, j) for j in range(m)])
 
 
 def _rings(adjacency: sp.csr_matrix, piece: Piece, sources: NDArray[np.int64]) -> NDArray[np.float64]:
@@ -151,23 +161,27 @@ def _rings(adjacency: sp.csr_matrix, piece: Piece, sources: NDArray[np.int64]) -
     return np.asarray(shortest_path(graph, unweighted=True, directed=False, indices=sources), dtype=np.float64)
 
 
-def colouring(adjacency: sp.csr_matrix, piece: Piece, idx: NDArray[np.int64], reach: int) -> Colouring:
-    """Greedy colouring of ``piece``'s sculpted vertices so that two of one colour are more than
-    ``2 * reach`` edges apart (through the whole piece): moved together, no output within
-    ``reach`` edges of one is within ``reach`` of another, so each output changes for one of
+def colouring(adjacency: sp.csr_matrix, piece: Piece, idx: NDArray[np.int64], reach: int,
+              unknown: NDArray[np.int64] | None = None) -> Colouring:
+    """Greedy colouring of ``piece``'s sculpted vertices (of those at ``unknown``, positions
+    among them, where given) so that two of one colour are more than ``2 * reach`` edges apart
+    (through the whole piece): moved together, no output within ``reach`` edges of one is
+    within ``reach`` of another, so each output (every sculpted vertex's) changes for one of
     them only and is that one's column (Curtis-Powell-Reid's idea for sparse Jacobians)."""
     inside = np.searchsorted(piece.vertices, idx[piece.positions])  # the sculpted vertices, in the piece
-    rings = _rings(adjacency, piece, inside)[:, inside]  # (m, m)
-    colour = np.full(len(inside), -1)
-    for v in range(len(inside)):
-        near = colour[rings[v] <= 2 * reach]
-        taken = np.zeros(len(inside) + 1, dtype=bool)
+    moving = np.arange(len(inside)) if unknown is None else unknown
+    rings = _rings(adjacency, piece, inside[moving])[:, inside]  # (s, m): from each moved vertex to each output
+    apart = rings[:, moving]
+    colour = np.full(len(moving), -1)
+    for v in range(len(moving)):
+        near = colour[apart[v] <= 2 * reach]
+        taken = np.zeros(len(moving) + 1, dtype=bool)
         taken[near[near >= 0]] = True
         colour[v] = int(np.argmin(taken))
     classes = [np.nonzero(colour == c)[0] for c in range(int(colour.max()) + 1)]
     owner = []
     for members in classes:
-        close = rings[:, members] <= reach  # (m, len(members))
+        close = rings[members].T <= reach  # (m, len(members))
         found = np.where(close.any(axis=1), members[np.argmax(close, axis=1)], -1)
         owner.append(found.astype(np.int64))
     return Colouring(classes, owner)
@@ -198,17 +212,19 @@ def measure_reach(call: BlackBox, at: Points, out: Points, adjacency: sp.csr_mat
 
 
 def jacobians(call: BlackBox, at: Points, out: Points, pieces: list[Piece], vertex: list[NDArray[np.int64]],
-              h: float, colours: list[Colouring] | None = None) -> tuple[list[NDArray[np.float64]], int] | None:
+              h: float, colours: list[Colouring] | None = None,
+              unknowns: list[NDArray[np.int64]] | None = None) -> tuple[list[NDArray[np.float64]], int] | None:
     """Each piece's exact Jacobian at the points ``at`` (whose outputs are ``out``): forward
     differences of step ``h``, one call moving one vertex of every piece along one axis
-    (``vertex[q]``: piece q's sculpted vertices in the mesh), so 3 calls a vertex of the
-    largest piece; with ``colours`` (``colouring``), one call moves a whole colour of every
-    piece, so 3 calls a colour. With the calls made; None where an output outside the moved
-    pieces changed (the pieces are not independent), an output farther from the moved
-    vertices than the colouring's reach did (it does not hold), or the chain returned
-    non-finite values."""
-    jac = [np.zeros((3 * len(v), 3 * len(v))) for v in vertex]
-    plan = colours or [Colouring.plain(len(v)) for v in vertex]
+    (``vertex[q]``: piece q's sculpted vertices in the mesh, its outputs; ``unknowns[q]``, the
+    ones moved, all of them unless given), so 3 calls a vertex of the largest piece; with
+    ``colours`` (``colouring``), one call moves a whole colour of every piece, so 3 calls a
+    colour. With the calls made; None where an output outside the moved pieces changed (the
+    pieces are not independent), an output farther from the moved vertices than the
+    colouring's reach did (it does not hold), or the chain returned non-finite values."""
+    moves = vertex if unknowns is None else unknowns
+    jac = [np.zeros((3 * len(v), 3 * len(u))) for v, u in zip(vertex, moves, strict=True)]
+    plan = colours or [Colouring.plain(len(u), len(v)) for v, u in zip(vertex, moves, strict=True)]
     calls = 0
     for k in range(max(len(c.classes) for c in plan)):  # 3 calls per colour: its columns of every piece at once
         moving = [q for q, c in enumerate(plan) if k < len(c.classes)]
@@ -218,7 +234,7 @@ def jacobians(call: BlackBox, at: Points, out: Points, pieces: list[Piece], vert
         for axis in range(3):
             moved = at.copy()
             for q in moving:
-                moved[vertex[q][plan[q].classes[k]], axis] += h
+                moved[moves[q][plan[q].classes[k]], axis] += h
             change = call(moved)
             calls += 1
             if not np.all(np.isfinite(change)):
@@ -341,15 +357,18 @@ def solve_exactly(call: BlackBox, rest: Points, sculpt: Points, idx: NDArray[np.
                   unreachable_ridge: float, max_calls: int, adjacency: sp.csr_matrix) -> ExactResult | None:
     """Pieces whose vertices other stages left above the tolerance, on their exact Jacobians
     measured at ``start`` (the region's offsets, (len(idx), 3), which the other pieces keep;
-    ``start_outputs`` the chain there, all n points): chord Gauss-Newton steps (each
-    Jacobian's SVD computed once) on each piece's ``|r|^2 + rho |D|^2``, one call a step for
-    all pieces, each piece's step accepted or cut on its own; a piece not at its optimum that
-    took steps has its Jacobian measured again where they left it (a large piece only where it
-    holds ``REMEASURE_SHARE`` of the residual), up to ``REMEASURES`` times while ``max_calls``
-    allows (one whose every step was cut is not: its Jacobian says nothing of the chain at the
-    scale of a step). ``rho`` is ``ridge`` (the objective's), and where a piece still misses the
-    tolerance by more than ``REACHABLE_SLACK`` times after that, the sculpt asks what the chain
-    cannot produce there: that piece goes on with ``unreachable_ridge``, which bounds its
+    ``start_outputs`` the chain there, all n points), their columns those of the vertices within
+    ``UNKNOWN_RINGS`` of the ones above the tolerance (the others held): chord Gauss-Newton
+    steps (each Jacobian's SVD computed once) on each piece's ``|r|^2 + rho |D|^2``, one call a
+    step for all pieces, each piece's step accepted or cut on its own. A piece that took steps
+    and is not at its optimum, or whose steps left vertices beyond its unknowns above the
+    tolerance, has its Jacobian measured again where they left it, those vertices and their
+    neighbours unknowns too (a large piece only where it holds ``REMEASURE_SHARE`` of the
+    residual), up to ``REMEASURES`` times while ``max_calls`` allows (one whose every step was
+    cut is not: its Jacobian says nothing of the chain at the scale of a step). ``rho`` is
+    ``ridge`` (the objective's), and where a piece still misses the tolerance by more than
+    ``REACHABLE_SLACK`` times after that, the sculpt asks what the chain cannot produce there:
+    that piece goes on with ``unreachable_ridge`` and every vertex an unknown, which bounds its
     offsets (``coupled.UNREACHABLE_RIDGE``). None where the pieces turn out not to be
     independent or the chain returns non-finite values."""
     count = len(pieces)
@@ -361,6 +380,20 @@ def solve_exactly(call: BlackBox, rest: Points, sculpt: Points, idx: NDArray[np.
     optimal = [False] * count  # settled by a step that gained next to nothing, not by cut steps
     gained = [False] * count
     factors: list[tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]] | None] = [None] * count
+    # each piece's unknowns (positions among its sculpted vertices): those above the tolerance
+    # where the stages left them, and those that go above it later; every one where the chain
+    # cannot reproduce the piece
+    inside = [np.searchsorted(p.vertices, v) for p, v in zip(pieces, vertex, strict=True)]
+
+    def around(q: int, seeds: NDArray[np.int64], rings: int) -> NDArray[np.int64]:
+        """Piece q's sculpted vertices within ``rings`` edges of ``seeds`` (positions among them)."""
+        if not len(seeds):
+            return seeds
+        near = _rings(adjacency, pieces[q], inside[q][seeds])[:, inside[q]] <= rings
+        return np.nonzero(near.any(axis=0))[0]
+
+    unknown = [around(q, np.nonzero(np.linalg.norm((targets[q] - current[q]).reshape(-1, 3), axis=1) > atol)[0],
+                      UNKNOWN_RINGS) for q in range(count)]
     calls = 0
 
     held = rest.copy()  # every other sculpted vertex where ``start`` has it
@@ -378,6 +411,19 @@ def solve_exactly(call: BlackBox, rest: Points, sculpt: Points, idx: NDArray[np.
     def objective(q: int, out: NDArray[np.float64], off: NDArray[np.float64]) -> float:
         return float(np.sum((targets[q] - out) ** 2)) + rho[q] * float(off @ off)
 
+    def coordinates(q: int) -> NDArray[np.int64]:
+        return (3 * unknown[q][:, None] + np.arange(3)).ravel()
+
+    def newcomers(q: int) -> NDArray[np.int64]:
+        """Piece q's vertices near those above the tolerance now that are not yet unknowns."""
+        left_above = np.nonzero(np.linalg.norm((targets[q] - current[q]).reshape(-1, 3), axis=1) > atol)[0]
+        return np.setdiff1d(around(q, left_above, UNKNOWN_RINGS + 1), unknown[q])
+
+    def widen(q: int, more: NDArray[np.int64]) -> None:
+        """Piece q's unknowns with ``more`` (only right before its Jacobian is measured again)."""
+        unknown[q] = np.union1d(unknown[q], more)
+        plans.pop(q, None)
+
     reach: list[int | None] = []  # measured once, by the first measure
     plans: dict[int, Colouring] = {}  # each piece's colouring, for its measures again
 
@@ -389,6 +435,7 @@ def solve_exactly(call: BlackBox, rest: Points, sculpt: Points, idx: NDArray[np.
         base = call(at)
         calls += 1
         chosen, where = [pieces[q] for q in which], [vertex[q] for q in which]
+        moving = [vertex[q][unknown[q]] for q in which]
         if not reach:
             reach.append(measure_reach(call, at, base, adjacency, chosen, where, STEP_RTOL * diagonal))
             calls += 1
@@ -396,20 +443,24 @@ def solve_exactly(call: BlackBox, rest: Points, sculpt: Points, idx: NDArray[np.
         if reach[0] is not None:
             for q in which:
                 if q not in plans:
-                    plans[q] = colouring(adjacency, pieces[q], idx, reach[0] + REACH_MARGIN)
+                    plans[q] = colouring(adjacency, pieces[q], idx, reach[0] + REACH_MARGIN, unknown[q])
             plan = [plans[q] for q in which]
-            if max(len(c.classes) for c in plan) < max(len(v) for v in where):
-                found = jacobians(call, at, base, chosen, where, STEP_RTOL * diagonal, plan)
+            if max(len(c.classes) for c in plan) < max(len(u) for u in moving):
+                found = jacobians(call, at, base, chosen, where, STEP_RTOL * diagonal, plan, moving)
                 if found is None:  # an output beyond the reach moved: a vertex a call (its calls, at most)
                     calls += 3 * max(len(c.classes) for c in plan)
         if found is None:
-            found = jacobians(call, at, base, chosen, where, STEP_RTOL * diagonal)
+            found = jacobians(call, at, base, chosen, where, STEP_RTOL * diagonal, unknowns=moving)
         if found is None:
             return False
         calls += found[1]
         for q, a in zip(which, found[0], strict=True):
-            factors[q] = np.linalg.svd(a)
+            factors[q] = np.linalg.svd(a, full_matrices=False)
         return True
+
+    def measure_calls(sizes: list[int]) -> int:
+        """At most what ``measure`` spends on pieces of ``sizes`` unknowns: a vertex a call."""
+        return 3 * max(sizes) + 1
 
     def chord(which: list[int]) -> bool:
         """Up to CHORD_STEPS steps on pieces ``which`` until each is within the tolerance or
@@ -428,9 +479,11 @@ def solve_exactly(call: BlackBox, rest: Points, sculpt: Points, idx: NDArray[np.
                 assert factor is not None  # measured before any chord on it
                 u, sv, vt = factor
                 r = targets[q] - current[q]
-                step = vt.T @ ((sv * (u.T @ r) - rho[q] * (vt @ offsets[q])) / (sv**2 + rho[q]))
+                where = coordinates(q)
+                step = np.zeros_like(offsets[q])
+                step[where] = vt.T @ ((sv * (u.T @ r) - rho[q] * (vt @ offsets[q][where])) / (sv**2 + rho[q]))
                 now = objective(q, current[q], offsets[q])
-                predicted = objective(q, current[q] + u @ (sv * (vt @ step)), offsets[q] + step)
+                predicted = objective(q, current[q] + u @ (sv * (vt @ step[where])), offsets[q] + step)
                 if now - predicted <= CHORD_MIN_GAIN * now:  # the model sees nothing left to gain here
                     settled[q] = optimal[q] = True
                     continue
@@ -455,24 +508,30 @@ def solve_exactly(call: BlackBox, rest: Points, sculpt: Points, idx: NDArray[np.
     for phase in range(2):
         if phase == 0:
             todo = [q for q in range(count) if worst(q) > atol]
-        else:  # the pieces the chain cannot reproduce, on the stronger ridge
+        else:  # the pieces the chain cannot reproduce, on the stronger ridge, every vertex an unknown
             todo = [q for q in range(count) if worst(q) > REACHABLE_SLACK * atol]
             for q in todo:
                 rho[q], settled[q], optimal[q] = unreachable_ridge, False, False
         if not todo:
             continue
-        if phase == 0 and not measure(todo):
+        stale = [q for q in todo if factors[q] is None or len(unknown[q]) < len(pieces[q].positions)]
+        if phase == 1:
+            for q in stale:
+                widen(q, np.arange(len(pieces[q].positions)))
+        if stale and not measure(stale):
             return None
         for _ in range(1 + REMEASURES):
             if not chord(todo):
                 return None
             left = sum(float(np.sum((targets[p] - current[p]) ** 2)) for p in range(count))
-            todo = [q for q in todo if worst(q) > atol and not optimal[q] and gained[q]  # still on its way,
+            more = {q: newcomers(q) for q in todo if worst(q) > atol and gained[q]}  # still on its way,
+            todo = [q for q in more if (len(more[q]) or not optimal[q])  # with new unknowns or short of its optimum,
                     and (len(pieces[q].positions) <= SMALL_PIECE  # and cheap to measure again
                          or float(np.sum((targets[q] - current[q]) ** 2)) > REMEASURE_SHARE * left)]  # or worth it
-            if not todo or calls + jacobian_calls([pieces[q] for q in todo]) > max_calls:
+            if not todo or calls + measure_calls([len(unknown[q]) + len(more[q]) for q in todo]) > max_calls:
                 break
             for q in todo:  # measured again where they are, and on
+                widen(q, more[q])
                 settled[q] = False
             if not measure(todo):
                 return None
