@@ -9,7 +9,7 @@ import contextlib
 import json
 import sys
 import warnings
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from typing import TYPE_CHECKING, Any
 from warnings import WarningMessage
 
@@ -29,6 +29,15 @@ if TYPE_CHECKING:  # the results are only read here: importing them would load n
 
 #: eval -v counts a channel as on in a frame above this weight (a display threshold, not a tolerance).
 _SHOWN_ON = 1e-3
+#: The summary's group names: longer ones are shortened as the layer's names are (a prefix and
+#: 8 hex digits of a hash, ``channels.short_name``), at most _DRIVERS_SHOWN drivers are named a
+#: group, and at most _NAMES_SHOWN groups a fit replaced as it routinely does (``-v`` shows
+#: every name whole). A real character's combination groups are named after every joint they
+#: combine: CesiumMan's longest is 190 characters, and a second fit's "replaced" line ran to
+#: 2,900.
+_GROUP_WIDTH = 48
+_DRIVERS_SHOWN = 4
+_NAMES_SHOWN = 8
 
 
 class Ui:
@@ -185,10 +194,21 @@ def changes_payload(changes: GroupChanges) -> dict:
                         if g in changes.origins}}
 
 
+def _named(names: Sequence[str], limit: int | None = None, width: int | None = None) -> str:
+    """Group names, at most ``limit`` of them (the rest counted), each shortened to ``width``
+    bytes as the layer's names are (``channels.short_name``)."""
+    from .model.channels import short_name  # here, not at the top: --help must not load numpy
+
+    shown = names if limit is None else names[:limit]
+    text = ", ".join(n if width is None else short_name(n, width) for n in shown)
+    return text + (f" and {len(names) - len(shown)} more" if len(shown) < len(names) else "")
+
+
 def say_changes(ui: Ui, changes: GroupChanges, output: str) -> None:
     """One line per kind of change to the groups of output; removals and protections always shown."""
-    parts = [f"added {', '.join(changes.added)}"] if changes.added else []
-    parts += [f"{what} {changes.shown(names)}" for what, names in (("replaced", changes.replaced),
+    capped = () if ui.verbose else (_NAMES_SHOWN, _GROUP_WIDTH)
+    parts = [f"added {_named(changes.added, *capped)}"] if changes.added else []
+    parts += [f"{what} {changes.shown(names, *capped)}" for what, names in (("replaced", changes.replaced),
                                                                   ("removed", changes.removed)) if names]
     parts += [f"renamed {', '.join(changes.renamed)}"] if changes.renamed else []
     if changes.kept:
@@ -207,13 +227,16 @@ def _say_decomposed(ui: Ui, groups: list, result: FitResult) -> None:
     first = groups[0]
     ui.say(f"  <{first.mesh}>  {len(groups)} group(s) fitted together from {len(first.examples)} example(s): a term per "
            "joint, combinations on what the terms leave")
-    name_width = max(12, *(len(m.group) for m in groups))
+    shown_as = {m.group: _named([m.group], width=None if ui.verbose else _GROUP_WIDTH) for m in groups}
+    name_width = max(12, *(len(shown_as[m.group]) for m in groups))
     for m in groups:
         d = m.driver_data
-        drivers = ", ".join(j.split("/")[-1] for j in m.drivers)
+        names = [j.split("/")[-1] for j in m.drivers]
+        shown = names if ui.verbose or len(names) <= _DRIVERS_SHOWN else names[: _DRIVERS_SHOWN - 1]
+        drivers = ", ".join(shown) + (f" and {len(names) - len(shown)} more" if len(shown) < len(names) else "")
         gate = (f"  gated by {', '.join(d.gate_groups)}" if d.gate_groups
                 else "  ramp-gated" if len(d.ramp_gates) else "")
-        ui.say(f"    {m.group:<{name_width}} {m.role:<11} drivers: {drivers}  points: {m.vertices}  columns: "
+        ui.say(f"    {shown_as[m.group]:<{name_width}} {m.role:<11} drivers: {drivers}  points: {m.vertices}  columns: "
                f"{len(d.shapes)}  sigma: {d.sigma:.4g} rad{gate}")
     splits = {(x.source, x.time): x for x in result.splits if x.mesh == first.mesh}
     width = max(28, *(len(ex.label) for ex in first.examples))

@@ -341,3 +341,26 @@ def test_inspect_warns_of_a_layout_blender_misplaces(run, tmp_path):
     stage.GetRootLayer().Save()
     code, out, _ = run("inspect", fixed, "--json")
     assert code == 0 and json.loads(out)["warnings"] == []
+
+
+def test_a_real_characters_summary_names_each_group_once_in_a_readable_line(run, tmp_path):
+    """CesiumMan's combination groups are named after every joint they combine (up to 190
+    characters, 11 drivers): the summary shortens such names as the layer does (a prefix and a
+    hash, so two groups never show alike), names at most a few drivers and, on a second fit, a
+    few of the groups it replaced as it routinely does; ``-v`` shows every name whole."""
+    from conftest import CESIUM, CESIUM_EXAMPLES
+
+    out = tmp_path / "c.usda"
+    code, first, err = run("fit", CESIUM, CESIUM_EXAMPLES, "-o", out)
+    assert code == 0, err
+    rows = [line.split()[0] for line in first.splitlines() if re.search(r"^    \S+ +(joint|combination) ", line)]
+    assert len(rows) == len(set(rows)) == 34  # every group, each shown differently
+    assert max(map(len, rows)) <= 48 and max(len(line) for line in first.splitlines()) < 300
+    code, again, err = run("fit", CESIUM, CESIUM_EXAMPLES, "-o", out, "--force")
+    assert code == 0, err
+    (changes,) = [line for line in again.splitlines() if "groups: replaced" in line]
+    assert changes.endswith(" and 26 more") and len(changes) < 300
+    code, verbose, err = run("fit", CESIUM, CESIUM_EXAMPLES, "-o", out, "--force", "-v")
+    assert code == 0, err
+    longest = max((g for g in re.findall(r"combo_\w+", verbose)), key=len)
+    assert len(longest) > 150 and f"    {longest} " in verbose  # whole, in the group table

@@ -15,7 +15,7 @@ import numpy as np
 
 from ..errors import FitError, InputError, SettingError, where
 from ..lookup import did_you_mean
-from ..model.channels import channel_names
+from ..model.channels import channel_names, short_name
 from ..model.data import BlendShapeData, DriverData
 from ..model.weights import weights_at_pose
 from ..results import FitResult, MeshFit
@@ -130,11 +130,20 @@ class GroupChanges:
     origins: Mapping[str, str] = field(default_factory=dict)  # replaced and protected groups: where they came from
     routine: str = ""  # the origin text a group replaced by this kind of write has routinely ("fit of", ...)
 
-    def shown(self, names: Sequence[str]) -> str:
+    def shown(self, names: Sequence[str], limit: int | None = None, width: int | None = None) -> str:
         """Group names, each with where it came from unless that is routine for this write (a fit
-        replacing an earlier fit's group): a TD wants to see the others."""
-        return ", ".join(n if self.routine and self.origins.get(n, "").startswith(self.routine)
-                         else f"{n} ({self.origins.get(n, 'origin not recorded')})" for n in names)
+        replacing an earlier fit's group): a TD wants to see the others, every one of them. Of
+        the routine ones at most ``limit`` are named (the rest counted), each shortened to
+        ``width`` bytes as the layer's names are (``short_name``)."""
+        parts, routine = [], 0
+        for n in names:
+            if not (self.routine and self.origins.get(n, "").startswith(self.routine)):
+                parts.append(f"{n} ({self.origins.get(n, 'origin not recorded')})")
+            elif limit is None or routine < limit:
+                parts.append(n if width is None else short_name(n, width))
+                routine += 1
+        more = len(names) - len(parts)
+        return ", ".join(parts) + (f" and {more} more" if more else "")
 
 
 def names_of(groups: Groups) -> set[str]:
