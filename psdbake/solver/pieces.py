@@ -380,9 +380,6 @@ def solve_exactly(call: BlackBox, rest: Points, sculpt: Points, idx: NDArray[np.
     optimal = [False] * count  # settled by a step that gained next to nothing, not by cut steps
     gained = [False] * count
     factors: list[tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]] | None] = [None] * count
-    # each piece's unknowns (positions among its sculpted vertices): those above the tolerance
-    # where the stages left them, and those that go above it later; every one where the chain
-    # cannot reproduce the piece
     inside = [np.searchsorted(p.vertices, v) for p, v in zip(pieces, vertex, strict=True)]
 
     def around(q: int, seeds: NDArray[np.int64], rings: int) -> NDArray[np.int64]:
@@ -392,6 +389,9 @@ def solve_exactly(call: BlackBox, rest: Points, sculpt: Points, idx: NDArray[np.
         near = _rings(adjacency, pieces[q], inside[q][seeds])[:, inside[q]] <= rings
         return np.nonzero(near.any(axis=0))[0]
 
+    # each piece's unknowns (positions among its sculpted vertices): those near the ones above
+    # the tolerance where the stages left them, and near those that go above it later; every
+    # one where the chain cannot reproduce the piece
     unknown = [around(q, np.nonzero(np.linalg.norm((targets[q] - current[q]).reshape(-1, 3), axis=1) > atol)[0],
                       UNKNOWN_RINGS) for q in range(count)]
     calls = 0
