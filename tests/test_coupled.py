@@ -180,9 +180,9 @@ def test_a_folded_elbow_reaches_the_tolerance_from_the_smooth_start(run, tmp_pat
 #: Calls the joint stages of one example may take when every one runs: the smooth start's
 #: probe of the chain's smoothing and its two span solves, its Newton-Krylov finish; where that
 #: misses short of an optimum, the local polish of a few vertices (before and after the
-#: escalation), and the escalation: the blocks' smooth start (its steps) and
-#: Newton-Krylov from it, the joint solve from zero, the span's Jacobian measured (3 calls a
-#: field), its steps and Newton-Krylov from it (each stage's budget counted from its start). Before them: the
+#: escalation), and the escalation: the blocks' smooth start (its steps) and Newton-Krylov
+#: from it, the span's Jacobian measured (3 calls a field), its steps and Newton-Krylov from
+#: it, the joint solve from zero (each stage's budget counted from its start). Before them: the
 #: per-vertex solver's calls, and the chain at rest, the probe and the blocks (3) when the
 #: per-vertex solver's own calls did not show the coupling.
 JOINT_STAGES_BOUND = (1 + coupled.COARSE_SPAN_CALLS + coupled.FINE_SPAN_CALLS + coupled.FINISH_EVALUATIONS

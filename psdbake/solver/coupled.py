@@ -44,7 +44,8 @@ Jacobian, for a smoothing deformer the skinning's own blocks) and its linearised
 3. Where that misses short of an optimum: a **local polish** (``_polish``) of the few vertices
    left above the tolerance, their own Jacobian columns measured; where that misses too, the
    **slower stages** (``_escalate``: the blocks' smooth start over the region's smoothest
-   fields, Newton-Krylov from zero, the span's Jacobian measured), then the polish of the best.
+   fields, the span's Jacobian measured, Newton-Krylov from zero; each while more vertices
+   miss than the polish takes), then the polish of the best.
    The fast path alone costs a few dozen calls; these cost hundreds where they run, and the
    best of every result is kept, so an example never ends worse than the fast path left it.
    Where more vertices miss than the polish takes and all of them are on pieces that stage 4
@@ -540,38 +541,43 @@ def _escalate(call: Counted, blackbox: BlackBox, rest: Points, sculpt: Points, b
               diagonal: float, floor: float, first: InverseResult, blocks: NDArray[np.float64],
               adjacency: sp.csr_matrix, *, rtol: float, started: float) -> list[InverseResult]:
     """Where the smooth start's finish misses, is not at an optimum and the polish does not
-    finish it: the slower stages, each while the last still misses, unregularised. The blocks'
-    smooth start over the region's ``MEASURED_FIELDS`` smoothest fields
-    (``measured_smooth_start`` with the blocks as the span's model) and Newton-Krylov from it
-    (up to ``MAX_EVALUATIONS``), Newton-Krylov from zero (``FROM_ZERO_EVALUATIONS``), then the
-    span's Jacobian measured (3 calls a field) and Newton-Krylov from there; where ARPACK finds
-    no basis, the per-vertex solution and Newton-Krylov restarted from it instead. On CesiumMan,
-    through the chain from known offsets, the first of them left 844 of 2,620 vertices above
-    the tolerance where the smooth start's finish left 2,617. Every call counts; ``invert``
-    keeps the best."""
+    finish it: the slower stages, unregularised, each while the best so far leaves more
+    vertices above the tolerance than the polish takes (``POLISH_VERTICES``; ``invert``
+    polishes the best). The smooth start over the region's ``MEASURED_FIELDS`` smoothest fields
+    with the blocks as the span's model (``measured_smooth_start``) and Newton-Krylov from it
+    (up to ``MAX_EVALUATIONS``), the same with the span's Jacobian measured (3 calls a field),
+    then Newton-Krylov from zero (``FROM_ZERO_EVALUATIONS``); where ARPACK finds no basis,
+    Newton-Krylov from zero, the per-vertex solution and Newton-Krylov restarted from it. On the
+    folds where the stages ran (the 3k rig's 100 degree elbow; with the polish held back, the
+    1.3k rig's 80 and 100, the 3k rig's 80 and the character fixture's 140) the blocks' model
+    left 150-562 vertices above the tolerance, the measured span 6-580 and Newton-Krylov from
+    zero 168-1,230; the 13k rig's 60 degree elbow, which the polish leaves to them, finishes
+    with the first (118 calls; 340 with the measured span first). So the cheaper model goes
+    first, and the stages stop once the polish can take what is left (the 3k rig's 100 degree
+    elbow: 458 calls, 521 when every stage ran). Every call counts; ``invert`` keeps the best."""
     found: list[InverseResult] = []
+
+    def polishable(result: InverseResult) -> bool:
+        found.append(result)
+        return len(min(found, key=_rank).missed) <= POLISH_VERTICES
+
     basis = smooth_basis(adjacency, idx, MEASURED_FIELDS)
     if basis is not None:
-        start = measured_smooth_start(call, rest, sculpt, base, idx, diagonal, floor, basis, model=blocks)
-        blocky = invert_coupled(call, rest, sculpt, base, idx, diagonal, floor, rtol=rtol, started=started,
-                                max_evaluations=call.calls + MAX_EVALUATIONS, start=start, blocks=blocks,
-                                regularised=False)
-        found.append(dataclasses.replace(blocky, regime="coupled, from the smooth start"))
-        if not len(blocky.missed):
-            return found
+        for model, regime in ((blocks, "coupled, from the smooth start"),
+                              (None, "coupled, from the measured smooth start")):
+            start = measured_smooth_start(call, rest, sculpt, base, idx, diagonal, floor, basis, model=model)
+            spanned = invert_coupled(call, rest, sculpt, base, idx, diagonal, floor, rtol=rtol, started=started,
+                                     max_evaluations=call.calls + MAX_EVALUATIONS, start=start, blocks=blocks,
+                                     regularised=False)
+            if polishable(dataclasses.replace(spanned, regime=regime)):
+                return found
     joint = invert_coupled(call, rest, sculpt, base, idx, diagonal, floor, rtol=rtol, started=started,
                            max_evaluations=call.calls + FROM_ZERO_EVALUATIONS, blocks=blocks, regularised=False)
-    found.append(joint)
-    if not len(joint.missed):
+    if polishable(joint) or basis is not None:
         return found
-    if basis is None:  # ARPACK failed (a region of many pieces): the per-vertex solution and a restart from it
-        found.extend(_from_per_vertex(call, blackbox, rest, sculpt, base, idx, diagonal, floor, first, blocks,
-                                      rtol=rtol, started=started, regularised=False))
-        return found
-    start = measured_smooth_start(call, rest, sculpt, base, idx, diagonal, floor, basis)
-    measured = invert_coupled(call, rest, sculpt, base, idx, diagonal, floor, rtol=rtol, started=started,
-                              max_evaluations=call.calls + MAX_EVALUATIONS, start=start, blocks=blocks, regularised=False)
-    found.append(dataclasses.replace(measured, regime="coupled, from the measured smooth start"))
+    # ARPACK failed (a region of many pieces): the per-vertex solution and a restart from it
+    found.extend(_from_per_vertex(call, blackbox, rest, sculpt, base, idx, diagonal, floor, first, blocks,
+                                  rtol=rtol, started=started, regularised=False))
     return found
 
 
