@@ -529,6 +529,8 @@ def _polish(call: Counted, rest: Points, sculpt: Points, idx: NDArray[np.int64],
                 moved[vertex, axis] += h
                 measured[3 * j + axis] = ((_outputs(call, rest, idx, moved) - out) / h).ravel()
         if not np.all(np.isfinite(measured)):
+            if not len(polished):
+                return []  # the chain gave non-finite values: nothing to polish with
             break
         polished, columns = np.concatenate([polished, fresh]), np.vstack([columns, measured])
         for _ in range(POLISH_STEPS):
