@@ -587,7 +587,8 @@ def _escalate(call: Counted, blackbox: BlackBox, rest: Points, sculpt: Points, b
     elbow: 458 calls, 521 when every stage ran). Every call counts; ``invert`` keeps the best."""
     found: list[InverseResult] = []
 
-    def polishable(result: InverseResult) -> bool:
+    def keep(result: InverseResult) -> bool:
+        """Keeps ``result``; whether the best kept leaves few enough vertices for the polish."""
         found.append(result)
         return len(min(found, key=_rank).missed) <= POLISH_VERTICES
 
@@ -599,11 +600,11 @@ def _escalate(call: Counted, blackbox: BlackBox, rest: Points, sculpt: Points, b
             spanned = invert_coupled(call, rest, sculpt, base, idx, diagonal, floor, rtol=rtol, started=started,
                                      max_evaluations=call.calls + MAX_EVALUATIONS, start=start, blocks=blocks,
                                      regularised=False)
-            if polishable(dataclasses.replace(spanned, regime=regime)):
+            if keep(dataclasses.replace(spanned, regime=regime)):
                 return found
     joint = invert_coupled(call, rest, sculpt, base, idx, diagonal, floor, rtol=rtol, started=started,
                            max_evaluations=call.calls + FROM_ZERO_EVALUATIONS, blocks=blocks, regularised=False)
-    if polishable(joint) or basis is not None:
+    if keep(joint) or basis is not None:
         return found
     # ARPACK failed (a region of many pieces): the per-vertex solution and a restart from it
     found.extend(_from_per_vertex(call, blackbox, rest, sculpt, base, idx, diagonal, floor, first, blocks,
