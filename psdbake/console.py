@@ -232,8 +232,7 @@ def _say_decomposed(ui: Ui, groups: list, result: FitResult) -> None:
     for m in groups:
         d = m.driver_data
         names = [j.split("/")[-1] for j in m.drivers]
-        shown = names if ui.verbose or len(names) <= _DRIVERS_SHOWN else names[: _DRIVERS_SHOWN - 1]
-        drivers = ", ".join(shown) + (f" and {len(names) - len(shown)} more" if len(shown) < len(names) else "")
+        drivers = _named(names, None if ui.verbose or len(names) <= _DRIVERS_SHOWN else _DRIVERS_SHOWN - 1)
         gate = (f"  gated by {', '.join(d.gate_groups)}" if d.gate_groups
                 else "  ramp-gated" if len(d.ramp_gates) else "")
         ui.say(f"    {shown_as[m.group]:<{name_width}} {m.role:<11} drivers: {drivers}  points: {m.vertices}  columns: "

@@ -510,12 +510,9 @@ def test_a_snapping_chain_on_small_pieces_is_not_called_an_optimum():
     assert not res.at_optimum and set(res.missed_statuses) == {"max_cycles"}
 
 
-def test_a_coloured_jacobian_is_the_plain_one_in_fewer_calls():
-    """The pieces' Jacobians coloured by the chain's measured reach (two vertices of a colour
-    more than twice the reach apart, moved in one call) are the ones measured a vertex a call,
-    to the bit (an output within reach of one moved vertex sees none of the others), in fewer
-    calls; a reach that is too short shows as an output beyond it that moved, and the coloured
-    measurement gives up rather than return a wrong Jacobian."""
+def _measured_tube():
+    """The tube under Delta Mush as one piece, every vertex sculpted, and the chain's reach
+    through it (``pieces.measure_reach``)."""
     rest, topology = _tube()
     mush = DeltaMush(rest, topology)
     adjacency = edge_adjacency(topology)
@@ -524,7 +521,18 @@ def test_a_coloured_jacobian_is_the_plain_one_in_fewer_calls():
     where = [idx[tube.positions]]
     base = mush(rest)
     reach = pieces.measure_reach(mush, rest, base, adjacency, [tube], where, 1e-5)
-    assert reach is not None and 10 <= reach <= 12  # 10 smoothing steps; the frames' neighbours
+    assert reach is not None
+    return rest, mush, adjacency, idx, tube, where, base, reach
+
+
+def test_a_coloured_jacobian_is_the_plain_one_in_fewer_calls():
+    """The pieces' Jacobians coloured by the chain's measured reach (two vertices of a colour
+    more than twice the reach apart, moved in one call) are the ones measured a vertex a call,
+    to the bit (an output within reach of one moved vertex sees none of the others), in fewer
+    calls; a reach that is too short shows as an output beyond it that moved, and the coloured
+    measurement gives up rather than return a wrong Jacobian."""
+    rest, mush, adjacency, idx, tube, where, base, reach = _measured_tube()
+    assert 10 <= reach <= 12  # 10 smoothing steps; the frames' neighbours
     plan = pieces.colouring(adjacency, tube, idx, reach + pieces.REACH_MARGIN)
     coloured = pieces.jacobians(mush, rest, base, [tube], where, 1e-5, [plan])
     plain = pieces.jacobians(mush, rest, base, [tube], where, 1e-5)
@@ -540,16 +548,8 @@ def test_a_jacobian_over_some_vertices_is_those_columns_of_the_whole_one():
     only them and their 1-ring as unknowns: their columns, read on every sculpted vertex's
     output, coloured among themselves, are the whole Jacobian's columns to the bit, in as many
     calls as their own colours take (fewer than the whole piece's)."""
-    rest, topology = _tube()
-    mush = DeltaMush(rest, topology)
-    adjacency = edge_adjacency(topology)
-    idx = np.arange(len(rest))
-    (tube,) = pieces.small_pieces(adjacency, idx, pieces.EXACT_PIECE)
-    where = [idx[tube.positions]]
-    base = mush(rest)
+    rest, mush, adjacency, idx, tube, where, base, reach = _measured_tube()
     some = np.arange(0, len(rest), 7)[:12]  # a scattered few
-    reach = pieces.measure_reach(mush, rest, base, adjacency, [tube], where, 1e-5)
-    assert reach is not None
     whole = pieces.jacobians(mush, rest, base, [tube], where, 1e-5)
     plan = pieces.colouring(adjacency, tube, idx, reach + pieces.REACH_MARGIN, some)
     part = pieces.jacobians(mush, rest, base, [tube], where, 1e-5, [plan], [where[0][some]])
