@@ -60,6 +60,13 @@ Jacobian, for a smoothing deformer the skinning's own blocks) and its linearised
    stronger ``UNREACHABLE_RIDGE``, every vertex an unknown, so that its offsets stay bounded.
    About 750 calls on CesiumMan (its large pieces need ~2,500 directions the chain passes at
    1e-3 of its gain), none where the stages above reach the tolerance.
+5. Where the sculpt is still out of the chain's reach, no stage settled it at an optimum (a
+   piece larger than stage 4 takes) and the offsets kept exceed what ``UNREACHABLE_RIDGE``
+   lets through: **Newton-Krylov from zero on that ridge's objective** (``_regularised``),
+   kept where it lowers it. It bounds the offsets; it is not called an optimum.
+
+Of the stages' results the one kept leaves the fewest vertices above the tolerance while the
+polish can take them, else the smallest sum of squared residuals (``_rank``).
 
 The result is ``at_optimum`` when the last Krylov space could not lower the residual's linear
 model by ``OPTIMUM_RTOL``, or when the pieces stage 4 could not settle at their optimum hold at
