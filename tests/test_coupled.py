@@ -285,6 +285,8 @@ def test_a_coupled_chain_that_returns_nan_ends_without_a_crash():
     assert set(res.missed_statuses) <= {"nonfinite", "stalled", "max_cycles"}
 
 
+#: Calls an example of CesiumMan's shipped sculpts may take through LBS + Delta Mush.
+SHIPPED_BUDGET = 3000
 #: The ripple's amplitude (the 1.3k rig's diagonal is 5.3, the reachable sculpt moves up to 0.05).
 RIPPLE = 0.004
 #: Offsets may reach this multiple of the sculpt's largest displacement (the regularisation's
@@ -446,6 +448,9 @@ def test_cesiummans_shipped_sculpts_end_at_an_optimum_with_bounded_offsets(run, 
     found = json.loads(report.read_text())["meshes"][0]["examples"]
     assert [ex["at_optimum"] for ex in found] == [True, True]
     assert all(0.2 < ex["unreachable_fraction"] < 0.6 for ex in found)  # measured 0.472 and 0.300
+    # pieces far off the tolerance go on to the stronger ridge without a second Jacobian on the
+    # objective's own: measured 2,648 and 1,463 calls (5,245 and 4,587 with it)
+    assert all(ex["evaluations"] <= SHIPPED_BUDGET for ex in found)
     largest_move = max(float(np.abs(case.sculpt - case.box(case.rest)).max()) for case in characters.cesium(shipped=True))
     assert np.abs(_blend_shape_offsets(str(corr))).max() <= OFFSET_BOUND * largest_move
 

@@ -546,9 +546,9 @@ def _rank(result: InverseResult) -> tuple[int, int, float]:
     inverse minimises. On the 3k bench rig's sculpts made on the plain-skinned mesh (one
     piece of 3,120 vertices, LBS + Delta Mush) the count kept Newton-Krylov from zero, which is
     unregularised: at 80 and 120 degrees 2,855 and 3,022 vertices above the tolerance, RMS
-    5.7e-4 and 1.9e-3 of the diagonal, offsets 27x the sculpt's move, where the blocks' smooth
-    start had left all 3,120 above it at RMS 4.2e-4 and 6.0e-4, offsets within 1.2x
-    (docs/decisions/coupled-inverse-coarse-meshes.md)."""
+    5.7e-4 and 1.9e-3 of the diagonal, offsets 27x the sculpt's move; by the misfit, results
+    with 2,868 and all 3,120 above it, RMS 2.6e-4 and 6.0e-4, offsets 5.5x and 1.2x (the
+    out-of-reach stage then bounds the first; docs/decisions/coupled-inverse-coarse-meshes.md)."""
     missed = len(result.missed)
     if missed <= POLISH_VERTICES:
         return 0, missed, result.max_residual
