@@ -659,3 +659,26 @@ def test_a_piece_too_large_for_stage_4_keeps_its_offsets_bounded(plain_skinned_6
     res = coupled.invert(box, rest, target, neighbours=lambda: adjacency)
     assert res.regime.endswith(coupled.OUT_OF_REACH) and not res.at_optimum
     assert np.linalg.norm(res.offsets, axis=1).max() <= 2.5 * move
+
+
+def test_the_summary_tells_a_sculpt_out_of_reach_from_a_solve_that_stopped():
+    """The summary's line for an example that missed: at an optimum, the chain cannot reproduce
+    the sculpt; short of one but far off (RMS at least pieces.REACHABLE_SLACK times the
+    tolerance, where sculpts the chain can reproduce end within 2x), mostly what the chain
+    cannot reproduce, with how far; short of one and near, the solver stopped."""
+    from psdbake.console import _unreachable_line
+
+    n = 10
+
+    def result(size: float, optimum: bool) -> InverseResult:
+        residual = np.full(n, size)
+        status = np.full(n, powell.STALLED, dtype=np.int8)
+        return InverseResult(np.arange(n), np.zeros((n, 3)), residual, status, 1, 1.0, 1e-5, 0.0, regime="coupled",
+                             sculpt_rms=1e-2, at_optimum=optimum)
+
+    assert _unreachable_line("x", result(1e-3, True)).endswith("at a least-squares optimum: the deformer chain "
+                                                                "cannot reproduce it")
+    far = _unreachable_line("x", result(1e-3, False))
+    assert far.endswith("stopped short of an optimum; at 100x the tolerance (RMS) it is mostly what the chain "
+                        "cannot reproduce")
+    assert _unreachable_line("x", result(2e-5, False)).endswith("; the solver stopped short of an optimum")
