@@ -18,6 +18,7 @@ from psdbake.normals import Topology
 from psdbake.solver import coupled, pieces, powell, smoothstart
 from psdbake.solver.inverse import Counted, InverseResult, invert_example, sculpted_vertices
 from psdbake.solver.smoothbasis import edge_adjacency
+from psdbake.usd.meshrest import rest_mesh
 
 sys.path.insert(0, ROOT)
 from benchmarks import characters, rigs
@@ -629,8 +630,6 @@ def plain_skinned_60(tmp_path_factory):
     chain = rigs.build(folder, "lbs+deltamush", "1.3k", {t: poses[t]}, poses_layer)
     plain = rigs.build(folder, "lbs", "1.3k", {t: poses[t]}, poses_layer)
     move = float(np.linalg.norm(plain.sculpts[t] - plain.blackbox(plain.scene(), t)(plain.rest), axis=1).max())
-    from psdbake.usd.meshrest import rest_mesh
-
     scene = chain.scene()
     adjacency = edge_adjacency(rest_mesh(scene.stage, rigs.MESH)[1])
     return chain.blackbox(scene, t), chain.rest, plain.sculpts[t], adjacency, move
