@@ -60,6 +60,13 @@ Jacobian, for a smoothing deformer the skinning's own blocks) and its linearised
    stronger ``UNREACHABLE_RIDGE``, every vertex an unknown, so that its offsets stay bounded.
    About 750 calls on CesiumMan (its large pieces need ~2,500 directions the chain passes at
    1e-3 of its gain), none where the stages above reach the tolerance.
+5. Where the sculpt is still out of the chain's reach, no stage settled it at an optimum (a
+   piece larger than stage 4 takes) and the offsets kept exceed what ``UNREACHABLE_RIDGE``
+   lets through: **Newton-Krylov from zero on that ridge's objective** (``_regularised``),
+   kept where it lowers it. It bounds the offsets; it is not called an optimum.
+
+Of the stages' results the one kept leaves the fewest vertices above the tolerance while the
+polish can take them, else the smallest sum of squared residuals (``_rank``).
 
 The result is ``at_optimum`` when the last Krylov space could not lower the residual's linear
 model by ``OPTIMUM_RTOL``, or when the pieces stage 4 could not settle at their optimum hold at
@@ -167,6 +174,11 @@ EXACT = "; pieces by their exact Jacobians"
 #: 1e-2, 0.44 for 1.77e-3; this, 0.06 for 2.13e-3 (0.087 as shipped, each piece at its optimum;
 #: docs/decisions/coupled-inverse-cesiumman.md).
 UNREACHABLE_RIDGE = 0.1
+#: What a result kept by the out-of-reach stage (``_regularised``) says after its regime.
+OUT_OF_REACH = "; out of reach: Newton-Krylov on the unreachable ridge"
+#: Calls of that stage, from zero: on the 1.3k and 3k bench rigs' plain-skinned sculpts it
+#: ended in 45-245 (its Krylov spaces could lower the objective no further).
+OUT_OF_REACH_EVALUATIONS = 256
 #: After the pieces' exact Jacobians, an example is at an optimum where the vertices above the
 #: tolerance on pieces not settled at theirs hold at most this share of the squared residual
 #: left (on CesiumMan's shipped sculpts: two pieces of 3 and 7 vertices, whose Delta Mush
@@ -334,6 +346,10 @@ def invert(blackbox: BlackBox, rest: Points, sculpt: Points, *, rtol: float = to
     if len(best.missed) and adjacency is not None:  # 4. the pieces still missing, by their exact Jacobians
         with threadpool_limits(limits=1, user_api="blas"):
             best = _exact_pieces(call, rest, sculpt, idx, best, adjacency, blocks)
+    if len(best.missed) and not best.at_optimum and _out_of_bounds(best, sculpt, base, blocks):  # 5. bounded
+        with threadpool_limits(limits=1, user_api="blas"):
+            best = _regularised(call, rest, sculpt, base, idx, diagonal, floor, best, blocks, rtol=rtol,
+                                started=started)
     return dataclasses.replace(best, evaluations=call.calls, seconds=time.perf_counter() - started,
                                sculpt_rms=first.sculpt_rms)
 
@@ -465,6 +481,45 @@ def _exact_pieces(call: Counted, rest: Points, sculpt: Points, idx: NDArray[np.i
                                regime=best.regime + EXACT)
 
 
+def _out_of_bounds(result: InverseResult, sculpt: Points, base: Points, blocks: NDArray[np.float64]) -> bool:
+    """Whether ``result`` leaves most of the sculpt out of the chain's reach (its RMS residual
+    above ``pieces.REACHABLE_SLACK`` times the tolerance, as ``pieces.solve_exactly`` tells a
+    piece the chain cannot reproduce: sculpts made through the chain end within 2x of it where
+    they miss at all, made on the plain-skinned mesh at 15-1,000x) with offsets larger than the
+    unreachable ridge lets through: 1 / (2 ``UNREACHABLE_RIDGE``) = 5 times the sculpt's largest
+    move over the chain's gain (the largest a direction's offset can be, per unit of its
+    residual, at that ridge's optimum)."""
+    if not np.sqrt(np.mean(result.residual**2)) > pieces.REACHABLE_SLACK * result.atol:
+        return False
+    move = float(np.max(np.linalg.norm(sculpt[result.indices] - base[result.indices], axis=1), initial=0.0))
+    limit = move / (2.0 * np.sqrt(smoothstart.ridge(blocks, UNREACHABLE_RIDGE)))
+    return bool(np.max(np.linalg.norm(result.offsets, axis=1), initial=0.0) > limit)
+
+
+def _regularised(call: Counted, rest: Points, sculpt: Points, base: Points, idx: NDArray[np.int64], diagonal: float,
+                 floor: float, best: InverseResult, blocks: NDArray[np.float64], *, rtol: float,
+                 started: float) -> InverseResult:
+    """5. A sculpt out of the chain's reach whose offsets no stage settled within the ridge's
+    bound (``_out_of_bounds``; a piece too large for stage 4): Newton-Krylov from zero on
+    ``|r|^2 + rho |D|^2`` with the unreachable ridge (``UNREACHABLE_RIDGE``, as stage 4 solves
+    such pieces), up to ``OUT_OF_REACH_EVALUATIONS`` calls, kept where it lowers that objective
+    below ``best``'s. The stages before chase the residual without a ridge: on the 3k and 13k
+    bench rigs' plain-skinned sculpts they kept offsets of up to 7 and 17 times the sculpt's
+    largest move. It is not called an optimum: on the 1.3k rig, where stage 4 finds the true
+    one, it ends 1-28% above its objective (Krylov spaces hold few of the directions the ridge
+    shrinks; docs/decisions/coupled-inverse-coarse-meshes.md)."""
+    rho = smoothstart.ridge(blocks, UNREACHABLE_RIDGE)
+    found = invert_coupled(call, rest, sculpt, base, idx, diagonal, floor, rtol=rtol, started=started,
+                           max_evaluations=call.calls + OUT_OF_REACH_EVALUATIONS, blocks=blocks, fixed_ridge=rho)
+
+    def objective(result: InverseResult) -> float:
+        return float(np.sum(result.residual**2)) + rho * float(np.sum(result.offsets**2))
+
+    if not np.array_equal(found.indices, best.indices) or not objective(found) < objective(best):
+        return best
+    return dataclasses.replace(found, regime=best.regime + OUT_OF_REACH, at_optimum=False)
+
+
 def _exact_pieces_instead(result: InverseResult, adjacency: sp.csr_matrix, idx: NDArray[np.int64]) -> bool:
     """Whether the slower stages (``_escalate``) are left out for the pieces' exact Jacobians
     (``_exact_pieces``): where more vertices miss than the polish takes and every one of them
@@ -482,10 +537,22 @@ def _exact_pieces_instead(result: InverseResult, adjacency: sp.csr_matrix, idx: 
     return bool(np.all(covered[missing]))
 
 
-def _rank(result: InverseResult) -> tuple[int, float]:
-    """The better of two results ranks lower: fewer vertices above the tolerance, then the
-    smaller worst residual."""
-    return len(result.missed), result.max_residual
+def _rank(result: InverseResult) -> tuple[int, int, float]:
+    """The better of two results ranks lower. One that leaves few enough vertices above the
+    tolerance for the polish (``POLISH_VERTICES``) ranks before any other, by fewer of them,
+    then the smaller worst residual: the goal is every vertex within it. Among results that
+    leave more, the smaller sum of squared residuals ranks first: where most of the sculpt is
+    out of the chain's reach, the count says nothing, and the least-squares misfit is what the
+    inverse minimises. On the 3k bench rig's sculpts made on the plain-skinned mesh (one
+    piece of 3,120 vertices, LBS + Delta Mush) the count kept Newton-Krylov from zero, which is
+    unregularised: at 80 and 120 degrees 2,855 and 3,022 vertices above the tolerance, RMS
+    5.7e-4 and 1.9e-3 of the diagonal, offsets 27x the sculpt's move; by the misfit, results
+    with 2,868 and all 3,120 above it, RMS 2.6e-4 and 6.0e-4, offsets 5.5x and 1.2x (the
+    out-of-reach stage then bounds the first; docs/decisions/coupled-inverse-coarse-meshes.md)."""
+    missed = len(result.missed)
+    if missed <= POLISH_VERTICES:
+        return 0, missed, result.max_residual
+    return 1, 0, float(np.sum(result.residual**2))
 
 
 def _polish(call: Counted, rest: Points, sculpt: Points, idx: NDArray[np.int64], scale: float,
@@ -767,6 +834,7 @@ def invert_coupled(
     blocks: NDArray[np.float64] | None = None,
     weighted: bool = False,
     regularised: bool = True,
+    fixed_ridge: float | None = None,
 ) -> InverseResult:
     """Newton-Krylov on the sculpted vertices' offsets (module docstring). ``base`` is
     ``call(rest)``; ``call.calls`` counts the example's calls so far (the budget's measure);
@@ -777,7 +845,8 @@ def invert_coupled(
     ``at_optimum`` where no direction of a step's Krylov space could lower its linear model
     by ``OPTIMUM_RTOL``. ``weighted``: each vertex's residual weighs by how far above the
     residuals' RMS it is (``WEIGHT_FLOOR``), for a finish where few vertices are left above
-    the tolerance. ``regularised=False``: no ridge (the escalation's stages, ``_escalate``)."""
+    the tolerance. ``regularised=False``: no ridge (the escalation's stages, ``_escalate``);
+    ``fixed_ridge``: that ridge, towards zero (the out-of-reach stage, ``_regularised``)."""
     atol = max(rtol * diagonal, floor)
     target = sculpt[idx]
     k = len(idx)
@@ -809,7 +878,9 @@ def invert_coupled(
     # smooth start, its departures from the smooth start more strongly (``FINISH_RIDGE``)
     anchor = np.zeros((k, 3)) if start is None or not weighted else np.array(start, dtype=np.float64)
     ridge = smoothstart.ridge(blocks) * ((FINISH_RIDGE / smoothstart.SPAN_RIDGE) ** 2 if weighted else 1.0)
-    if not regularised:
+    if fixed_ridge is not None:
+        ridge = fixed_ridge
+    elif not regularised:
         ridge = 0.0
     scale = max(diagonal, floor)
     while np.isfinite(norms).all() and norms.max() > atol and call.calls < max_evaluations - 2:

@@ -37,6 +37,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 from numpy.typing import NDArray
+from scipy.linalg import cho_factor, cho_solve
 from scipy.sparse.csgraph import connected_components, shortest_path
 
 from ..arrays import Points
@@ -64,14 +65,19 @@ SMALL_RIDGE = 1e-3
 MAX_STEPS = 48
 STALL_STEPS = 4
 
-#: Pieces of at most this many vertices can have their exact Jacobians measured where the
-#: other stages leave vertices above the tolerance (``solve_exactly``: 3 calls a sculpted
-#: vertex of the largest, so at most 3,000; CesiumMan's largest piece, 731 vertices, costs 2,193).
-EXACT_PIECE = 1000
-#: Jacobian entries held at once (each piece's (3m)^2, and its SVD's two factors as many
-#: again: at most ~600 MB): pieces beyond it are solved in further batches, each its own
+#: Jacobian entries held at once (each piece's (3m)^2, and its Gram matrix and Cholesky factor as
+#: many again: at most ~600 MB): pieces beyond it are solved in further batches, each its own
 #: Jacobian calls (``batches``). CesiumMan's pieces hold 8.1M-9.7M entries, one batch.
 EXACT_ENTRIES = 25_000_000
+#: Pieces of at most this many vertices can have their exact Jacobians measured where the
+#: other stages leave vertices above the tolerance (``solve_exactly``): the largest whose
+#: Jacobian fits EXACT_ENTRIES, 3 calls a sculpted vertex at most (5,000, within
+#: ``coupled.EXACT_CALLS``; coloured, far fewer: CesiumMan's 731-vertex piece 1,113). A rig
+#: whose mesh is one piece of 1,312 vertices (the 1.3k bench rig) is one of them: with its
+#: sculpts made on the plain-skinned mesh the stages before leave it short of an optimum, one
+#: example's offsets at 10x the sculpt's move; solved here, each ends at its optimum with
+#: offsets within 2.7x (docs/decisions/coupled-inverse-coarse-meshes.md).
+EXACT_PIECE = int(np.sqrt(EXACT_ENTRIES)) // 3
 #: Rings added to the chain's measured reach (``measure_reach``) before colouring a piece's
 #: vertices for its Jacobian (``colouring``): a vertex whose reach is a little longer than the
 #: probed one's still stays within its colour's rows; one much longer shows as a stray output
@@ -93,7 +99,11 @@ CHORD_MIN_GAIN = 1e-4
 CHORD_MIN_SCALE = 1.0 / 64.0
 #: Times a piece not at its optimum has its Jacobian measured again where the chord steps
 #: left it (on CesiumMan's shipped sculpts, pieces of 3-11 vertices whose stale Jacobians'
-#: steps were all cut).
+#: steps were all cut). A piece still REACHABLE_SLACK times the tolerance away is not measured
+#: again on the objective's own ridge: it goes on to the stronger one, where it is (CesiumMan's
+#: shipped sculpts: 2,648 / 1,463 calls, not 5,245 / 4,587, the objective 0.07% higher and
+#: 4.0% lower; the 1.3k rig's one piece sculpted on its plain skinning: 886-894 calls, not
+#: 1,707-1,714, at five of its eight elbows).
 REMEASURES = 3
 #: A piece of more than SMALL_PIECE vertices is measured again only where it holds more than
 #: this share of the batch's squared residual (its Jacobian costs 3 calls a vertex). On
@@ -105,6 +115,9 @@ REMEASURE_SHARE = 0.01
 #: objective's ridge holds what the chain cannot produce (measured on CesiumMan: sculpts made
 #: through the chain end within 1.8x the tolerance, its shipped sculpts at 1e3-1e4x).
 REACHABLE_SLACK = 10.0
+#: ``NormalEquations``' least ridge, a fraction of its Gram matrix's largest diagonal entry
+#: (about 1e4 float64 ulps): where a ridge of 0 would leave the matrix singular.
+FLOOR_RIDGE = 1e-12
 
 
 @dataclass(frozen=True)
@@ -352,6 +365,32 @@ class ExactResult:
     settled: NDArray[np.bool_]
 
 
+class NormalEquations:
+    """A piece's measured Jacobian J and the Cholesky factors of ``J^T J + rho I``, one per
+    ridge rho: a chord step needs only those (``step``). An SVD of J gave the same steps: on
+    the 1.3k bench rig's one piece (3,936 columns, one BLAS thread) it took 29 s, the Gram
+    matrix and its factor 2.3 s. The Gram matrix squares J's condition number, which the ridge
+    bounds: at the objective's ridge (``smoothstart.SPAN_RIDGE``) rho is 1e-6 of the blocks'
+    median gain squared, so ``J^T J + rho I``'s is about 1e6 times (J's largest singular value
+    / that gain)^2: 2.7e8 on a tube's Delta Mush Jacobian, where the steps match a
+    least-squares solve that never forms it to 1.2e-8."""
+
+    def __init__(self, jacobian: NDArray[np.float64]) -> None:
+        self.jacobian = jacobian
+        self.gram = jacobian.T @ jacobian
+        self._factors: dict[float, tuple[NDArray[np.float64], bool]] = {}
+
+    def step(self, residual: NDArray[np.float64], offsets: NDArray[np.float64], rho: float) -> NDArray[np.float64]:
+        """The minimiser's change of ``offsets`` for ``|residual - J s|^2 + rho |offsets + s|^2``:
+        ``(J^T J + rho I)^-1 (J^T residual - rho offsets)``. A ridge of 0 (no gain measured)
+        is raised to ``FLOOR_RIDGE`` of the Gram matrix's largest diagonal entry, so that the
+        factor exists."""
+        if rho not in self._factors:
+            floor = FLOOR_RIDGE * float(np.max(np.diag(self.gram), initial=0.0))
+            self._factors[rho] = cho_factor(self.gram + max(rho, floor) * np.eye(len(self.gram)))
+        return np.asarray(cho_solve(self._factors[rho], self.jacobian.T @ residual - rho * offsets))
+
+
 def solve_exactly(call: BlackBox, rest: Points, sculpt: Points, idx: NDArray[np.int64], pieces: list[Piece],
                   start: NDArray[np.float64], start_outputs: Points, diagonal: float, atol: float, ridge: float,
                   unreachable_ridge: float, max_calls: int, adjacency: sp.csr_matrix) -> ExactResult | None:
@@ -359,8 +398,9 @@ def solve_exactly(call: BlackBox, rest: Points, sculpt: Points, idx: NDArray[np.
     measured at ``start`` (the region's offsets, (len(idx), 3), which the other pieces keep;
     ``start_outputs`` the chain there, all n points), their columns those of the vertices within
     ``UNKNOWN_RINGS`` of the ones above the tolerance (the others held): chord Gauss-Newton
-    steps (each Jacobian's SVD computed once) on each piece's ``|r|^2 + rho |D|^2``, one call a
-    step for all pieces, each piece's step accepted or cut on its own. A piece that took steps
+    steps (each Jacobian's normal equations factored once, ``NormalEquations``) on each
+    piece's ``|r|^2 + rho |D|^2``, one call a step for all pieces, each piece's step accepted
+    or cut on its own. A piece that took steps
     and is not at its optimum, or whose steps left vertices beyond its unknowns above the
     tolerance, has its Jacobian measured again where they left it, those vertices and their
     neighbours unknowns too (a large piece only where it holds ``REMEASURE_SHARE`` of the
@@ -369,7 +409,8 @@ def solve_exactly(call: BlackBox, rest: Points, sculpt: Points, idx: NDArray[np.
     ``ridge`` (the objective's), and where a piece still misses the tolerance by more than
     ``REACHABLE_SLACK`` times after that, the sculpt asks what the chain cannot produce there:
     that piece goes on with ``unreachable_ridge`` and every vertex an unknown, which bounds its
-    offsets (``coupled.UNREACHABLE_RIDGE``). None where the pieces turn out not to be
+    offsets (``coupled.UNREACHABLE_RIDGE``), where ``max_calls`` allows measuring it whole
+    (else it is left as it is, not at its optimum). None where the pieces turn out not to be
     independent or the chain returns non-finite values."""
     count = len(pieces)
     vertex = [idx[p.positions] for p in pieces]
@@ -379,7 +420,7 @@ def solve_exactly(call: BlackBox, rest: Points, sculpt: Points, idx: NDArray[np.
     rho, settled = [ridge] * count, [False] * count
     optimal = [False] * count  # settled by a step that gained next to nothing, not by cut steps
     gained = [False] * count
-    factors: list[tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]] | None] = [None] * count
+    factors: list[NormalEquations | None] = [None] * count
     inside = [np.searchsorted(p.vertices, v) for p, v in zip(pieces, vertex, strict=True)]
 
     def around(q: int, seeds: NDArray[np.int64], rings: int) -> NDArray[np.int64]:
@@ -429,7 +470,7 @@ def solve_exactly(call: BlackBox, rest: Points, sculpt: Points, idx: NDArray[np.
 
     def measure(which: list[int]) -> bool:
         """The Jacobians of pieces ``which`` where they are now (coloured by the chain's
-        measured reach, else a vertex a call), and their SVDs."""
+        measured reach, else a vertex a call), and their normal equations."""
         nonlocal calls
         at = moved_by()
         base = call(at)
@@ -455,7 +496,7 @@ def solve_exactly(call: BlackBox, rest: Points, sculpt: Points, idx: NDArray[np.
             return False
         calls += found[1]
         for q, a in zip(which, found[0], strict=True):
-            factors[q] = np.linalg.svd(a, full_matrices=False)
+            factors[q] = NormalEquations(a)
         return True
 
     def measure_calls(sizes: list[int]) -> int:
@@ -477,13 +518,11 @@ def solve_exactly(call: BlackBox, rest: Points, sculpt: Points, idx: NDArray[np.
             for q in which:
                 factor = factors[q]
                 assert factor is not None  # measured before any chord on it
-                u, sv, vt = factor
-                r = targets[q] - current[q]
                 where = coordinates(q)
                 step = np.zeros_like(offsets[q])
-                step[where] = vt.T @ ((sv * (u.T @ r) - rho[q] * (vt @ offsets[q][where])) / (sv**2 + rho[q]))
+                step[where] = factor.step(targets[q] - current[q], offsets[q][where], rho[q])
                 now = objective(q, current[q], offsets[q])
-                predicted = objective(q, current[q] + u @ (sv * (vt @ step[where])), offsets[q] + step)
+                predicted = objective(q, current[q] + factor.jacobian @ step[where], offsets[q] + step)
                 if now - predicted <= CHORD_MIN_GAIN * now:  # the model sees nothing left to gain here
                     settled[q] = optimal[q] = True
                     continue
@@ -510,6 +549,11 @@ def solve_exactly(call: BlackBox, rest: Points, sculpt: Points, idx: NDArray[np.
             todo = [q for q in range(count) if worst(q) > atol]
         else:  # the pieces the chain cannot reproduce, on the stronger ridge, every vertex an unknown
             todo = [q for q in range(count) if worst(q) > REACHABLE_SLACK * atol]
+            whole = [q for q in todo if len(unknown[q]) < len(pieces[q].positions)]
+            if whole and calls + measure_calls([len(pieces[q].positions) for q in whole]) > max_calls:
+                todo = [q for q in todo if q not in whole]
+                for q in whole:  # no calls left to measure them whole: left as they are, not at an optimum
+                    optimal[q] = False
             for q in todo:
                 rho[q], settled[q], optimal[q] = unreachable_ridge, False, False
         if not todo:
@@ -524,7 +568,8 @@ def solve_exactly(call: BlackBox, rest: Points, sculpt: Points, idx: NDArray[np.
             if not chord(todo):
                 return None
             left = sum(float(np.sum((targets[p] - current[p]) ** 2)) for p in range(count))
-            more = {q: newcomers(q) for q in todo if worst(q) > atol and gained[q]}  # still on its way,
+            more = {q: newcomers(q) for q in todo if worst(q) > atol and gained[q]  # still on its way,
+                    and (phase == 1 or worst(q) <= REACHABLE_SLACK * atol)}  # (far off: on to the stronger ridge)
             todo = [q for q in more if (len(more[q]) or not optimal[q])  # with new unknowns or short of its optimum,
                     and (len(pieces[q].positions) <= SMALL_PIECE  # and cheap to measure again
                          or float(np.sum((targets[q] - current[q]) ** 2)) > REMEASURE_SHARE * left)]  # or worth it
