@@ -167,8 +167,9 @@ def _unreachable_line(label: str, inv: Any) -> str:
     solve ended at an optimum (the chain smooths it away) or short of one (the solver stopped).
     Short of one, a residual whose RMS is ``pieces.REACHABLE_SLACK`` times the tolerance or more
     is said to be mostly out of the chain's reach: sculpts the chain can reproduce end within
-    2x of it where they miss at all (on a one-piece mesh larger than the exact solve takes,
-    sculpts made on the plain-skinned mesh end at 15-1,000x)."""
+    2x of it where they miss at all; the bench rigs' sculpts made on the plain-skinned mesh end
+    at 4-800x (the 13k rig's nearly reachable 20 and 40 degree elbows at 4 and 7: "stopped
+    short" there)."""
     from .solver.pieces import REACHABLE_SLACK  # here, not at import: --help loads no numpy
 
     worst = ", ".join(str(v) for v, _ in _worst(inv, 3))

@@ -485,7 +485,7 @@ def _out_of_bounds(result: InverseResult, sculpt: Points, base: Points, blocks: 
     """Whether ``result`` leaves most of the sculpt out of the chain's reach (its RMS residual
     above ``pieces.REACHABLE_SLACK`` times the tolerance, as ``pieces.solve_exactly`` tells a
     piece the chain cannot reproduce: sculpts made through the chain end within 2x of it where
-    they miss at all, made on the plain-skinned mesh at 15-1,000x) with offsets larger than the
+    they miss at all, made on the plain-skinned mesh at 4-800x) with offsets larger than the
     unreachable ridge lets through: 1 / (2 ``UNREACHABLE_RIDGE``) = 5 times the sculpt's largest
     move over the chain's gain (the largest a direction's offset can be, per unit of its
     residual, at that ridge's optimum)."""
