@@ -173,7 +173,7 @@ def _unreachable_line(label: str, inv: Any) -> str:
     from .solver.pieces import REACHABLE_SLACK  # here, not at import: --help loads no numpy
 
     worst = ", ".join(str(v) for v, _ in _worst(inv, 3))
-    away = float((inv.residual**2).mean()) ** 0.5 / inv.atol if inv.atol > 0 and len(inv.residual) else 0.0
+    away = inv.rms_residual / inv.atol if inv.atol > 0 else 0.0
     if inv.at_optimum:
         verdict = "at a least-squares optimum: the deformer chain cannot reproduce it"
     elif away >= REACHABLE_SLACK:

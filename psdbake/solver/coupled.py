@@ -489,7 +489,7 @@ def _out_of_bounds(result: InverseResult, sculpt: Points, base: Points, blocks: 
     unreachable ridge lets through: 1 / (2 ``UNREACHABLE_RIDGE``) = 5 times the sculpt's largest
     move over the chain's gain (the largest a direction's offset can be, per unit of its
     residual, at that ridge's optimum)."""
-    if not np.sqrt(np.mean(result.residual**2)) > pieces.REACHABLE_SLACK * result.atol:
+    if not result.rms_residual > pieces.REACHABLE_SLACK * result.atol:
         return False
     move = float(np.max(np.linalg.norm(sculpt[result.indices] - base[result.indices], axis=1), initial=0.0))
     limit = move / (2.0 * np.sqrt(smoothstart.ridge(blocks, UNREACHABLE_RIDGE)))
@@ -510,7 +510,7 @@ def _regularised(call: Counted, rest: Points, sculpt: Points, base: Points, idx:
     shrinks; docs/decisions/coupled-inverse-coarse-meshes.md)."""
     rho = smoothstart.ridge(blocks, UNREACHABLE_RIDGE)
     found = invert_coupled(call, rest, sculpt, base, idx, diagonal, floor, rtol=rtol, started=started,
-                           max_evaluations=call.calls + OUT_OF_REACH_EVALUATIONS, blocks=blocks, fixed_ridge=rho)
+                           max_evaluations=call.calls + OUT_OF_REACH_EVALUATIONS, blocks=blocks, ridge=rho)
 
     def objective(result: InverseResult) -> float:
         return float(np.sum(result.residual**2)) + rho * float(np.sum(result.offsets**2))
@@ -666,16 +666,16 @@ def _escalate(call: Counted, blackbox: BlackBox, rest: Points, sculpt: Points, b
             start = measured_smooth_start(call, rest, sculpt, base, idx, diagonal, floor, basis, model=model)
             spanned = invert_coupled(call, rest, sculpt, base, idx, diagonal, floor, rtol=rtol, started=started,
                                      max_evaluations=call.calls + MAX_EVALUATIONS, start=start, blocks=blocks,
-                                     regularised=False)
+                                     ridge=0.0)
             if keep(dataclasses.replace(spanned, regime=regime)):
                 return found
     joint = invert_coupled(call, rest, sculpt, base, idx, diagonal, floor, rtol=rtol, started=started,
-                           max_evaluations=call.calls + FROM_ZERO_EVALUATIONS, blocks=blocks, regularised=False)
+                           max_evaluations=call.calls + FROM_ZERO_EVALUATIONS, blocks=blocks, ridge=0.0)
     if keep(joint) or basis is not None:
         return found
     # ARPACK failed (a region of many pieces): the per-vertex solution and a restart from it
     found.extend(_from_per_vertex(call, blackbox, rest, sculpt, base, idx, diagonal, floor, first, blocks,
-                                  rtol=rtol, started=started, regularised=False))
+                                  rtol=rtol, started=started, ridge=0.0))
     return found
 
 
@@ -734,9 +734,9 @@ def measured_smooth_start(call: Counted, rest: Points, sculpt: Points, base: Poi
 def _from_per_vertex(call: Counted, blackbox: BlackBox, rest: Points, sculpt: Points, base: Points,
                      idx: NDArray[np.int64], diagonal: float, floor: float, first: InverseResult,
                      blocks: NDArray[np.float64], *, rtol: float, started: float,
-                     regularised: bool = True) -> list[InverseResult]:
+                     ridge: float | None = None) -> list[InverseResult]:
     """Without mesh edges (or a smooth basis): the full per-vertex solve, and Newton-Krylov
-    restarted from it (``regularised``: as ``invert_coupled``)."""
+    restarted from it (``ridge``: as ``invert_coupled``)."""
     per_vertex = first
     if first.regime == COUPLING_SEEN:
         per_vertex = invert_example_with(blackbox, rest, sculpt, rtol=rtol)
@@ -745,7 +745,7 @@ def _from_per_vertex(call: Counted, blackbox: BlackBox, rest: Points, sculpt: Po
     if len(per_vertex.missed) and np.array_equal(per_vertex.indices, idx):
         warm = invert_coupled(call, rest, sculpt, base, idx, diagonal, floor, rtol=rtol, started=started,
                               max_evaluations=call.calls + MAX_EVALUATIONS, start=per_vertex.offsets, blocks=blocks,
-                              regularised=regularised)
+                              ridge=ridge)
         found.append(dataclasses.replace(warm, regime="coupled, from the per-vertex solution"))
     return found
 
@@ -833,8 +833,7 @@ def invert_coupled(
     start_outputs: Points | None = None,
     blocks: NDArray[np.float64] | None = None,
     weighted: bool = False,
-    regularised: bool = True,
-    fixed_ridge: float | None = None,
+    ridge: float | None = None,
 ) -> InverseResult:
     """Newton-Krylov on the sculpted vertices' offsets (module docstring). ``base`` is
     ``call(rest)``; ``call.calls`` counts the example's calls so far (the budget's measure);
@@ -845,8 +844,8 @@ def invert_coupled(
     ``at_optimum`` where no direction of a step's Krylov space could lower its linear model
     by ``OPTIMUM_RTOL``. ``weighted``: each vertex's residual weighs by how far above the
     residuals' RMS it is (``WEIGHT_FLOOR``), for a finish where few vertices are left above
-    the tolerance. ``regularised=False``: no ridge (the escalation's stages, ``_escalate``);
-    ``fixed_ridge``: that ridge, towards zero (the out-of-reach stage, ``_regularised``)."""
+    the tolerance. ``ridge``, where given, replaces that rule: this ridge, towards zero (0: none,
+    the escalation's stages, ``_escalate``; the out-of-reach stage's, ``_regularised``)."""
     atol = max(rtol * diagonal, floor)
     target = sculpt[idx]
     k = len(idx)
@@ -877,11 +876,8 @@ def invert_coupled(
     # the regularisation: offsets pulled towards zero weakly (``smoothstart.ridge``); after the
     # smooth start, its departures from the smooth start more strongly (``FINISH_RIDGE``)
     anchor = np.zeros((k, 3)) if start is None or not weighted else np.array(start, dtype=np.float64)
-    ridge = smoothstart.ridge(blocks) * ((FINISH_RIDGE / smoothstart.SPAN_RIDGE) ** 2 if weighted else 1.0)
-    if fixed_ridge is not None:
-        ridge = fixed_ridge
-    elif not regularised:
-        ridge = 0.0
+    if ridge is None:
+        ridge = smoothstart.ridge(blocks) * ((FINISH_RIDGE / smoothstart.SPAN_RIDGE) ** 2 if weighted else 1.0)
     scale = max(diagonal, floor)
     while np.isfinite(norms).all() and norms.max() > atol and call.calls < max_evaluations - 2:
         at, out_at = offsets, out
