@@ -55,6 +55,7 @@ from .usd import provenance
 from .usd import write as usdwrite
 from .usd.author import Layer
 from .usd.bindspace import read_bind_space
+from .usd.clips import remove_unstitched, stitched_files
 from .usd.compose import compose, open_layer, reread
 from .usd.describe import describe as describe_file
 from .usd.gltf_source import read_gltf_source
@@ -301,13 +302,37 @@ def mirror_lock(correctives: str, output: str) -> Iterator[None]:
         yield
 
 
-def _existing_groups(asset: str, path: str) -> tuple[Groups, dict[str, dict]]:
+def existing_groups(asset: str, path: str) -> tuple[Groups, dict[str, dict]]:
     """The groups of the CORRECTIVES layer at path and their provenance records ({} when path
-    holds no CORRECTIVES layer: nothing there is carried over)."""
+    holds no CORRECTIVES layer: nothing there is carried over). A layer that cannot be read
+    over ASSET (another asset's) is refused as an output (exit 6), or, forced
+    (``atomic.forcing``), treated as empty: it is replaced whole."""
     if not os.path.isfile(path) or provenance.existing_kind(path) != "correctives":
         return {}, {}
     records = provenance.plain(provenance.read_stamp(path).get("groups", {}))
-    return read_correctives(asset, path), records if isinstance(records, dict) else {}
+    try:
+        groups = read_correctives(asset, path)
+    except InputError as exc:
+        if atomic.forced():
+            return {}, {}
+        raise OutputError(f"{exc}: it cannot be read as {asset}'s CORRECTIVES layer (another asset's?); write to "
+                          "another file, or give --force to replace it") from None
+    return groups, records if isinstance(records, dict) else {}
+
+
+def _check_not_dropping(path: str, asset: str, groups: Groups, command: str) -> None:
+    """``mirror`` or ``groups`` writing a CORRECTIVES layer other than the one they read
+    replaces it whole: refused (unless forced) where that drops groups it holds, as a plain
+    fit is (``write_correctives``), or where it is another asset's layer."""
+    if atomic.forced():
+        return
+    before, records = existing_groups(asset, path)
+    lost = sorted(names_of(before) - names_of(groups))
+    if lost:
+        raise OutputError(
+            f"{path}: holds groups this {command} would drop: "
+            f"{', '.join(f'{g} ({origin_text(records.get(g))})' for g in lost)}. It replaces the whole layer: write "
+            "to another file, update that layer in place, or give --force to replace it")
 
 
 def _settings_record(settings: FitSettings) -> dict[str, Any]:
@@ -332,7 +357,7 @@ def write_correctives(result: FitResult, path: str, *, update: bool = False,
     with _forced(force):
         atomic.check_output(path, inputs, kind=outputs.CORRECTIVES)
         with updating(path, *(side for side, _ in side_files)):
-            before, records = _existing_groups(result.asset, path)
+            before, records = existing_groups(result.asset, path)
             if update:
                 check_name_case(before, written, path)
                 groups = merged_groups(before, written, result.settings.meshes)
@@ -456,8 +481,11 @@ def write_weights(result: WeightsResult, path: str, *, points_cache: tuple[str, 
     if points_cache:
         written.append((points_cache[0], stamp_weights(points_cache[1], "points_cache", result, points_cache[0],
                                                        deformers)))
-    with _forced(force):
+    paths = [p for p, _ in written]
+    with _forced(force), updating(*paths):  # one step for another eval writing here (a farm chunk)
+        earlier = [f for p in paths for f in stitched_files(p)]  # a chunked eval's, now replaced by one layer
         usdwrite.export_all(written, files_read([result.asset, result.correctives, result.anim], deformers))
+        remove_unstitched(earlier, paths)
     return path
 
 
@@ -710,6 +738,8 @@ def write_mirror(result: MirrorResult, path: str, *, force: bool = False, replac
                 if g.group not in protected:
                     written.setdefault(g.mesh, {})[g.group] = (g.driver_data, list(g.shapes))
             groups = merged_groups(before, written)
+            if not in_place:
+                _check_not_dropping(path, result.asset, groups, "mirror")
             entries = {name: {"origin": "mirror", "source": sources[name], "command": outputs.command_line(path),
                               "plane": result.settings.plane, "joints": list(result.settings.joints)}
                        for name in names_of(written)}
@@ -726,8 +756,12 @@ def write_mirror(result: MirrorResult, path: str, *, force: bool = False, replac
 def recorded_asset(correctives: str) -> str | None:
     """The asset a CORRECTIVES layer records it was fitted on (its provenance), as a path from
     here, or None."""
-    rel = provenance.plain(provenance.read_stamp(correctives).get("inputs", {})).get("asset", {}).get("path")
-    return os.path.normpath(os.path.join(os.path.dirname(correctives), rel)) if rel else None
+    recorded = provenance.plain(provenance.read_stamp(correctives).get("inputs", {}))
+    asset = recorded.get("asset") if isinstance(recorded, dict) else None
+    if isinstance(asset, list):  # a stack records each role's layers as a list, the strongest last
+        asset = asset[-1] if asset else None
+    rel = asset.get("path") if isinstance(asset, dict) else None
+    return os.path.normpath(os.path.join(os.path.dirname(correctives), rel)) if isinstance(rel, str) else None
 
 
 def list_groups(correctives: str) -> list[dict[str, Any]]:
@@ -772,6 +806,8 @@ def edit_groups(correctives: str, *, remove: Sequence[str] = (), rename: Mapping
                 groups = renamed_group(groups, old, new, correctives)
                 if old in records:
                     records[new] = {**records.pop(old), "renamed_from": old}
+            if not in_place:
+                _check_not_dropping(output, asset, groups, "groups edit")
             layer = groups_layer(asset, groups, f"psdbake {__version__} groups: rest-space correctives (inverse PSD)")
             stamped(layer, "correctives", output, {"asset": asset}, rig=provenance.plain(
                 provenance.read_stamp(correctives).get("rig", {})), command=False,
@@ -837,13 +873,39 @@ def plan_stack(layers: Sequence[str], *, strict: bool = False) -> StackResult:
                 raise InputError(f"{msg} (--strict)")
             notes.append(msg)
             warnings.warn(msg, PsdWarning, stacklevel=2)
+    for role in ("anim", "asset"):  # WEIGHTS over another animation (or asset) show the wrong weights
+        notes += _weights_made_from(stamps, by_role, role, strict=strict)
     assets = by_role.get("asset", [])
     if assets:
         scene = open_asset(assets[-1])
+        skinned = {m.path for m in scene.skinned_meshes()}
         for path in by_role.get("correctives", []):
+            meshes = sorted(psd_prims(open_layer(path)))
+            if meshes and not skinned.intersection(meshes):
+                raise InputError(f"{path}: CORRECTIVES for {', '.join(f'<{m}>' for m in meshes)}, which {assets[-1]} "
+                                 "does not skin: the stack would show no correction (fitted on another asset?)")
             notes += check_fitted_on(assets[-1], scene, path, strict=strict)
     return StackResult("", tuple((p, roles[p]) for p in ordered), ordered != list(reversed(unique)) and
                        ordered != unique, tuple(notes))
+
+
+def _weights_made_from(stamps: Mapping[str, dict], by_role: Mapping[str, list[str]], role: str, *,
+                       strict: bool) -> list[str]:
+    """Warn (strict: refuse, exit 3) when a WEIGHTS layer records it was evaluated over another
+    ``role`` layer (the ANIM or the ASSET) than any stacked: its weights belong to other frames
+    or another rig, and the stack would show them without a word."""
+    stacked = {provenance.file_sha256(p) for p in by_role.get(role, [])}
+    notes = []
+    for path in by_role.get("weights", []) if stacked else ():
+        used = provenance.plain(stamps[path].get("inputs", {})).get(role, {})
+        if isinstance(used, dict) and used.get("sha256") and used["sha256"] not in stacked:
+            msg = (f"{path}: evaluated over {used.get('path', 'another ' + role)} (other bytes than the stacked "
+                   f"{role.upper()} {', '.join(by_role[role])}): re-run psdbake eval with the stacked layers")
+            if strict:
+                raise InputError(f"{msg} (--strict)")
+            notes.append(msg)
+            warnings.warn(msg, PsdWarning, stacklevel=3)
+    return notes
 
 
 def write_stack(path: str, layers: Sequence[str], *, strict: bool = False, force: bool = False) -> StackResult:
@@ -867,9 +929,22 @@ def describe(path: str, asset: str | None = None) -> dict:
     from .usd.describe import spelled_poses
 
     info = describe_file(path)
+    stamp = provenance.read_stamp(path)
+    info["kind"] = provenance.existing_kind(path)
+    info["command"] = stamp.get("command") if isinstance(stamp.get("command"), str) else None
+    if info["kind"] == "stack":  # each sublayer's role, as stack recorded it
+        recorded = provenance.plain(stamp.get("inputs", {}))
+        roles = {os.path.normpath(entry.get("path", "")): role for role, entries in
+                 (recorded.items() if isinstance(recorded, dict) else ())
+                 for entry in (entries if isinstance(entries, list) else [entries]) if isinstance(entry, dict)}
+        info["layers"] = [{"path": p, "role": roles.get(os.path.normpath(p))} for p in info["sublayers"]]
     asset = asset or recorded_asset(path)
     times = sorted({t for e in info["examples"] for t in e["time_codes"]})
     if asset and os.path.isfile(asset) and times and os.path.realpath(asset) != os.path.realpath(path):
         info["asset"] = asset
         info["poses"] = spelled_poses(Scene([path, asset], label=path), times)
+        if not info["poses"]:
+            meshes = ", ".join(sorted(f"<{e['mesh']}>" for e in info["examples"]))
+            info["warnings"] = [*info.get("warnings", []), f"{path}: {asset} skins none of the meshes these examples "
+                                f"pose ({meshes}): no pose spelled out (another asset?)"]
     return info
