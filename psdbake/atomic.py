@@ -85,6 +85,9 @@ def check_output(path: str, inputs: Iterable[str] = (), extensions: Iterable[str
     its real path. ``kind`` gives the extensions when ``extensions`` is None."""
     if extensions is None and kind is not None:
         extensions = kind.extensions
+    if path.endswith(("/", os.sep)) or os.path.isdir(path):
+        raise OutputError(f"{path}: names a folder; give the file to write (e.g. {os.path.join(path, 'out')}"
+                          f"{next(iter(extensions or ()), '')})")
     ext = os.path.splitext(path)[1].lower()
     if extensions is not None and ext not in tuple(extensions):
         raise OutputError(f"{path}: output must end in {', '.join(extensions)} (got {ext or 'no extension'!r})")

@@ -365,7 +365,7 @@ def fit_cmd(asset, examples, output, rbf, tolerance, meshes, group, report, stri
         with ui.progress("fitting examples") as progress:
             result = api.fit(asset, examples, settings, jobs=jobs, progress=progress)
         payload = console.fit_report(result, output)
-        failure = console.fit_failure(result, output, strict=strict, allow_degraded=allow_degraded)
+        failure = api.fit_failure(result, output, strict=strict, allow_degraded=allow_degraded)
         if failure:
             payload["written"] = False
             if report:  # the diagnosis, so the long fit need not be run again to read it
@@ -373,7 +373,8 @@ def fit_cmd(asset, examples, output, rbf, tolerance, meshes, group, report, stri
             console.say_fit(ui, result, output, written=False)
             raise StrictError(failure)
         side = [(report, console.json_text(payload))] if report else []
-        changes = api.write_correctives(result, output, update=bool(group), side_files=side, force=force)
+        changes = api.write_correctives(result, output, update=bool(group), side_files=side, force=force,
+                                        allow_degraded=allow_degraded)
     payload["groups"] = console.changes_payload(changes)
     ui.payload(payload)
     console.say_fit(ui, result, output, changes)
@@ -719,7 +720,9 @@ def batch_cmd(jobs_file, workers, workers_alias, scheduler, retries, dry_run, al
     ui = Ui(quiet, verbose, as_json)
     jobs = farm.load_jobs(jobs_file, {name: cli.commands[name] for name in farm.COMMANDS},  # the CLI is the job schema
                           allow_deformers=allow_deformers)
+    farm.check_reads(jobs)  # a missing input fails now, not hours into the run
     if dry_run:
+        ui.say(f"# {len(jobs.tasks)} task(s), run in {jobs.folder} (the jobs file's folder), in this order:")
         if as_json:
             click.echo(json.dumps([{"job": t.label, "command": t.command_line, "needs": list(t.needs),
                                     "after": list(t.after), "key": t.key} for t in jobs.tasks], sort_keys=True))

@@ -6,6 +6,7 @@ library returns data and never prints.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import json
 import sys
 import warnings
@@ -15,7 +16,7 @@ from warnings import WarningMessage
 
 import click
 
-from . import __version__
+from . import __version__, outputs
 from . import tolerances as tol
 from .errors import PsdWarning, StrictError
 
@@ -147,8 +148,12 @@ def fit_report(result: FitResult, output: str) -> dict:
             "role": m.role or None, "vertices_moved": m.vertices,
             "columns": len(d.shapes),
         })
+    settings = {k: list(v) if isinstance(v, tuple) else v for k, v in dataclasses.asdict(result.settings).items()}
     return {
         "psdbake": __version__, "command": "fit", "asset": result.asset, "output": output,
+        # as typed, file arguments relative to OUTPUT's folder (None from the library)
+        "command_line": outputs.command_line(output),
+        "settings": settings,  # as asked: rtol is relative, each example's "tolerance" the absolute one used
         "examples": list(result.example_files), "meshes": meshes, "missed": result.missed,
         "warnings": list(result.warnings), "seconds": round(result.seconds, 6),
         "skipped_examples": list(result.skipped), "layout": list(result.layout),
@@ -188,20 +193,6 @@ def _unreachable_line(label: str, inv: Any) -> str:
         verdict = "the solver stopped short of an optimum"
     return (f"{label}: {len(inv.missed)} vertices above the tolerance, {inv.unreachable_fraction:.1%} of the sculpt not "
             f"reproduced (worst: {worst}); {verdict}")
-
-
-def fit_failure(result: FitResult, output: str, *, strict: bool, allow_degraded: bool) -> str | None:
-    """Why this fit must not be written (exit 7), or None: a degraded product (unless allowed)
-    or, with --strict, any vertex that missed the fit tolerance."""
-    if strict and result.missed:
-        return f"{output}: not written: {result.missed} vertices missed the tolerance (--strict)"
-    if result.degraded and not allow_degraded:
-        worst = max(result.degraded, key=lambda c: c.error)
-        return (f"{output}: not written: the product does not reproduce {len(result.degraded)} of {len(result.checks)} "
-                f"example(s) within {tol.ROUNDTRIP_RTOL:g} of the diagonal (worst {worst.label} <{worst.mesh}>: "
-                f"{worst.error:.2g}, vertex {worst.worst_vertex}); see the warnings above, or give --allow-degraded to "
-                "write it anyway")
-    return None
 
 
 def changes_payload(changes: GroupChanges) -> dict:
