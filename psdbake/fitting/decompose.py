@@ -108,7 +108,7 @@ def fit_mesh(asset: str, info: SkinnedMesh, examples: Sequence[Example], solved:
         return [], []
     # 2. locality
     own = locality.influences(skin, mesh.points)
-    sets = locality.explaining_joints(skin, own, mesh.moved)
+    sets = locality.explaining_joints(skin, own, mesh.moved, locality.influences(skin, mesh.points, tol.PARENT_WEIGHT_MIN))
     sets = locality.separate(sets, own, mesh.coords, mesh.data, skin.parents,
                              mesh.moved, mesh.atol, mesh.labels, here)
     signatures = {s: r for s, r in sorted(locality.rows_by_set(sets).items()) if s}
