@@ -9,8 +9,8 @@ import pytest
 from conftest import fixture
 
 from psdbake import api
-from psdbake.errors import PsdWarning
 from psdbake import tolerances as tol
+from psdbake.errors import PsdWarning
 from psdbake.settings import FitSettings
 
 UNSCULPTED = ("one joint", "second shot")
@@ -199,3 +199,28 @@ def test_a_shot_sculpted_at_two_of_eight_frames_does_not_swell_off_it(tmp_path):
         plain = points(bake([anim, asset], t), humanoid.MESH, t)
         worst = max(worst, float(np.linalg.norm(corrected - plain, axis=1).max()))
     assert worst <= 1.5 * largest, f"{worst / largest:.1f} times the largest sculpted move"
+
+
+def test_a_sculpt_on_points_no_moved_joint_skins_is_said(tmp_path):
+    """The face edited on a pose where only an arm bends: no joint the example moves skins the
+    face, so its edit is driven by the arm and comes and goes with it. The fit says so, naming
+    the face's joints and the drivers it got, instead of attaching it silently."""
+    import generate as gen
+    import humanoid
+
+    asset = humanoid.build(str(tmp_path / "humanoid.usda"))
+    poses = {1.0: humanoid.pose_of({"l_elbow": 90.0})}
+    rest = humanoid.rest_points()
+    head = humanoid.part_slices()["head"]
+    offsets = humanoid.additive_offsets(poses[1.0], rest)
+    offsets[head] += np.array([0.0, 0.0, 0.5])  # the face pushed forward half a centimetre
+    layer = humanoid.write_animation(str(tmp_path / "poses.usda"), poses)
+    sculpts = gen.bake_mesh_sculpts([layer, asset], [1.0], {humanoid.MESH: lambda t: offsets})
+    examples = gen.write_mesh_examples(str(tmp_path / "examples.usda"), layer, sculpts)
+    with pytest.warns(PsdWarning) as caught:
+        api.fit(asset, [examples])
+    said = [str(w.message) for w in caught if "skinned by no joint the examples move" in str(w.message)]
+    count = head.stop - head.start
+    assert len(said) == 1, said
+    assert f"{count} sculpted point(s)" in said[0], said[0][-300:]
+    assert "move (Chest, Head, Neck): their sculpt is driven by L_Elbow," in said[0], said[0][-300:]

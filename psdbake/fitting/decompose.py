@@ -108,9 +108,11 @@ def fit_mesh(asset: str, info: SkinnedMesh, examples: Sequence[Example], solved:
         return [], []
     # 2. locality
     own = locality.influences(skin, mesh.points)
-    sets = locality.explaining_joints(skin, own, mesh.moved, locality.influences(skin, mesh.points, tol.PARENT_WEIGHT_MIN))
-    sets = locality.separate(sets, own, mesh.coords, mesh.data, skin.parents,
+    skinned = locality.explaining_joints(skin, own, mesh.moved,
+                                         locality.influences(skin, mesh.points, tol.PARENT_WEIGHT_MIN))
+    sets = locality.separate(skinned, own, mesh.coords, mesh.data, skin.parents,
                              mesh.moved, mesh.atol, mesh.labels, here)
+    _warn_unskinned(mesh, own, skinned, sets, here, notes)
     signatures = {s: r for s, r in sorted(locality.rows_by_set(sets).items()) if s}
     # 3. per-joint terms
     terms: dict[int, additive.JointTerm] = {}
@@ -295,6 +297,23 @@ def _activation_gated(mesh: _Mesh, data: DriverData, joints: Joints, centres: Se
 
 
 # --- what the TD is told -------------------------------------------------------------------------
+
+def _warn_unskinned(mesh: _Mesh, own: Sequence[Joints], skinned: Sequence[Joints], sets: Sequence[Joints], here: str,
+                    notes: list[str]) -> None:
+    """Sculpted points that no joint the examples move skins (a face edited on a pose where only
+    an arm bends): ``locality.separate`` drives them by the nearest moving joints, so the edit
+    comes and goes with that arm. Said, with where a pose-independent edit belongs."""
+    found = [i for i, (was, now) in enumerate(zip(skinned, sets, strict=True)) if not was and now]
+    if not found:
+        return
+    bones = sorted({_leaf(mesh.info, j) for i in found for j in own[i]})
+    drivers = sorted({_leaf(mesh.info, j) for i in found for j in sets[i]})
+    shown = ", ".join(str(int(mesh.points[i])) for i in found[:5]) + (f" and {len(found) - 5} more" if len(found) > 5 else "")
+    noted(notes, f"{here}: {len(found)} sculpted point(s) (vertex {shown}) are skinned by no joint the examples move "
+                 f"({', '.join(bones[:4])}{' ...' if len(bones) > 4 else ''}): their sculpt is driven by "
+                 f"{', '.join(drivers[:4])}{' ...' if len(drivers) > 4 else ''}, so it comes and goes with those joints; "
+                 "an edit that does not depend on the pose belongs in the asset's rest points", 4)
+
 
 def _warn_unedited(mesh: _Mesh, notes: list[str]) -> None:
     for example, inverse in zip(mesh.examples, mesh.inverses, strict=True):
