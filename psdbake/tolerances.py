@@ -91,11 +91,6 @@ ACTIVE_JOINT_ANGLE = 1e-2
 #: 1e-2 keeps less of plain skinning's error on motions nobody sculpted than 1e-3 or 5e-2.
 INFLUENCE_WEIGHT_MIN = 1e-2
 
-#: The weight above which a point's influence also brings its children into the point's drivers
-#: (``fitting.locality``): the elbow's bend bulges the biceps skinned to the shoulder, but a torso
-#: joint's 2-4% on CesiumMan's arm points made the other shoulder and the hips their drivers too.
-PARENT_WEIGHT_MIN = 0.1
-
 #: sigma (radians) of a group driven by one joint (``fitting.additive``, ``drivers.plan_group``;
 #: ``--sigma`` overrides): a corrective grows over a joint's range of motion, not over the spacing
 #: of its sculpts, so a joint sculpted at one angle needs the same width as one sculpted at five,

@@ -108,8 +108,7 @@ def fit_mesh(asset: str, info: SkinnedMesh, examples: Sequence[Example], solved:
         return [], []
     # 2. locality
     own = locality.influences(skin, mesh.points)
-    skinned = locality.explaining_joints(skin, own, mesh.moved,
-                                         locality.influences(skin, mesh.points, tol.PARENT_WEIGHT_MIN))
+    skinned = locality.explaining_joints(skin, own, mesh.moved)
     sets = locality.separate(skinned, own, mesh.coords, mesh.data, skin.parents,
                              mesh.moved, mesh.atol, mesh.labels, here)
     _warn_unskinned(mesh, own, skinned, sets, here, notes)

@@ -3,9 +3,8 @@
 A point's corrective is driven by the joints that change how it deforms (``explaining_joints``):
 
 - its influences I(v): the joints whose ``jointWeights`` on it exceed ``tol.INFLUENCE_WEIGHT_MIN``;
-- the children of its influences weighted above ``tol.PARENT_WEIGHT_MIN``: the next joint's
-  bend is what bulges a bone's flesh (the elbow's bend drives the biceps, skinned to the
-  shoulder), but not every child of a joint that carries a few percent of the point;
+- their children: the next joint's bend is what bulges a bone's flesh (the elbow's bend drives the
+  biceps, skinned to the shoulder);
 - the joints on the hierarchy paths between its influences, below their lowest common ancestor:
   their local rotations change the influences' transforms relative to each other, hence the blend.
 
@@ -33,11 +32,10 @@ from ..model.rig import Skin
 Joints = tuple[int, ...]  # sorted skeleton-order joint indices
 
 
-def influences(skin: Skin, points: NDArray[np.int64], minimum: float = tol.INFLUENCE_WEIGHT_MIN) -> list[Joints]:
-    """Per point of ``points``: its influences I(v), the joints weighted above ``minimum``
-    (``tol.INFLUENCE_WEIGHT_MIN``; ``tol.PARENT_WEIGHT_MIN`` for the joints whose children count)."""
+def influences(skin: Skin, points: NDArray[np.int64]) -> list[Joints]:
+    """Per point of ``points``: its influences I(v), the joints weighted above ``tol.INFLUENCE_WEIGHT_MIN``."""
     idx = skin.indices[points]
-    kept = np.where((skin.weights[points] > minimum) & (idx >= 0), idx, -1)
+    kept = np.where((skin.weights[points] > tol.INFLUENCE_WEIGHT_MIN) & (idx >= 0), idx, -1)
     kept.sort(axis=1)
     base = len(skin.parents) + 1
     if kept.shape[1] * np.log2(base) < 62:  # one integer key per row: a 1-D unique, no lexsort
@@ -59,30 +57,24 @@ def rows_by_set(sets: Sequence[Joints]) -> dict[Joints, NDArray[np.int64]]:
     return {s: order[bounds[i]:bounds[i + 1]] for s, i in ids.items()}
 
 
-def explaining_joints(skin: Skin, own: Sequence[Joints], moved: Sequence[int],
-                      parents_of: Sequence[Joints] | None = None) -> list[Joints]:
+def explaining_joints(skin: Skin, own: Sequence[Joints], moved: Sequence[int]) -> list[Joints]:
     """Per point: the moved joints that can explain its corrective (sorted), from its
-    influences ``own`` (``influences``); the children count only of ``parents_of`` (per point,
-    its influences weighted above ``tol.PARENT_WEIGHT_MIN``; default: ``own``). A point that
-    carries a few percent of a torso joint is not bulged by that joint's every child: on
-    CesiumMan such arm points were driven by the other shoulder and both hips too, and a
-    shoulder turned alone moved the other arm by twice its sculpt."""
+    influences ``own`` (``influences``)."""
     children: dict[int, list[int]] = {}
     for j, p in enumerate(skin.parents):
         if p >= 0:
             children.setdefault(int(p), []).append(j)
     moving = set(int(j) for j in moved)
-    heavy = parents_of if parents_of is not None else own
-    cache: dict[tuple[Joints, Joints], Joints] = {}
+    cache: dict[Joints, Joints] = {}
     out = []
-    for mine, strong in zip(own, heavy, strict=True):
-        if (mine, strong) not in cache:
+    for mine in own:
+        if mine not in cache:
             found = set(mine)
-            for j in strong:
+            for j in mine:
                 found.update(children.get(j, ()))
             found.update(_between(mine, skin.parents))
-            cache[(mine, strong)] = tuple(sorted(found & moving))
-        out.append(cache[(mine, strong)])
+            cache[mine] = tuple(sorted(found & moving))
+        out.append(cache[mine])
     return out
 
 
