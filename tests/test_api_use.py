@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import pathlib
 import shutil
+import warnings
 
 import numpy as np
 import pytest
@@ -15,7 +16,7 @@ from conftest import fixture
 from pxr import Sdf
 
 import psdbake
-from psdbake.errors import SettingError, StrictError
+from psdbake.errors import PsdWarning, SettingError, StrictError
 
 HUMANOID = fixture("humanoid", "humanoid.usda")
 EXAMPLES = fixture("humanoid", "humanoid_examples.usda")
@@ -48,10 +49,12 @@ def test_a_file_rewritten_between_two_fits_is_read_again(tmp_path):
     shutil.copyfile(EXAMPLES, examples)
     first = psdbake.fit(HUMANOID, [str(examples)])  # kept alive: its layers stay open
     _resculpted(examples)
-    second = psdbake.fit(HUMANOID, [str(examples)])
-    elsewhere = tmp_path / "never_opened.usda"
-    shutil.copyfile(examples, elsewhere)
-    fresh = psdbake.fit(HUMANOID, [str(elsewhere)])
+    with warnings.catch_warnings():  # the whole body pushed out: said (points no moved joint skins), not asserted here
+        warnings.simplefilter("ignore", PsdWarning)
+        second = psdbake.fit(HUMANOID, [str(examples)])
+        elsewhere = tmp_path / "never_opened.usda"
+        shutil.copyfile(examples, elsewhere)
+        fresh = psdbake.fit(HUMANOID, [str(elsewhere)])
     a, b, c = _offsets(first), _offsets(second), _offsets(fresh)
     assert a.keys() == b.keys()
     assert any(not np.array_equal(a[k], b[k]) for k in a), "the second fit saw the old sculpts"

@@ -111,7 +111,7 @@ def fit_mesh(asset: str, info: SkinnedMesh, examples: Sequence[Example], solved:
     skinned = locality.explaining_joints(skin, own, mesh.moved)
     sets = locality.separate(skinned, own, mesh.coords, mesh.data, skin.parents,
                              mesh.moved, mesh.atol, mesh.labels, here)
-    _warn_unskinned(mesh, own, skinned, sets, here, notes)
+    _warn_unskinned(mesh, locality.influences(skin, mesh.points, 0.0), skinned, sets, skin.parents, here, notes)
     signatures = {s: r for s, r in sorted(locality.rows_by_set(sets).items()) if s}
     # 3. per-joint terms
     terms: dict[int, additive.JointTerm] = {}
@@ -297,12 +297,24 @@ def _activation_gated(mesh: _Mesh, data: DriverData, joints: Joints, centres: Se
 
 # --- what the TD is told -------------------------------------------------------------------------
 
-def _warn_unskinned(mesh: _Mesh, own: Sequence[Joints], skinned: Sequence[Joints], sets: Sequence[Joints], here: str,
-                    notes: list[str]) -> None:
-    """Sculpted points that no joint the examples move skins (a face edited on a pose where only
-    an arm bends): ``locality.separate`` drives them by the nearest moving joints, so the edit
-    comes and goes with that arm. Said, with where a pose-independent edit belongs."""
-    found = [i for i, (was, now) in enumerate(zip(skinned, sets, strict=True)) if not was and now]
+def _warn_unskinned(mesh: _Mesh, own: Sequence[Joints], skinned: Sequence[Joints], sets: Sequence[Joints],
+                    parents: NDArray[np.int64], here: str, notes: list[str]) -> None:
+    """Sculpted points that no joint the examples move skins or carries, at any weight (``own``:
+    every influence; a face edited on a pose where only an arm bends: neither the neck nor any
+    joint above it turns): ``locality.separate``
+    drives them by the nearest moving joints, so the edit comes and goes with that arm. Said,
+    with where a pose-independent edit belongs. Points whose sculpt is under a hundredth of the
+    mesh's largest (round-off of a rig's own look, as dual-quaternion sculpts on a linear rig
+    leave on the still torso) are not counted."""
+    moved = set(int(j) for j in mesh.moved)
+    size = np.abs(mesh.data[:, :, :3]).max(axis=(0, 2)) if mesh.data.size else np.zeros(len(own))
+    floor = 0.01 * float(size.max(initial=0.0))
+
+    def carried(joints: Joints) -> bool:  # a moved joint at or above one of them
+        return any(a in moved for j in joints for a in locality.ancestors(j, parents))
+
+    found = [i for i, (was, now) in enumerate(zip(skinned, sets, strict=True))
+             if not was and now and size[i] > floor and not carried(own[i])]
     if not found:
         return
     bones = sorted({_leaf(mesh.info, j) for i in found for j in own[i]})
