@@ -27,7 +27,7 @@ import numpy as np
 from . import __version__, atomic, outputs
 from .arrays import Progress
 from .deformers import deformer_files, load_deformers
-from .errors import FitError, InputError, OutputError, PsdWarning, where
+from .errors import FitError, InputError, OutputError, PsdWarning, StrictError, where
 from .fitting.groups import (
     GroupChanges,
     Groups,
@@ -51,10 +51,12 @@ from .results import FitResult, GltfResult, MirrorResult, PoseResult, SculptsRes
 from .settings import FitSettings, MirrorSettings, SettingError
 from .shot.evaluation import animation_weights, correctives_by_animation, posed_points
 from .shot.frames import check_authored, frames_of
+from .tolerances import ROUNDTRIP_RTOL
 from .usd import provenance
 from .usd import write as usdwrite
 from .usd.author import Layer
 from .usd.bindspace import read_bind_space
+from .usd.clips import remove_unstitched, stitched_files
 from .usd.compose import compose, open_layer, reread
 from .usd.describe import describe as describe_file
 from .usd.gltf_source import read_gltf_source
@@ -139,9 +141,32 @@ def open_asset(asset: str, notes: list[str] | None = None) -> Scene:
     return scene
 
 
+#: A file path as the library takes it: a str or an ``os.PathLike`` (a ``pathlib.Path``).
+PathArg = str | os.PathLike[str]
+
+
+def as_path(value: object, name: str) -> str:
+    """``value`` as the str path the library works with, or a ``SettingError`` naming the
+    parameter (not a C++ signature from USD, or an AttributeError from deep inside)."""
+    if isinstance(value, str | os.PathLike):
+        path = os.fspath(value)
+        if isinstance(path, str):
+            return path
+    raise SettingError(name, type(value).__name__, "must be a file path (str or pathlib.Path)")
+
+
+def as_paths(value: object, name: str) -> list[str]:
+    """A sequence of paths (one path alone counts as a list of one, not as its characters)."""
+    if isinstance(value, str | os.PathLike):
+        return [as_path(value, name)]
+    if not isinstance(value, Sequence | set | frozenset):
+        raise SettingError(name, type(value).__name__, "must be a list of file paths")
+    return [as_path(v, name) for v in value]
+
+
 def fit(
-    asset: str,
-    example_files: Sequence[str],
+    asset: PathArg,
+    example_files: Sequence[PathArg] | PathArg,
     settings: FitSettings = FitSettings(),  # noqa: B008 - frozen, so one shared default is safe
     *,
     jobs: int | None = None,
@@ -149,8 +174,10 @@ def fit(
 ) -> FitResult:
     """Fit rest-space correctives and their RBF drivers from sculpted examples.
 
-    jobs: worker processes for the per-example inverses (None: 1, see ``solve.auto_jobs``).
-    The output does not depend on it.
+    Paths are str or ``pathlib.Path``. jobs: worker processes for the per-example inverses
+    (None: 1, see ``solve.auto_jobs``). The output does not depend on it. With jobs > 1 the
+    workers are spawned: a script that calls this must guard its top level with
+    ``if __name__ == "__main__":``, as ``multiprocessing`` requires.
     """
     from .fitting.correctives import fit_planned, plan_mesh, plan_systems
     from .fitting.examples import gather_examples
@@ -158,6 +185,11 @@ def fit(
     from .solver.solve import clear_caches, share_scene, solve_all
 
     started = _time.perf_counter()
+    asset, example_files = as_path(asset, "asset"), as_paths(example_files, "example_files")
+    if not isinstance(settings, FitSettings):
+        raise SettingError("settings", type(settings).__name__, "must be a psdbake.FitSettings")
+    if jobs is not None and (not isinstance(jobs, int) or jobs < 1):
+        raise SettingError("jobs", jobs, "must be a whole number of worker processes, at least 1 (or None)")
     if not example_files:
         raise InputError("fit needs at least one EXAMPLES file")
     notes: list[str] = []
@@ -301,21 +333,61 @@ def mirror_lock(correctives: str, output: str) -> Iterator[None]:
         yield
 
 
-def _existing_groups(asset: str, path: str) -> tuple[Groups, dict[str, dict]]:
+def existing_groups(asset: str, path: str) -> tuple[Groups, dict[str, dict]]:
     """The groups of the CORRECTIVES layer at path and their provenance records ({} when path
-    holds no CORRECTIVES layer: nothing there is carried over)."""
+    holds no CORRECTIVES layer: nothing there is carried over). Another asset's layer (none of
+    its meshes skinned by ASSET) is refused as an output (exit 6), or, forced
+    (``atomic.forcing``), treated as empty: it is replaced whole. A damaged one is bad input."""
     if not os.path.isfile(path) or provenance.existing_kind(path) != "correctives":
         return {}, {}
     records = provenance.plain(provenance.read_stamp(path).get("groups", {}))
+    owners = sorted(psd_prims(open_layer(path)))
+    if owners and not {m.path for m in Scene([asset]).skinned_meshes()}.intersection(owners):
+        if atomic.forced():  # another asset's layer: replaced whole
+            return {}, {}
+        raise OutputError(f"{path}: holds CORRECTIVES for {', '.join(f'<{m}>' for m in owners)}, which {asset} does "
+                          "not skin: another asset's CORRECTIVES layer; write to another file, or give --force to "
+                          "replace it")
     return read_correctives(asset, path), records if isinstance(records, dict) else {}
+
+
+def _check_not_dropping(path: str, asset: str, groups: Groups, command: str) -> None:
+    """``mirror`` or ``groups`` writing a CORRECTIVES layer other than the one they read
+    replaces it whole: refused (unless forced) where that drops groups it holds, as a plain
+    fit is (``write_correctives``), or where it is another asset's layer."""
+    if atomic.forced():
+        return
+    before, records = existing_groups(asset, path)
+    lost = sorted(names_of(before) - names_of(groups))
+    if lost:
+        raise OutputError(
+            f"{path}: holds groups this {command} would drop: "
+            f"{', '.join(f'{g} ({origin_text(records.get(g))})' for g in lost)}. It replaces the whole layer: write "
+            "to another file, update that layer in place, or give --force to replace it")
 
 
 def _settings_record(settings: FitSettings) -> dict[str, Any]:
     return {k: v for k, v in dataclasses.asdict(settings).items() if k not in ("deformers", "group")}
 
 
-def write_correctives(result: FitResult, path: str, *, update: bool = False,
-                      side_files: Sequence[tuple[str, str]] = (), force: bool = False) -> GroupChanges:
+def fit_failure(result: FitResult, output: str, *, strict: bool, allow_degraded: bool) -> str | None:
+    """Why this fit must not be written (``StrictError``, exit 7), or None: a degraded product
+    (unless allowed) or, strict, any vertex that missed the fit tolerance. ``write_correctives``
+    refuses the first itself, so a pipeline calling the library cannot write one unknowingly."""
+    if strict and result.missed:
+        return f"{output}: not written: {result.missed} vertices missed the tolerance (--strict)"
+    if result.degraded and not allow_degraded:
+        worst = max(result.degraded, key=lambda c: c.error)
+        return (f"{output}: not written: the product does not reproduce {len(result.degraded)} of {len(result.checks)} "
+                f"example(s) within {ROUNDTRIP_RTOL:g} of the diagonal (worst {worst.label} <{worst.mesh}>: "
+                f"{worst.error:.2g}, vertex {worst.worst_vertex}); see the warnings above, or give --allow-degraded to "
+                "write it anyway")
+    return None
+
+
+def write_correctives(result: FitResult, path: PathArg, *, update: bool = False,
+                      side_files: Sequence[tuple[str, str]] = (), force: bool = False,
+                      allow_degraded: bool = False) -> GroupChanges:
     """Export CORRECTIVES atomically; inputs are never overwritten. Returns what happened to
     the groups already at path.
 
@@ -326,13 +398,22 @@ def write_correctives(result: FitResult, path: str, *, update: bool = False,
     under a lock, so concurrent writers of one layer serialise. A group that would double
     another's correction (the same driver, neither a combination) is refused (exit 4).
     side_files: (path, text) written in the same commit (``fit --report``): both land or neither.
+    A degraded fit (``FitResult.degraded``: the product misses an example through UsdSkel) is
+    refused (``StrictError``, nothing written) unless ``allow_degraded``, as ``fit`` refuses it.
     """
+    if not isinstance(result, FitResult):
+        raise SettingError("result", type(result).__name__, "must be the FitResult psdbake.fit returned "
+                           "(write_correctives(result, path))")
+    path = as_path(path, "path")
+    failure = fit_failure(result, path, strict=False, allow_degraded=allow_degraded)
+    if failure:
+        raise StrictError(failure.replace("give --allow-degraded", "give --allow-degraded (allow_degraded=True)"))
     inputs = files_read([result.asset, *result.example_files], result.settings.deformers)
     written = fitted_groups(result)
     with _forced(force):
         atomic.check_output(path, inputs, kind=outputs.CORRECTIVES)
         with updating(path, *(side for side, _ in side_files)):
-            before, records = _existing_groups(result.asset, path)
+            before, records = existing_groups(result.asset, path)
             if update:
                 check_name_case(before, written, path)
                 groups = merged_groups(before, written, result.settings.meshes)
@@ -380,9 +461,9 @@ def correctives_layer(result: FitResult) -> Any:
 # --- eval: CORRECTIVES + ANIM -> pose space -> RBF weights -> WEIGHTS (+ points cache) ---------
 
 def evaluate(
-    asset: str,
-    correctives: str,
-    anim: str,
+    asset: PathArg,
+    correctives: PathArg,
+    anim: PathArg,
     *,
     frames: tuple[float, float] | None = None,
     progress: Progress | None = None,
@@ -396,8 +477,12 @@ def evaluate(
 
     frames: whole frames A..B, within ANIM's authored samples unless ``hold``; ``shot``: the
     range to check instead (a farm chunk checks the whole shot's, so every chunk agrees);
-    meshes: only these meshes' correctives (full paths or leaf names)."""
+    meshes: only these meshes' correctives (full paths or leaf names). Paths are str or
+    ``pathlib.Path``."""
     started = _time.perf_counter()
+    asset, correctives, anim = as_path(asset, "asset"), as_path(correctives, "correctives"), as_path(anim, "anim")
+    if frames is not None and not (isinstance(frames, tuple | list) and len(frames) == 2):
+        raise SettingError("frames", frames, "must be (first, last), e.g. psdbake.parse_frames('1:10')")
     asset_scene = open_asset(asset)
     check_fitted_on(asset, asset_scene, correctives, strict=strict)
     scene = Scene([anim, correctives, asset], label=correctives, checked=Checked.NO_SHAPE_VALUES)  # weights read no offsets
@@ -448,16 +533,23 @@ def stamp_weights(layer: Layer, kind: str, result: WeightsResult, path: str, def
                    selfContained=contained or None)
 
 
-def write_weights(result: WeightsResult, path: str, *, points_cache: tuple[str, Layer] | None = None,
+def write_weights(result: WeightsResult, path: PathArg, *, points_cache: tuple[str, Layer] | None = None,
                   deformers: Sequence[str] = (), force: bool = False) -> str:
     """Export WEIGHTS (and, given as (path, layer), the points cache in the same commit:
     both land or neither)."""
+    if not isinstance(result, WeightsResult):
+        raise SettingError("result", type(result).__name__, "must be the WeightsResult psdbake.evaluate returned "
+                           "(write_weights(result, path))")
+    path = as_path(path, "path")
     written = [(path, stamp_weights(weights_layer(result), "weights", result, path))]
     if points_cache:
         written.append((points_cache[0], stamp_weights(points_cache[1], "points_cache", result, points_cache[0],
                                                        deformers)))
-    with _forced(force):
+    paths = [p for p, _ in written]
+    with _forced(force), updating(*paths):  # one step for another eval writing here (a farm chunk)
+        earlier = [f for p in paths for f in stitched_files(p)]  # a chunked eval's, now replaced by one layer
         usdwrite.export_all(written, files_read([result.asset, result.correctives, result.anim], deformers))
+        remove_unstitched(earlier, paths)
     return path
 
 
@@ -544,6 +636,13 @@ def export_blender(asset: str, correctives: str, output: str, *, anim: str | Non
 
     inputs = files_read([asset, correctives, *([anim] if anim else [])])
     check_fitted_on(asset, open_asset(asset), correctives, strict=strict)
+    if anim is not None:  # what eval refuses, Blender would import as a rig that never moves, or a mesh cache
+        if provenance.authors_point_samples(anim):
+            raise InputError(f"{anim}: authors time-sampled points (an EXAMPLES layer or a points cache): Blender would "
+                             "import them as a mesh cache over the rig; give an ANIM layer (psdbake inspect says what "
+                             "a file is)")
+        correctives_by_animation(Scene([anim, correctives, asset], label=correctives), Scene([anim, asset], label=anim),
+                                 correctives, anim)
     with _forced(force):
         return build(asset, correctives, output, anim=anim, blender=blender, inputs=inputs)
 
@@ -710,6 +809,8 @@ def write_mirror(result: MirrorResult, path: str, *, force: bool = False, replac
                 if g.group not in protected:
                     written.setdefault(g.mesh, {})[g.group] = (g.driver_data, list(g.shapes))
             groups = merged_groups(before, written)
+            if not in_place:
+                _check_not_dropping(path, result.asset, groups, "mirror")
             entries = {name: {"origin": "mirror", "source": sources[name], "command": outputs.command_line(path),
                               "plane": result.settings.plane, "joints": list(result.settings.joints)}
                        for name in names_of(written)}
@@ -726,8 +827,12 @@ def write_mirror(result: MirrorResult, path: str, *, force: bool = False, replac
 def recorded_asset(correctives: str) -> str | None:
     """The asset a CORRECTIVES layer records it was fitted on (its provenance), as a path from
     here, or None."""
-    rel = provenance.plain(provenance.read_stamp(correctives).get("inputs", {})).get("asset", {}).get("path")
-    return os.path.normpath(os.path.join(os.path.dirname(correctives), rel)) if rel else None
+    recorded = provenance.plain(provenance.read_stamp(correctives).get("inputs", {}))
+    asset = recorded.get("asset") if isinstance(recorded, dict) else None
+    if isinstance(asset, list):  # a stack records each role's layers as a list, the strongest last
+        asset = asset[-1] if asset else None
+    rel = asset.get("path") if isinstance(asset, dict) else None
+    return os.path.normpath(os.path.join(os.path.dirname(correctives), rel)) if isinstance(rel, str) else None
 
 
 def list_groups(correctives: str) -> list[dict[str, Any]]:
@@ -772,6 +877,8 @@ def edit_groups(correctives: str, *, remove: Sequence[str] = (), rename: Mapping
                 groups = renamed_group(groups, old, new, correctives)
                 if old in records:
                     records[new] = {**records.pop(old), "renamed_from": old}
+            if not in_place:
+                _check_not_dropping(output, asset, groups, "groups edit")
             layer = groups_layer(asset, groups, f"psdbake {__version__} groups: rest-space correctives (inverse PSD)")
             stamped(layer, "correctives", output, {"asset": asset}, rig=provenance.plain(
                 provenance.read_stamp(correctives).get("rig", {})), command=False,
@@ -837,13 +944,39 @@ def plan_stack(layers: Sequence[str], *, strict: bool = False) -> StackResult:
                 raise InputError(f"{msg} (--strict)")
             notes.append(msg)
             warnings.warn(msg, PsdWarning, stacklevel=2)
+    for role in ("anim", "asset"):  # WEIGHTS over another animation (or asset) show the wrong weights
+        notes += _weights_made_from(stamps, by_role, role, strict=strict)
     assets = by_role.get("asset", [])
     if assets:
         scene = open_asset(assets[-1])
+        skinned = {m.path for m in scene.skinned_meshes()}
         for path in by_role.get("correctives", []):
+            meshes = sorted(psd_prims(open_layer(path)))
+            if meshes and not skinned.intersection(meshes):
+                raise InputError(f"{path}: CORRECTIVES for {', '.join(f'<{m}>' for m in meshes)}, which {assets[-1]} "
+                                 "does not skin: the stack would show no correction (fitted on another asset?)")
             notes += check_fitted_on(assets[-1], scene, path, strict=strict)
     return StackResult("", tuple((p, roles[p]) for p in ordered), ordered != list(reversed(unique)) and
                        ordered != unique, tuple(notes))
+
+
+def _weights_made_from(stamps: Mapping[str, dict], by_role: Mapping[str, list[str]], role: str, *,
+                       strict: bool) -> list[str]:
+    """Warn (strict: refuse, exit 3) when a WEIGHTS layer records it was evaluated over another
+    ``role`` layer (the ANIM or the ASSET) than any stacked: its weights belong to other frames
+    or another rig, and the stack would show them without a word."""
+    stacked = {provenance.file_sha256(p) for p in by_role.get(role, [])}
+    notes = []
+    for path in by_role.get("weights", []) if stacked else ():
+        used = provenance.plain(stamps[path].get("inputs", {})).get(role, {})
+        if isinstance(used, dict) and used.get("sha256") and used["sha256"] not in stacked:
+            msg = (f"{path}: evaluated over {used.get('path', 'another ' + role)} (other bytes than the stacked "
+                   f"{role.upper()} {', '.join(by_role[role])}): re-run psdbake eval with the stacked layers")
+            if strict:
+                raise InputError(f"{msg} (--strict)")
+            notes.append(msg)
+            warnings.warn(msg, PsdWarning, stacklevel=3)
+    return notes
 
 
 def write_stack(path: str, layers: Sequence[str], *, strict: bool = False, force: bool = False) -> StackResult:
@@ -860,16 +993,32 @@ def write_stack(path: str, layers: Sequence[str], *, strict: bool = False, force
     return plan
 
 
-def describe(path: str, asset: str | None = None) -> dict:
+def describe(path: PathArg, asset: PathArg | None = None) -> dict:
     """What a USD file holds (``psdbake inspect``): JSON-ready, sorted. With the asset (given, or
     the one the file records it was made from), the example poses are spelled out: per time code,
     the joints turned from bind and by how many degrees."""
     from .usd.describe import spelled_poses
 
+    path = as_path(path, "path")
+    asset = as_path(asset, "asset") if asset is not None else None
+
     info = describe_file(path)
+    stamp = provenance.read_stamp(path)
+    info["kind"] = provenance.existing_kind(path)
+    info["command"] = stamp.get("command") if isinstance(stamp.get("command"), str) else None
+    if info["kind"] == "stack":  # each sublayer's role, as stack recorded it
+        recorded = provenance.plain(stamp.get("inputs", {}))
+        roles = {os.path.normpath(entry.get("path", "")): role for role, entries in
+                 (recorded.items() if isinstance(recorded, dict) else ())
+                 for entry in (entries if isinstance(entries, list) else [entries]) if isinstance(entry, dict)}
+        info["layers"] = [{"path": p, "role": roles.get(os.path.normpath(p))} for p in info["sublayers"]]
     asset = asset or recorded_asset(path)
     times = sorted({t for e in info["examples"] for t in e["time_codes"]})
     if asset and os.path.isfile(asset) and times and os.path.realpath(asset) != os.path.realpath(path):
         info["asset"] = asset
         info["poses"] = spelled_poses(Scene([path, asset], label=path), times)
+        if not info["poses"]:
+            meshes = ", ".join(sorted(f"<{e['mesh']}>" for e in info["examples"]))
+            info["warnings"] = [*info.get("warnings", []), f"{path}: {asset} skins none of the meshes these examples "
+                                f"pose ({meshes}): no pose spelled out (another asset?)"]
     return info

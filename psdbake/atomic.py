@@ -85,6 +85,9 @@ def check_output(path: str, inputs: Iterable[str] = (), extensions: Iterable[str
     its real path. ``kind`` gives the extensions when ``extensions`` is None."""
     if extensions is None and kind is not None:
         extensions = kind.extensions
+    if path.endswith(("/", os.sep)) or os.path.isdir(path):
+        raise OutputError(f"{path}: names a folder; give the file to write (e.g. {os.path.join(path, 'out')}"
+                          f"{next(iter(extensions or ()), '')})")
     ext = os.path.splitext(path)[1].lower()
     if extensions is not None and ext not in tuple(extensions):
         raise OutputError(f"{path}: output must end in {', '.join(extensions)} (got {ext or 'no extension'!r})")
@@ -103,6 +106,8 @@ def check_output(path: str, inputs: Iterable[str] = (), extensions: Iterable[str
             raise OutputError(f"{path}: cannot create output folder {shown}: {blocker} is not a folder")
         if not os.access(existing, os.W_OK | os.X_OK):
             raise OutputError(f"{path}: cannot create output folder {shown}: {blocker} is not writable")
+    elif not os.path.isdir(folder):
+        raise OutputError(f"{path}: cannot write into {shown}: it is a file, not a folder")
     elif not os.access(folder, os.W_OK | os.X_OK):
         raise OutputError(f"{path}: output folder {shown} is not writable")
     if os.path.isdir(real):
@@ -161,6 +166,15 @@ def check_outputs(outputs: Iterable[tuple[str, OutputKind]], inputs: Iterable[st
             raise OutputError(f"{path}: names two outputs of this run{also}; each output needs its own file")
         seen[real] = path
     return list(seen)
+
+
+def _mode_for(real: str) -> int:
+    """The permissions an output gets: those of the file it replaces (a group-writable or a
+    read-only published file stays so, as editors keep them), else what the umask allows."""
+    try:
+        return stat.S_IMODE(os.stat(real).st_mode) & 0o777  # never set-id or sticky bits on a layer
+    except OSError:
+        return 0o666 & ~_umask()
 
 
 def _umask() -> int:
@@ -223,11 +237,11 @@ class Transaction:
 
     def commit(self) -> list[str]:
         try:
-            for shown, _, tmp in self._planned:
+            for shown, real, tmp in self._planned:
                 try:
                     with open(tmp, "rb+") as fh:
                         os.fsync(fh.fileno())
-                    os.chmod(tmp, 0o666 & ~_umask())
+                    os.chmod(tmp, _mode_for(real))
                 except OSError as exc:
                     raise OutputError(f"{shown}: cannot write ({exc.strerror or exc})") from None
             with updating(*(real for _, real, _ in self._planned)), _signals_held():

@@ -43,7 +43,8 @@ EXIT_INTERNAL, EXIT_USAGE, EXIT_INTERRUPTED = 1, 2, 130
 
 
 _COMMON = [
-    click.option("-q", "--quiet", is_flag=True, help="Print nothing on stdout; warnings and errors still go to stderr."),
+    click.option("-q", "--quiet", is_flag=True,
+                 help="Print no summary on stdout (--json still prints its JSON); warnings and errors still go to stderr."),
     click.option("-v", "--verbose", count=True, help="More detail in the summary."),
     click.option("--json", "as_json", is_flag=True, help="Print a machine-readable summary on stdout."),
 ]
@@ -57,8 +58,9 @@ deformer_option = click.option(
 
 force_option = click.option(
     "--force", is_flag=True,
-    help="Replace an existing output even when it is not this command's own earlier output (an asset, a sculpt, "
-         "another kind of layer) or is read-only. Inputs are never replaced.",
+    help="Replace an existing output even when it is not this command's own earlier output (an asset, a sculpted "
+         "EXAMPLES layer, another kind of layer) or is read-only. Inputs, and the OBJs in an --obj-dir, are never "
+         "replaced.",
 )
 
 strict_provenance_option = click.option(
@@ -332,7 +334,9 @@ def _per_file(flag: str, values: Sequence[str], convert: Callable[[str, str], An
                    "inside OUTPUT, keeping OUTPUT's other groups. Without it, OUTPUT is replaced by local, additive "
                    "groups: one per joint the examples move, plus combinations (docs: explanation/pose-space-and-rbf.md).")
 @click.option("--report", type=str, help="Write a JSON report here.")
-@click.option("--strict", is_flag=True, help="Fail (exit 7, nothing written) if any vertex misses --tolerance.")
+@click.option("--strict", is_flag=True,
+              help="Fail (exit 7, no CORRECTIVES written; --report still describes the run) if any vertex misses "
+                   "--tolerance.")
 @click.option("--allow-degraded", is_flag=True,
               help="Write the correctives even when the product does not reproduce some example within the round-trip "
                    "tolerance (1e-5 of the diagonal): by default such a fit fails with exit 7 and writes only --report.")
@@ -346,7 +350,6 @@ def fit_cmd(asset, examples, output, rbf, tolerance, meshes, group, report, stri
             force, quiet, verbose, as_json) -> None:
     """Fit rest-space corrective BlendShapes and their RBF drivers from sculpted EXAMPLES."""
     from . import api, atomic
-    from .fitting.groups import read_correctives
     from .usd.provenance import existing_kind
 
     ui = Ui(quiet, verbose, as_json)
@@ -356,12 +359,13 @@ def fit_cmd(asset, examples, output, rbf, tolerance, meshes, group, report, stri
         atomic.check_outputs([(output, outputs.CORRECTIVES), *([(report, outputs.FIT_REPORT)] if report else [])],
                              reads)
     if group and os.path.exists(output) and existing_kind(output) == "correctives":
-        read_correctives(asset, output)  # refuse a bad layer to update before the long fit
+        with atomic.forcing(force):
+            api.existing_groups(asset, output)  # refuse a layer it cannot update before the long fit
     with ui.warnings():
         with ui.progress("fitting examples") as progress:
             result = api.fit(asset, examples, settings, jobs=jobs, progress=progress)
         payload = console.fit_report(result, output)
-        failure = console.fit_failure(result, output, strict=strict, allow_degraded=allow_degraded)
+        failure = api.fit_failure(result, output, strict=strict, allow_degraded=allow_degraded)
         if failure:
             payload["written"] = False
             if report:  # the diagnosis, so the long fit need not be run again to read it
@@ -369,7 +373,8 @@ def fit_cmd(asset, examples, output, rbf, tolerance, meshes, group, report, stri
             console.say_fit(ui, result, output, written=False)
             raise StrictError(failure)
         side = [(report, console.json_text(payload))] if report else []
-        changes = api.write_correctives(result, output, update=bool(group), side_files=side, force=force)
+        changes = api.write_correctives(result, output, update=bool(group), side_files=side, force=force,
+                                        allow_degraded=allow_degraded)
     payload["groups"] = console.changes_payload(changes)
     ui.payload(payload)
     console.say_fit(ui, result, output, changes)
@@ -715,7 +720,9 @@ def batch_cmd(jobs_file, workers, workers_alias, scheduler, retries, dry_run, al
     ui = Ui(quiet, verbose, as_json)
     jobs = farm.load_jobs(jobs_file, {name: cli.commands[name] for name in farm.COMMANDS},  # the CLI is the job schema
                           allow_deformers=allow_deformers)
+    farm.check_reads(jobs)  # a missing input fails now, not hours into the run
     if dry_run:
+        ui.say(f"# {len(jobs.tasks)} task(s), run in {jobs.folder} (the jobs file's folder), in this order:")
         if as_json:
             click.echo(json.dumps([{"job": t.label, "command": t.command_line, "needs": list(t.needs),
                                     "after": list(t.after), "key": t.key} for t in jobs.tasks], sort_keys=True))

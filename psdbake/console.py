@@ -6,6 +6,7 @@ library returns data and never prints.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import json
 import sys
 import warnings
@@ -15,7 +16,7 @@ from warnings import WarningMessage
 
 import click
 
-from . import __version__
+from . import __version__, outputs
 from . import tolerances as tol
 from .errors import PsdWarning, StrictError
 
@@ -45,6 +46,7 @@ class Ui:
 
     def __init__(self, quiet: bool, verbose: int, as_json: bool) -> None:
         self.quiet, self.verbose, self.as_json = quiet, verbose, as_json
+        self.warned: list[str] = []  # every warning shown, for the --json summary
 
     def say(self, text: str = "") -> None:
         if not self.quiet and not self.as_json:
@@ -52,11 +54,15 @@ class Ui:
 
     def warn(self, text: str) -> None:
         """A warning: on stderr, even with -q or --json (a farm log must see it)."""
+        self.warned.append(text)
         click.echo(f"psdbake: warning: {text}", err=True)
 
     def payload(self, data: Any) -> None:
-        """The --json summary, on stdout."""
+        """The --json summary, on stdout, with the warnings shown on stderr (unless the summary
+        has its own list, as fit's does)."""
         if self.as_json:
+            if isinstance(data, dict) and "warnings" not in data:
+                data = {**data, "warnings": list(self.warned)}
             click.echo(json.dumps(data, sort_keys=True))
 
     @contextlib.contextmanager
@@ -142,8 +148,12 @@ def fit_report(result: FitResult, output: str) -> dict:
             "role": m.role or None, "vertices_moved": m.vertices,
             "columns": len(d.shapes),
         })
+    settings = {k: list(v) if isinstance(v, tuple) else v for k, v in dataclasses.asdict(result.settings).items()}
     return {
         "psdbake": __version__, "command": "fit", "asset": result.asset, "output": output,
+        # as typed, file arguments relative to OUTPUT's folder (None from the library)
+        "command_line": outputs.command_line(output),
+        "settings": settings,  # as asked: rtol is relative, each example's "tolerance" the absolute one used
         "examples": list(result.example_files), "meshes": meshes, "missed": result.missed,
         "warnings": list(result.warnings), "seconds": round(result.seconds, 6),
         "skipped_examples": list(result.skipped), "layout": list(result.layout),
@@ -183,20 +193,6 @@ def _unreachable_line(label: str, inv: Any) -> str:
         verdict = "the solver stopped short of an optimum"
     return (f"{label}: {len(inv.missed)} vertices above the tolerance, {inv.unreachable_fraction:.1%} of the sculpt not "
             f"reproduced (worst: {worst}); {verdict}")
-
-
-def fit_failure(result: FitResult, output: str, *, strict: bool, allow_degraded: bool) -> str | None:
-    """Why this fit must not be written (exit 7), or None: a degraded product (unless allowed)
-    or, with --strict, any vertex that missed the fit tolerance."""
-    if strict and result.missed:
-        return f"{output}: not written: {result.missed} vertices missed the tolerance (--strict)"
-    if result.degraded and not allow_degraded:
-        worst = max(result.degraded, key=lambda c: c.error)
-        return (f"{output}: not written: the product does not reproduce {len(result.degraded)} of {len(result.checks)} "
-                f"example(s) within {tol.ROUNDTRIP_RTOL:g} of the diagonal (worst {worst.label} <{worst.mesh}>: "
-                f"{worst.error:.2g}, vertex {worst.worst_vertex}); see the warnings above, or give --allow-degraded to "
-                "write it anyway")
-    return None
 
 
 def changes_payload(changes: GroupChanges) -> dict:
@@ -339,8 +335,9 @@ def mirror_report(result: MirrorResult, output: str) -> dict:
 
 
 def say_mirror(ui: Ui, result: MirrorResult, output: str, changes: GroupChanges | None = None) -> None:
+    kept = f"; {len(changes.protected)} of them not written (fitted from sculpts there)" if changes and changes.protected else ""
     ui.say(f"psdbake mirror: {len(result.groups)} group(s) mirrored about the {result.settings.plane} plane, "
-           f"{sum(g.vertices for g in result.groups)} vertices paired in {result.seconds:.2f} s")
+           f"{sum(g.vertices for g in result.groups)} vertices paired in {result.seconds:.2f} s{kept}")
     for g in result.groups:
         drivers = ", ".join(f"{a.split('/')[-1]} -> {b.split('/')[-1]}" for a, b in g.drivers)
         ui.say(f"  <{g.mesh}>  {g.source} -> {g.group}  drivers: {drivers}  vertices: {g.vertices}  "
@@ -422,10 +419,22 @@ def _joint_tree(paths: list[str]) -> list[str]:
     return [f"{'  ' * p.count('/')}{p.split('/')[-1]}" for p in paths]
 
 
+#: How ``psdbake inspect`` names each kind of psdbake layer (``provenance`` kinds).
+_KIND_LABELS = {
+    "examples": "EXAMPLES layer (posed points, for sculpting)", "sculpted_examples": "sculpted EXAMPLES layer",
+    "correctives": "CORRECTIVES layer", "weights": "WEIGHTS layer", "points_cache": "points cache",
+    "stack": "stack", "clip_manifest": "clip manifest (WEIGHTS or points cache in chunks)",
+}
+
+
 def say_inspect(file: str, info: dict, verbose: int = 0) -> None:
     for warning in info.get("warnings", []):
         click.echo(f"psdbake: warning: {warning}", err=True)
-    click.echo(f"{file}")
+    kind = _KIND_LABELS.get(info.get("kind") or "", "")
+    click.echo(f"{file}" + (f": {kind}" if kind else "") + (f", written by `{info['command']}`" if info.get("command") else ""))
+    if info.get("layers"):
+        click.echo("  layers, strongest first: " + " > ".join(
+            f"{layer['path']} ({(layer['role'] or 'unknown').upper().replace('_', ' ')})" for layer in info["layers"]))
     for root in info["skel_roots"]:
         click.echo(f"  SkelRoot <{root}>")
     for skel in info["skeletons"]:
@@ -442,12 +451,18 @@ def say_inspect(file: str, info: dict, verbose: int = 0) -> None:
         if a["blend_shapes"]:
             parts.append(f"{len(a['blend_shapes'])} blend shapes ({a.get('blend_shape_samples', 0)} weight samples)")
         click.echo(f"  SkelAnimation <{a['path']}>: {', '.join(parts)}, {span}")
-    for e in info["examples"]:
+    for w in info.get("weights", []):
+        click.echo(f"  blend-shape weights over <{w['path']}>: {w['channels']} channels, {w['samples']} samples, "
+                   f"{w['first']:g}..{w['last']:g}")
+    cache = info.get("kind") in ("points_cache", "clip_manifest")
+    for p in info.get("point_samples", []) if cache else ():  # baked points over a shot, not examples to fit
+        click.echo(f"  points of <{p['mesh']}>: {p['samples']} samples, {p['first']:g}..{p['last']:g}")
+    for e in () if cache else info["examples"]:
         click.echo(f"  examples of <{e['mesh']}> at time codes {', '.join(f'{t:g}' for t in e['time_codes'])}")
     for pose in info.get("poses", []):
         turned = ", ".join(f"{j['joint'].split('/')[-1]} {j['degrees']:g}°" for j in pose["joints"]) or "bind pose"
         click.echo(f"    t={pose['time']:g}: {turned}")
-    if info["examples"] and "poses" not in info:
+    if info["examples"] and "poses" not in info and not cache:
         click.echo("    (give --asset ASSET to spell out each example's pose)")
     for c in info["correctives"]:
         click.echo(f"  correctives on <{c['mesh']}> group {c['group']} (psd: v{c['version']}): {len(c['shapes'])} shapes from "

@@ -34,7 +34,8 @@ class SettingError(InputError):
         super().__init__(self.render(param))
 
     def render(self, name: str) -> str:
-        return f"{self.location + ': ' if self.location else ''}{name} {self.value!r}: {self.problem}"
+        shown = f"{name} {self.value!r}" if self.value is not None else name  # no value given: the flag alone
+        return f"{self.location + ': ' if self.location else ''}{shown}: {self.problem}"
 
 
 class FitError(PsdError):

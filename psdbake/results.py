@@ -91,6 +91,11 @@ class ExampleCheck:
 
 @dataclass(frozen=True)
 class FitResult:
+    """What ``psdbake.fit`` made: per mesh and group the examples, their inverses (rest-space
+    offsets, residuals, calls) and the RBF driver data; ``missed`` (vertices above the fit
+    tolerance) and ``degraded`` (examples the product misses through UsdSkel) say whether
+    it may be written (``write_correctives`` refuses a degraded one unless allowed)."""
+
     asset: str
     example_files: tuple[str, ...]
     settings: FitSettings
@@ -147,6 +152,10 @@ class AnimWeights:
 
 @dataclass(frozen=True)
 class WeightsResult:
+    """What ``psdbake.evaluate`` computed: per SkelAnimation of ANIM, every blend-shape channel's
+    weight at every frame (the asset's own channels first, then the correctives'), to write with
+    ``write_weights``."""
+
     asset: str
     correctives: str
     anim: str

@@ -38,8 +38,18 @@ class FitSettings:
     group: str | None = None  # one named correctives group; None: local, additive groups (regions.py)
 
     def __post_init__(self) -> None:
+        for name in ("drivers", "meshes", "deformers"):  # one name alone is a list of one, not of its letters
+            value = getattr(self, name)
+            if isinstance(value, str):
+                object.__setattr__(self, name, (value,))
+            elif not all(isinstance(v, str) for v in value):
+                raise SettingError(name, value, "must be a list of names")
+            else:
+                object.__setattr__(self, name, tuple(value))
         for name, allow_zero in (("sigma", False), ("smoothing", True), ("rtol", False)):
             value = getattr(self, name)
+            if value is not None and (isinstance(value, bool) or not isinstance(value, int | float | np.floating)):
+                raise SettingError(name, value, "must be a number")
             if value is not None and not (np.isfinite(value) and (value >= 0 if allow_zero else value > 0)):
                 raise SettingError(name, value, f"must be a {'non-negative' if allow_zero else 'positive'} number")
         if self.group is not None and (

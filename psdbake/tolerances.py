@@ -109,6 +109,17 @@ JOINT_SIGMA = 1.843
 #: one; 1e-5 does slightly better with the additive truth and worse with the dual-quaternion one.
 ADDITIVE_RIDGE = 1e-4
 
+#: The largest value a joint's term may take at its probe poses (``PROBE_ANGLES``), over the
+#: largest sculpted offset of its points, before ``fitting.additive`` raises the ridge tenfold
+#: at a time, up to ``ADDITIVE_RIDGE_MAX``. Shot frames where several joints move, some sculpted
+#: and some left as they were, tell the joints apart only by cancellation: on CesiumMan (two of
+#: eight frames sculpted) terms fitted through close centres swelled to many times the sculpt
+#: off the shot (docs/decisions/additive-correctives.md).
+ADDITIVE_AMPLIFICATION = 2.0
+ADDITIVE_RIDGE_MAX = 1e4
+#: Angles (radians) of the probe poses: a joint turned 15 to 90 degrees from bind.
+PROBE_ANGLES = (0.25, 0.5, 0.75, 1.0, 1.25, 1.5)
+
 #: sigma of a combination group with several centres (``fitting.decompose``; ``--sigma``
 #: overrides), as a fraction of the mean pairwise distance of its poses: a combination carries
 #: what the per-joint terms leave at its examples, which on the humanoid's shot sculpts is

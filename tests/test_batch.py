@@ -17,7 +17,7 @@ import time
 from pathlib import Path
 
 import pytest
-from conftest import fixture
+from conftest import fixture, run_cli
 
 from psdbake import farm
 from psdbake.cli import cli
@@ -203,6 +203,76 @@ obj_dir = "sculpt"
     assert second.after == (first.key,) and str(tmp_path / "sculpt") in first.writes
 
 
+def test_a_missing_input_or_a_job_reading_its_own_output_is_refused_before_anything_runs(tmp_path):
+    """A typo in a path failed that job (and skipped its readers) hours into a farm run, and a
+    dry run printed it as fine: now both refuse it first (exit 3, naming the job and the file)."""
+    (tmp_path / "a.usda").write_text("#usda 1.0\n")
+    path = jobs_file(tmp_path, """
+[[fit]]
+asset = "a.usda"
+examples = ["sculpted.usda"]
+output = "c.usda"
+
+[[eval]]
+asset = "a.usda"
+correctives = "c.usda"
+anim = "shto.usda"
+output = "w.usda"
+""")
+    for extra in ([], ["--dry-run"]):
+        code, _, err = run_cli("batch", path, *extra)
+        assert code == 3 and err.count("psdbake: error:") == 1, err
+        assert "[[fit]] #1: reads sculpted.usda, which is not there and no job writes" in err, err
+    (tmp_path / "sculpted.usda").write_text("#usda 1.0\n")
+    code, _, err = run_cli("batch", path, "--dry-run")
+    assert code == 3 and "[[eval]] #1: reads shto.usda" in err, err  # c.usda is written by the fit: fine
+    (tmp_path / "shto.usda").write_text("#usda 1.0\n")
+    assert run_cli("batch", path, "--dry-run")[0] == 0
+    own = jobs_file(tmp_path / "own", """
+[[eval]]
+asset = "../a.usda"
+correctives = "w.usda"
+anim = "../shto.usda"
+output = "w.usda"
+""")
+    code, _, err = run_cli("batch", own, "--dry-run")
+    assert code == 3 and "reads w.usda, which it also writes" in err, err
+
+
+def test_two_jobs_writing_one_file_are_refused_unless_chunks_of_a_shot(tmp_path):
+    """Two evals into one WEIGHTS layer ran one after the other and the later silently replaced
+    the earlier's work: refused when the jobs file is read (exit 3, naming both jobs). The
+    chunks of one shot, written as separate jobs (chunk = K), share its manifests by design."""
+    two = """
+[[eval]]
+asset = "a.usda"
+correctives = "c.usda"
+anim = "shot1.usda"
+output = "w.usda"
+
+[[eval]]
+asset = "a.usda"
+correctives = "c.usda"
+anim = "shot2.usda"
+output = "w.usda"
+"""
+    with pytest.raises(InputError, match=r"\[\[eval\]\] #2: writes w.usda, as \[\[eval\]\] #1 does: the later would "
+                                         r"replace"):
+        load_jobs(jobs_file(tmp_path / "two", two))
+    chunks = "".join(f"""
+[[eval]]
+asset = "a.usda"
+correctives = "c.usda"
+anim = "shot.usda"
+frames = "1:10"
+chunk_size = 5
+chunk = {k}
+output = "w.usda"
+""" for k in (1, 2))
+    first, second = load_jobs(jobs_file(tmp_path / "chunks", chunks)).tasks
+    assert second.after == (first.key,)
+
+
 MANIFESTS = ("out/w.usda", "out/w.clipmanifest.usda", "out/p.usdc", "out/p.clipmanifest.usdc")
 
 
@@ -250,6 +320,14 @@ layers = ["a.usda", "c.usda", "shot.usda", "w.usda"]
 
 
 GOOD_FIT = '[[fit]]\nasset = "a.usda"\nexamples = ["e.usda"]\noutput = "out/c.usda"\n'
+
+
+def good_fit_jobs(folder: Path) -> str:
+    """GOOD_FIT as a jobs file beside stand-ins for its inputs (batch refuses missing ones first)."""
+    path = jobs_file(folder, GOOD_FIT)
+    for name in ("a.usda", "e.usda"):
+        (folder / name).write_text("#usda 1.0\n")
+    return path
 
 
 @pytest.mark.parametrize("text, message", [
@@ -382,6 +460,8 @@ def test_a_dry_run_of_25000_jobs_is_linear_and_small(tmp_path):
     312 million pairs (19.6 GB); now a chain. Peak memory of the whole ``batch --dry-run``,
     measured in a fresh process: under 500 MB."""
     path = tmp_path / "jobs.toml"
+    for name in ("a.usda", "e.usda"):  # the inputs must be there (batch checks before a dry run too)
+        (tmp_path / name).write_text("#usda 1.0\n")
     with open(path, "w", encoding="utf-8") as fh:
         fh.write('[defaults]\nasset = "a.usda"\nexamples = ["e.usda"]\noutput = "c.usda"\n')
         fh.writelines(f'[[fit]]\ngroup = "g{i}"\n' for i in range(25_000))
@@ -507,7 +587,7 @@ def test_dask_batch_survives_a_worker_killed_mid_job(cluster, local_run, tmp_pat
 
 def test_scheduler_without_dask_is_a_usage_error(run, tmp_path, monkeypatch):
     monkeypatch.setitem(sys.modules, "distributed", None)  # as if dask were not installed
-    path = jobs_file(tmp_path, GOOD_FIT)
+    path = good_fit_jobs(tmp_path)
     code, _, err = run("batch", path, "--scheduler", "tcp://127.0.0.1:8786")
     assert code == 2
     assert err == "psdbake: error: --scheduler needs dask.distributed: pip install 'psdbake[dask]'\n"
@@ -519,7 +599,7 @@ def test_bad_scheduler_address_is_one_line(run, tmp_path, monkeypatch):
     pytest.importorskip("distributed")
     from psdbake.farm.backends import dask as dask_backend
 
-    path = jobs_file(tmp_path, GOOD_FIT)
+    path = good_fit_jobs(tmp_path)
     code, _, err = run("batch", path, "--scheduler", "udp://127.0.0.1:8786")
     assert code == 2 and err.startswith("psdbake: error: --scheduler udp://127.0.0.1:8786: unknown address scheme 'udp'")
     with socket.socket() as s:  # a port nothing listens on
@@ -536,7 +616,7 @@ def test_scheduler_that_speaks_http_is_one_line(run, tmp_path):
     handshake with ``HTTP/1.1 400``: distributed read those bytes as a frame length and asked for
     3.07 EiB (an internal MemoryError); now one line, exit 3, nothing run."""
     pytest.importorskip("distributed")
-    path = jobs_file(tmp_path, GOOD_FIT)
+    path = good_fit_jobs(tmp_path)
     with socket.socket() as server:
         server.bind(("127.0.0.1", 0))
         server.listen()

@@ -5,6 +5,7 @@ cannot write, and leaves nothing behind when Blender fails (make interop runs it
 from __future__ import annotations
 
 import ast
+import importlib.util
 import os
 import subprocess
 import sys
@@ -23,13 +24,36 @@ def shots(tmp_path_factory):
     return {"humanoid": (asset, str(out), fixture("humanoid", "humanoid_anim.usda"))}
 
 
+def failing_blender(folder) -> str:
+    """A stand-in that answers ``--version`` as Blender does, then fails running the script
+    (as a Blender out of memory would): its last line is what the refusal shows."""
+    path = os.path.join(folder, "blender")
+    with open(path, "w", encoding="utf-8") as fh:
+        fh.write('#!/bin/sh\nif [ "$1" = "--version" ]; then echo "Blender 5.0.1"; exit 0; fi\n'
+                 'echo "Error: not enough memory to load the scene" >&2\nexit 1\n')
+    os.chmod(path, 0o755)
+    return path
+
+
 def test_a_blender_that_cannot_run_the_script_leaves_nothing(shots, tmp_path):
-    """A Python without bpy (this one) is found, run, fails, and the output is never half there."""
+    """Blender is found, run, fails, and the output is never half there (exit 1: Blender's
+    own failure, its last line shown)."""
     asset, correctives, _ = shots["humanoid"]
     out = tmp_path / "rig.blend"
-    line = refused(run_cli("export-blender", asset, correctives, "-o", out, "--blender", sys.executable), 1,
-                   says="bpy", outputs=[out])
+    line = refused(run_cli("export-blender", asset, correctives, "-o", out, "--blender", failing_blender(tmp_path)), 1,
+                   says="not enough memory", outputs=[out])
     assert "Blender" in line
+
+
+def test_a_python_without_bpy_is_refused_before_it_runs(shots, tmp_path):
+    """The test suite's own Python (bpy lives in a venv of its own: make interop) is not a
+    Blender: bad input (exit 3) naming --blender, not Blender failing (it printed exit 1)."""
+    if importlib.util.find_spec("bpy") is not None:
+        pytest.skip("this Python has bpy")
+    asset, correctives, _ = shots["humanoid"]
+    out = tmp_path / "rig.blend"
+    refused(run_cli("export-blender", asset, correctives, "-o", out, "--blender", sys.executable), 3,
+            names=["--blender"], says="without the bpy module", outputs=[out])
 
 
 @pytest.mark.parametrize(("args", "code", "says"), [
@@ -55,7 +79,7 @@ def test_outputs_that_cannot_be_a_blend_or_are_inputs_are_refused(shots, tmp_pat
 def test_correctives_without_psd_data_are_refused(tmp_path):
     out = tmp_path / "rig.blend"
     refused(run_cli("export-blender", fixture("humanoid", "humanoid.usda"), fixture("humanoid", "humanoid_anim.usda"),
-                    "-o", out, "--blender", sys.executable), 3, says="no psd: driver data", outputs=[out])
+                    "-o", out, "--blender", failing_blender(tmp_path)), 3, says="no psd: driver data", outputs=[out])
 
 
 def test_the_rig_script_is_standalone():

@@ -23,6 +23,7 @@ _EXPORTS = {
     "tasks": ("Batch", "BatchResult", "JobResult", "OnDone", "Task"),
     "psdbake.errors": ("BatchError", "BatchUsageError", "ChunkUsageError"),
     "jobs": ("COMMANDS", "MAX_JOBS_FILE_BYTES", "load_jobs"),
+    "order": ("check_reads",),
     "plan": ("MAX_CHUNKS", "Chunk", "ChunkPlan", "eval_chunks", "plan_chunks", "plan_frames"),
     "chunked": ("ChunkedWeights", "WrittenChunks", "evaluate_chunks", "write_chunks"),
     "backends": ("Backend", "run_batch"),
@@ -50,5 +51,6 @@ if TYPE_CHECKING:  # for type checkers and IDEs: the same names, eagerly
     from .backends import Backend, run_batch  # noqa: F401
     from .chunked import ChunkedWeights, WrittenChunks, evaluate_chunks, write_chunks  # noqa: F401
     from .jobs import COMMANDS, MAX_JOBS_FILE_BYTES, load_jobs  # noqa: F401
+    from .order import check_reads  # noqa: F401
     from .plan import MAX_CHUNKS, Chunk, ChunkPlan, eval_chunks, plan_chunks, plan_frames  # noqa: F401
     from .tasks import Batch, BatchResult, JobResult, OnDone, Task  # noqa: F401

@@ -242,6 +242,7 @@ def write_chunks(
     shot, count, mine = shot_id(ev, points_cache, output, deformers), len(ev.plan.chunks), [f.chunk for f in files]
     manifests = [output, *([points_cache] if points_cache else [])]
     with api.updating(*manifests):  # read the manifests, add this task's chunks, commit: one step
+        earlier = [f for m in manifests for f in clips.stitched_files(m)]
         stitched = _stitched(output, shot, count, mine)
         if points_cache:
             stitched = sorted((set(stitched) & set(_stitched(points_cache, shot, count, mine))) | set(mine))
@@ -263,6 +264,8 @@ def write_chunks(
             layers += [(clip_manifest_path(points_cache), provenance.stamp(cache_clip_manifest, "clip_manifest")),
                        (points_cache, cache_manifest)]
         usdwrite.export_all(layers, inputs)
+        every = [chunk_path(m, ev.plan, c) for m in manifests for c in ev.plan.chunks]  # other tasks' chunks too
+        clips.remove_unstitched(earlier, [*every, *(path for path, _ in layers)])
     return WrittenChunks(
         manifest=output, clip_manifest=clip_manifest_path(output), points_cache=points_cache,
         points_clip_manifest=clip_manifest_path(points_cache) if points_cache else None,

@@ -2,7 +2,9 @@
 
 A task that reads a file other jobs write runs after all of them (and is skipped if one
 fails: ``needs``); tasks writing the same file run in file order (``after``: ``fit --group``
-updates of one CORRECTIVES layer are read-modify-write); otherwise file order. Edges are
+updates of one CORRECTIVES layer are read-modify-write; the chunks of a shot share its
+manifests); any other file two jobs write is refused, as the later would replace the earlier's
+output; otherwise file order. Edges are
 linear in the jobs (``_link``): 25,000 jobs writing one file make a chain, not 312 million
 pairs. Keys are
 deterministic (a digest of the folder and every command line), so a rerun of the same jobs
@@ -20,7 +22,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 from ..errors import InputError
-from .tasks import Task
+from .tasks import Batch, Task
 
 #: The commands that read-modify-write a CORRECTIVES layer under its update lock.
 UPDATERS = frozenset({"fit", "mirror", "groups"})
@@ -79,6 +81,11 @@ def _link(path: str, folder: str, tasks: Sequence[Task]) -> list[Task]:
             if jobs and jobs[0][0].command != t.command and not {jobs[0][0].command, t.command} <= UPDATERS:
                 raise InputError(f"{path} {t.job}: writes {os.path.relpath(p, folder)}, as {jobs[0][0].job} does: "
                                  "only jobs of one command may write the same file")
+            if jobs and jobs[-1][0].job != t.job and t.command not in UPDATERS and os.path.splitext(p)[1] and not (
+                    _is_chunk(t) and _is_chunk(jobs[-1][0])):  # (an --obj-dir folder is shared file by file)
+                raise InputError(f"{path} {t.job}: writes {os.path.relpath(p, folder)}, as {jobs[-1][0].job} does: the "
+                                 "later would replace the earlier's output (write each to its own file; the chunks of "
+                                 "one shot are one job with chunk_size, or jobs with chunk = K)")
             if not jobs or jobs[-1][0].job != t.job:
                 if jobs:
                     before[(p, t.job)] = jobs[-1]
@@ -93,6 +100,11 @@ def _link(path: str, folder: str, tasks: Sequence[Task]) -> list[Task]:
         after = {w.key for p in t.writes for w in before.get((p, t.job), ())}
         linked.append(dataclasses.replace(t, needs=tuple(needs), after=tuple(after - needs)))
     return linked
+
+
+def _is_chunk(task: Task) -> bool:
+    """A chunk of a chunked eval: its manifest is shared with the shot's other chunks by design."""
+    return any(a == "--chunk" or a.startswith("--chunk=") for a in task.args)
 
 
 def _sort(path: str, linked: Sequence[Task]) -> list[Task]:
@@ -117,6 +129,24 @@ def _sort(path: str, linked: Sequence[Task]) -> list[Task]:
         stuck = sorted({linked[position[k]].job for k, deps in waiting.items() if deps})
         raise InputError(f"{path}: jobs read each other's outputs in a cycle: {', '.join(stuck)}")
     return ordered
+
+
+def check_reads(batch: Batch) -> None:
+    """Refuse, before anything runs, a job that reads a file no job writes and that is not
+    there (a typo in a path would otherwise fail that job, and skip its readers, hours into a
+    farm run), or that reads its own output (only the commands updating a CORRECTIVES layer
+    may: ``mirror`` and ``groups`` in place). ``psdbake batch`` checks this before it runs or
+    prints a dry run; ``load_jobs`` does not, so a jobs file can be planned before its inputs exist."""
+    path, folder = batch.path, batch.folder
+    written = {p for t in batch.tasks for p in t.writes}
+    for t in batch.tasks:
+        for p in t.reads:
+            if p in t.writes and t.command not in UPDATERS:
+                raise InputError(f"{path} {t.job}: reads {os.path.relpath(p, folder)}, which it also writes: inputs "
+                                 "are never overwritten; write to another file")
+            if p not in written and not os.path.exists(p):
+                raise InputError(f"{path} {t.job}: reads {os.path.relpath(p, folder)}, which is not there and no job "
+                                 f"writes (paths are relative to the jobs file's folder, {folder})")
 
 
 def order(path: str, folder: str, jobs: Sequence[Job]) -> tuple[Task, ...]:

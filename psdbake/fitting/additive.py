@@ -149,12 +149,21 @@ def fit_signature(terms: Sequence[JointTerm], active: Sequence[frozenset[int]], 
     free = [t for t in terms if t.joint not in out]
     if free:
         rows = [k for k, a in enumerate(active) if a & joints]
-        ridge = np.array([tol.ADDITIVE_RIDGE if len(active[k] & joints) > 1 else tol.ADDITIVE_RIDGE_EXACT for k in rows])
-        basis = np.concatenate([t.basis[rows] for t in free], axis=1) / np.sqrt(ridge)[:, None]
+        shared = np.array([len(active[k] & joints) > 1 for k in rows])
         root = scipy.linalg.block_diag(*[_root(t.penalty) for t in free])
-        lhs = np.concatenate([basis, root])
-        rhs = np.concatenate([rest[rows] / np.sqrt(ridge)[:, None], np.zeros((len(root), n * c))])
-        s = _least_squares(lhs, rhs)
+        probes = [t.model.weights(_probe_poses(t)) for t in free]
+        bound = tol.ADDITIVE_AMPLIFICATION * float(np.abs(data).max(initial=0.0))
+        scale = 1.0
+        while True:  # the ridge where several joints move, raised while a term swells off the examples
+            ridge = np.where(shared, tol.ADDITIVE_RIDGE * scale, tol.ADDITIVE_RIDGE_EXACT)
+            basis = np.concatenate([t.basis[rows] for t in free], axis=1) / np.sqrt(ridge)[:, None]
+            lhs = np.concatenate([basis, root])
+            rhs = np.concatenate([rest[rows] / np.sqrt(ridge)[:, None], np.zeros((len(root), n * c))])
+            s = _least_squares(lhs, rhs)
+            if not shared.any() or scale * tol.ADDITIVE_RIDGE >= tol.ADDITIVE_RIDGE_MAX or \
+                    _largest_value(probes, free, s) <= bound:
+                break
+            scale *= 10.0
         rest -= np.concatenate([t.basis for t in free], axis=1) @ s
         start = 0
         for t in free:
@@ -162,6 +171,27 @@ def fit_signature(terms: Sequence[JointTerm], active: Sequence[frozenset[int]], 
             out[t.joint] = s[start:start + size].reshape(size, n, c)
             start += size
     return out, rest.reshape(count, n, c)
+
+
+def _probe_poses(term: JointTerm) -> NDArray[np.float64]:
+    """Poses of the term's joint off the examples, where a shot's motions take it: rotation
+    vectors along each axis and each centre's direction, both ways, at ``tol.PROBE_ANGLES``
+    (the rotation-vector pose space's coordinates; others are probed at the same points)."""
+    centres = term.plan.centers[1:]  # the bind pose first
+    dims = centres.shape[1]
+    directions = [np.eye(dims)[i] for i in range(dims)]
+    directions += [c / np.linalg.norm(c) for c in centres if np.linalg.norm(c) > 0]
+    return np.array([sign * angle * d for d in directions for sign in (1.0, -1.0) for angle in tol.PROBE_ANGLES])
+
+
+def _largest_value(probes: Sequence[NDArray[np.float64]], terms: Sequence[JointTerm], s: NDArray[np.float64]) -> float:
+    """The largest value any of ``terms`` takes at its probe poses, with values ``s`` (stacked)."""
+    largest, start = 0.0, 0
+    for weights, t in zip(probes, terms, strict=True):
+        size = t.basis.shape[1]
+        largest = max(largest, float(np.abs(weights @ s[start:start + size]).max(initial=0.0)))
+        start += size
+    return largest
 
 
 def _least_squares(a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64]:

@@ -108,9 +108,10 @@ def fit_mesh(asset: str, info: SkinnedMesh, examples: Sequence[Example], solved:
         return [], []
     # 2. locality
     own = locality.influences(skin, mesh.points)
-    sets = locality.explaining_joints(skin, own, mesh.moved)
-    sets = locality.separate(sets, own, mesh.coords, mesh.data, skin.parents,
+    skinned = locality.explaining_joints(skin, own, mesh.moved)
+    sets = locality.separate(skinned, own, mesh.coords, mesh.data, skin.parents,
                              mesh.moved, mesh.atol, mesh.labels, here)
+    _warn_unskinned(mesh, locality.influences(skin, mesh.points, 0.0), skinned, sets, skin.parents, here, notes)
     signatures = {s: r for s, r in sorted(locality.rows_by_set(sets).items()) if s}
     # 3. per-joint terms
     terms: dict[int, additive.JointTerm] = {}
@@ -295,6 +296,35 @@ def _activation_gated(mesh: _Mesh, data: DriverData, joints: Joints, centres: Se
 
 
 # --- what the TD is told -------------------------------------------------------------------------
+
+def _warn_unskinned(mesh: _Mesh, own: Sequence[Joints], skinned: Sequence[Joints], sets: Sequence[Joints],
+                    parents: NDArray[np.int64], here: str, notes: list[str]) -> None:
+    """Sculpted points that no joint the examples move skins or carries, at any weight (``own``:
+    every influence; a face edited on a pose where only an arm bends: neither the neck nor any
+    joint above it turns): ``locality.separate``
+    drives them by the nearest moving joints, so the edit comes and goes with that arm. Said,
+    with where a pose-independent edit belongs. Points whose sculpt is under a hundredth of the
+    mesh's largest (round-off of a rig's own look, as dual-quaternion sculpts on a linear rig
+    leave on the still torso) are not counted."""
+    moved = set(int(j) for j in mesh.moved)
+    size = np.abs(mesh.data[:, :, :3]).max(axis=(0, 2)) if mesh.data.size else np.zeros(len(own))
+    floor = 0.01 * float(size.max(initial=0.0))
+
+    def carried(joints: Joints) -> bool:  # a moved joint at or above one of them
+        return any(a in moved for j in joints for a in locality.ancestors(j, parents))
+
+    found = [i for i, (was, now) in enumerate(zip(skinned, sets, strict=True))
+             if not was and now and size[i] > floor and not carried(own[i])]
+    if not found:
+        return
+    bones = sorted({_leaf(mesh.info, j) for i in found for j in own[i]})
+    drivers = sorted({_leaf(mesh.info, j) for i in found for j in sets[i]})
+    shown = ", ".join(str(int(mesh.points[i])) for i in found[:5]) + (f" and {len(found) - 5} more" if len(found) > 5 else "")
+    noted(notes, f"{here}: {len(found)} sculpted point(s) (vertex {shown}) are skinned by no joint the examples move "
+                 f"({', '.join(bones[:4])}{' ...' if len(bones) > 4 else ''}): their sculpt is driven by "
+                 f"{', '.join(drivers[:4])}{' ...' if len(drivers) > 4 else ''}, so it comes and goes with those joints; "
+                 "an edit that does not depend on the pose belongs in the asset's rest points", 4)
+
 
 def _warn_unedited(mesh: _Mesh, notes: list[str]) -> None:
     for example, inverse in zip(mesh.examples, mesh.inverses, strict=True):

@@ -19,6 +19,7 @@ from ..model.channels import channel_names, short_name
 from ..model.data import BlendShapeData, DriverData
 from ..model.weights import weights_at_pose
 from ..results import FitResult, MeshFit
+from ..usd import provenance
 from ..usd import write as usdwrite
 from ..usd.author import Layer
 from ..usd.compose import open_layer
@@ -61,6 +62,9 @@ def read_correctives(asset: str, correctives: str) -> Groups:
     scene = Scene([correctives, asset], label=correctives)
     skinned = {m.path: m for m in scene.skinned_meshes()}
     if not owners:
+        if provenance.existing_kind(correctives) == "stack":
+            raise InputError(f"{correctives}: a stack, not a CORRECTIVES layer: give the CORRECTIVES layer it stacks "
+                             f"(psdbake inspect {correctives} names each layer's role)")
         raise InputError(f"{correctives}: holds no psd: correctives (not a CORRECTIVES layer written by psdbake fit)")
     out: Groups = {}
     for mesh in owners:

@@ -32,10 +32,11 @@ from ..model.rig import Skin
 Joints = tuple[int, ...]  # sorted skeleton-order joint indices
 
 
-def influences(skin: Skin, points: NDArray[np.int64]) -> list[Joints]:
-    """Per point of ``points``: its influences I(v), the joints weighted above ``tol.INFLUENCE_WEIGHT_MIN``."""
+def influences(skin: Skin, points: NDArray[np.int64], minimum: float = tol.INFLUENCE_WEIGHT_MIN) -> list[Joints]:
+    """Per point of ``points``: its influences I(v), the joints weighted above ``minimum``
+    (``tol.INFLUENCE_WEIGHT_MIN``; 0 for every joint that moves it at all)."""
     idx = skin.indices[points]
-    kept = np.where((skin.weights[points] > tol.INFLUENCE_WEIGHT_MIN) & (idx >= 0), idx, -1)
+    kept = np.where((skin.weights[points] > minimum) & (idx >= 0), idx, -1)
     kept.sort(axis=1)
     base = len(skin.parents) + 1
     if kept.shape[1] * np.log2(base) < 62:  # one integer key per row: a 1-D unique, no lexsort
@@ -78,7 +79,7 @@ def explaining_joints(skin: Skin, own: Sequence[Joints], moved: Sequence[int]) -
     return out
 
 
-def _ancestors(j: int, parents: NDArray[np.int64]) -> list[int]:
+def ancestors(j: int, parents: NDArray[np.int64]) -> list[int]:
     """j and its ancestors, j first."""
     out = []
     while j >= 0:
@@ -91,7 +92,7 @@ def _between(influences: Joints, parents: NDArray[np.int64]) -> set[int]:
     """The joints on the paths from each influence up to (not including) their lowest common ancestor."""
     if len(influences) < 2:
         return set()
-    chains = [_ancestors(j, parents) for j in influences]
+    chains = [ancestors(j, parents) for j in influences]
     common = set(chains[0]).intersection(*chains[1:])
     return {a for chain in chains for a in chain if a not in common}
 

@@ -77,8 +77,10 @@ def partner_problem(joint: str, joints: Sequence[str], jmap: JointMap) -> str:
     """Why a driver joint has no partner under the map ("" when it has one)."""
     partner = jmap(joint)
     if partner == joint:
+        itself = [rule for pattern, _, rule in jmap.rules if pattern.search(joint)]
         folded = [rule for pattern, _, rule in jmap.rules if re.search(pattern.pattern, joint, re.IGNORECASE)]
-        hint = f": {folded[0]!r} matches it only ignoring case (rules are case-sensitive)" if folded else ""
+        hint = (f": {itself[0]!r} maps it to itself" if itself else
+                f": {folded[0]!r} matches it only ignoring case (rules are case-sensitive)" if folded else "")
         return f"driver {joint!r} has no partner under --joints {jmap.shown()} (the map leaves it unchanged{hint})"
     if partner not in set(joints):
         return (f"driver {joint!r} maps to {partner!r} under --joints {jmap.shown()}, which is not a joint of the "

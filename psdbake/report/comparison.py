@@ -97,6 +97,10 @@ def compare(
     settings = dataclasses.replace(settings, group=settings.group or DEFAULT_GROUP)
     scene = Scene([anim, asset], label=anim)
     infos = {i.path: i for i in scene.skinned_meshes()}
+    unbound = sorted({i.skeleton for i in infos.values() if scene.animation_prim(i.path) is None})
+    if infos and len(unbound) == len({i.skeleton for i in infos.values()}):  # ANIM poses none of them: another shot's?
+        raise InputError(f"{where(anim, unbound[0])}: no SkelAnimation bound (skel:animationSource): {anim} does not "
+                         f"animate {asset}'s skeleton (another asset's animation?)")
     if frames is not None:
         for info in infos.values():
             if scene.animation_prim(info.path) is not None:

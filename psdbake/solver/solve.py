@@ -11,6 +11,7 @@ import concurrent.futures
 import functools
 import multiprocessing
 import os
+import sys
 import time as _time
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -257,4 +258,11 @@ def _worker_died(tasks: Sequence[InverseTask], running, workers: dict) -> Except
     if specs:
         return DeformerError(f"deformer {', '.join(repr(s) for s in specs)}: the worker process running it "
                              f"died{how}{doing}")
+    script = getattr(sys.modules.get("__main__"), "__file__", None)
+    ours = script is not None and (os.path.basename(script) == "psdbake" or os.path.abspath(script).startswith(
+        os.path.dirname(os.path.dirname(os.path.abspath(__file__))) + os.sep))  # the command's own entry points
+    if not examples and script and not ours:  # died starting: spawn runs the calling script again
+        return PsdError(f"a fit worker process died{how} before solving anything: a script calling psdbake.fit with "
+                        f"jobs > 1 must guard its top level with `if __name__ == \"__main__\":` (its workers are "
+                        f"spawned, and run {script} again)")
     return PsdError(f"a fit worker process died{how}{doing} (out of memory?)")

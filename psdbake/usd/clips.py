@@ -31,9 +31,13 @@ Choices:
 
 from __future__ import annotations
 
+import contextlib
+import os
 from collections.abc import Sequence
 
 from pxr import Gf, Sdf, Vt
+
+from .provenance import existing_kind
 
 CLIP_SET = "psdbake"
 
@@ -103,3 +107,44 @@ def author_clips(
             "times": Vt.Vec2dArray(times),
         }
     })
+
+
+def stitched_files(path: str) -> list[str]:
+    """The clip layers and clip manifest the layer at ``path`` stitches as psdbake's clips
+    (``CLIP_SET``), as paths from here, sorted; [] where it stitches none. An earlier chunked
+    output's files, found by what its manifest names rather than by file names."""
+    if not os.path.isfile(path):
+        return []
+    try:
+        layer = Sdf.Layer.OpenAsAnonymous(path)
+    except Exception:  # not a layer: it stitches nothing
+        return []
+    found: set[str] = set()
+
+    def visit(spec_path: Sdf.Path) -> None:
+        spec = layer.GetPrimAtPath(spec_path) if spec_path.IsPrimPath() else None
+        clips = spec.GetInfo("clips").get(CLIP_SET) if spec is not None and spec.HasInfo("clips") else None
+        if not clips:
+            return
+        named = [*clips.get("assetPaths", []), clips.get("manifestAssetPath")]
+        found.update(os.path.normpath(os.path.join(os.path.dirname(path), a.path)) for a in named if a and a.path)
+
+    if layer is not None:
+        layer.Traverse(Sdf.Path.absoluteRootPath, visit)
+    return sorted(found)
+
+
+def remove_unstitched(earlier: Sequence[str], written: Sequence[str]) -> list[str]:
+    """Remove the files of ``earlier`` (``stitched_files`` of an output before it was written
+    again) that this run did not write, where psdbake wrote them (a WEIGHTS layer, points cache
+    or clip manifest; anything else is left alone): the chunks of an earlier cut of the shot,
+    stitched by nothing now. Returns what was removed."""
+    kept = {os.path.realpath(p) for p in written}
+    removed = []
+    for path in earlier:
+        if os.path.realpath(path) in kept or existing_kind(path) not in ("weights", "points_cache", "clip_manifest"):
+            continue
+        with contextlib.suppress(FileNotFoundError):
+            os.remove(path)
+            removed.append(path)
+    return removed

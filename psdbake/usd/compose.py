@@ -17,7 +17,7 @@ import numpy as np
 from pxr import Sdf, Tf, Usd
 
 from ..errors import InputError
-from .dependencies import layer_files, require_regular
+from .dependencies import fresh, layer_files, require_regular
 from .diagnostics import first_line as _first_line
 from .integrity import require_readable_crates
 from .nesting import require_shallow
@@ -35,7 +35,7 @@ def open_layer(path: str) -> Sdf.Layer:
     require_readable_crates([path])
     require_shallow(path)
     try:
-        layer = Sdf.Layer.FindOrOpen(path)
+        layer = fresh(Sdf.Layer.FindOrOpen(path))
     except Tf.ErrorException as exc:
         raise InputError(f"{path}: not a readable USD file ({_first_line(exc)})") from None
     except UnicodeDecodeError:

@@ -49,6 +49,18 @@ def layers_kept_open() -> Iterator[None]:
         _KEPT.pop()
 
 
+def fresh(layer: Sdf.Layer | None) -> Sdf.Layer | None:
+    """The layer as its file is now. USD keeps one copy of each layer per process, and
+    ``FindOrOpen`` returns it even after the file changed: a pipeline that fits, rewrites an
+    EXAMPLES file and fits again in one process (keeping the first result, which holds its
+    layers open) got the first file's examples. A copy with no edits in memory is read again
+    where its file changed (``Reload`` compares the file's time stamp: a stat when it has not);
+    one edited in memory is left as it is."""
+    if layer is not None and not layer.anonymous and not layer.dirty:
+        layer.Reload()
+    return layer
+
+
 def require_regular(path: str, referrer: str | None = None, kind: str = "layer") -> None:
     """Refuse a layer path that exists but is not a regular file (FIFO, device, socket):
     opening it would block or read without end."""
@@ -105,7 +117,7 @@ def _open(path: str, referrer: str | None, kind: str) -> Sdf.Layer | None:
             raise
         raise InputError(f"{referrer}: {kind} {exc}") from None
     try:
-        layer = Sdf.Layer.FindOrOpen(path)
+        layer = fresh(Sdf.Layer.FindOrOpen(path))
     except Tf.ErrorException as exc:
         if referrer is None:
             return None

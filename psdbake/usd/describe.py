@@ -23,7 +23,8 @@ def describe(path: str) -> dict:
     layer = open_layer(path)
     stage = compose([path])
     out: dict = {"file": path, "skel_roots": [], "skeletons": [], "meshes": [], "animations": [],
-                 "examples": [], "correctives": []}
+                 "examples": [], "correctives": [], "weights": [], "point_samples": [],
+                 "sublayers": [str(p) for p in layer.subLayerPaths]}
     for prim in stage.TraverseAll():
         ppath = str(prim.GetPath())
         if prim.IsA(UsdSkel.Root):
@@ -46,6 +47,15 @@ def describe(path: str) -> dict:
                 "samples": len(times), "joint_samples": len(joint_times), "blend_shape_samples": len(shape_times),
                 "first": times[0] if times else None, "last": times[-1] if times else None,
             })
+        elif prim.HasAttribute("blendShapeWeights"):  # an over (WEIGHTS, chunks through clips): no typed animation
+            weights = _weights(prim)
+            if weights is not None:
+                out["weights"].append(weights)
+        if prim.HasAttribute("points"):  # points over time, from this file or its clips (a points cache: overs)
+            times = prim.GetAttribute("points").GetTimeSamples()
+            if times:
+                out["point_samples"].append({"mesh": ppath, "samples": len(times), "first": float(times[0]),
+                                             "last": float(times[-1])})
         if prim.IsA(UsdGeom.PointBased) and prim.HasAPI(UsdSkel.BindingAPI):
             binding = UsdSkel.BindingAPI(prim)
             points = UsdGeom.PointBased(prim).GetPointsAttr().Get(Usd.TimeCode.Default())
@@ -72,6 +82,18 @@ def describe(path: str) -> dict:
     out["warnings"] = [f"{path} <{mesh}>: {why_hidden(stage, blocker)}" for mesh, blocker in hidden_from_usdskel(stage)]
     out["warnings"] += client_layout_warnings(stage, path)
     return out
+
+
+def _weights(prim: Usd.Prim) -> dict | None:
+    """Blend-shape weights authored over time on a prim that is not (here) a typed
+    SkelAnimation: a WEIGHTS layer's over of the asset's animation, or its chunks' clips."""
+    attr = prim.GetAttribute("blendShapeWeights")
+    times = attr.GetTimeSamples()
+    if not times:
+        return None
+    channels = prim.GetAttribute("blendShapes").Get() if prim.HasAttribute("blendShapes") else None
+    return {"path": str(prim.GetPath()), "channels": len(channels or []), "samples": len(times),
+            "first": float(times[0]), "last": float(times[-1])}
 
 
 def spelled_poses(scene: Scene, times: Sequence[float]) -> list[dict]:

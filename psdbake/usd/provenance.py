@@ -278,7 +278,7 @@ _NOT_STACKED = {
 }
 
 
-def _authors_point_samples(path: str) -> bool:
+def authors_point_samples(path: str) -> bool:
     """The layer itself authors time-sampled ``points``: sculpted or posed examples (or another
     tool's points cache), whose points UsdSkel would skin again over the asset."""
     layer = Sdf.Layer.FindOrOpen(path)
@@ -301,7 +301,7 @@ def layer_role(path: str) -> str:
     from .compose import compose
 
     kind = existing_kind(path)
-    if kind is None and _authors_point_samples(path):
+    if kind is None and authors_point_samples(path):
         kind = "examples"
     if kind in _NOT_STACKED:
         raise InputError(f"{path}: is {_NOT_STACKED[kind]}; stack ASSET CORRECTIVES ANIM WEIGHTS")

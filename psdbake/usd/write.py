@@ -63,7 +63,22 @@ def export_all(outputs: Sequence[tuple[str, Sdf.Layer | str]], inputs: Iterable[
             export_layer(layer, tmp, path)
             written.append(verdict_of_written(tmp))
     vouch_written(written)
+    for path, layer in outputs:  # a pipeline reading an output again in this process reads what is there now
+        if not isinstance(layer, str):
+            _forget_loaded(path)
     return [path for path, _ in outputs]
+
+
+def _forget_loaded(path: str) -> None:
+    """USD keeps one copy of each layer per process: where this process had the file at path
+    loaded before replacing it (``fit`` over its earlier output, then ``describe`` of it), bring
+    that copy up to the new bytes, or the next open would see the old ones."""
+    layer = Sdf.Layer.Find(path)
+    if layer is not None:
+        try:
+            layer.Reload(force=True)
+        except Tf.ErrorException:  # the next open reads the file and says what is wrong
+            pass
 
 
 def report_kind(text: str) -> OutputKind:

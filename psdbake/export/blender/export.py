@@ -83,8 +83,21 @@ def find_blender(path: str | None = None) -> Blender:
     if proc.returncode == 0 and first.startswith("Blender "):
         return Blender(given, "blender", first.split()[1])
     if proc.returncode == 0 and first.startswith("Python "):
+        if not _has_bpy(given):
+            raise SettingError("blender", given, f"is {first[:40]} without the bpy module (pip install bpy into it, or "
+                                                 "pass a Blender executable)")
         return Blender(given, "bpy", first)
     raise SettingError("blender", given, f"is neither Blender nor Python (--version says {first[:60]!r})")
+
+
+def _has_bpy(python: str) -> bool:
+    """Whether that Python can import bpy, asked without importing it (a second, not ten)."""
+    try:
+        proc = subprocess.run([python, "-c", "import importlib.util, sys; sys.exit(importlib.util.find_spec('bpy') is None)"],
+                              capture_output=True, timeout=120)
+    except (OSError, subprocess.TimeoutExpired):
+        return False
+    return proc.returncode == 0
 
 
 @dataclass(frozen=True)

@@ -172,10 +172,10 @@ def check_obj_dir(path: str, inputs: Iterable[str] = (), names: Iterable[str] = 
         full = os.path.join(path, name)
         if name not in listed:
             raise OutputError(f"{full}: exists and was not written by psdbake pose; it would be replaced: move it away "
-                              "or give a new folder")
+                              "or give a new folder (--force never replaces files in an OBJ folder)")
         if not os.path.isfile(full) or sha256_file(full) != listed[name]:
             raise OutputError(f"{full}: changed since psdbake pose wrote it (a sculpt?); it would be replaced: move the "
-                              "sculpts away or give a new folder")
+                              "sculpts away or give a new folder (--force never replaces a sculpt)")
     real = os.path.realpath(path)
     for src in inputs:
         if src and os.path.dirname(os.path.realpath(src)) == real and os.path.basename(src) in (*names, MANIFEST):
