@@ -42,7 +42,7 @@ class FitSettings:
             value = getattr(self, name)
             if isinstance(value, str):
                 object.__setattr__(self, name, (value,))
-            elif not all(isinstance(v, str) for v in value):
+            elif not isinstance(value, tuple | list) or not all(isinstance(v, str) for v in value):
                 raise SettingError(name, value, "must be a list of names")
             else:
                 object.__setattr__(self, name, tuple(value))

@@ -19,7 +19,12 @@ point of it a right-hand side):
   (the interpolant's kernel coefficients c = C s give c^T K c), w_k = 1 / ``tol.ADDITIVE_RIDGE``
   for an example that moves two or more joints of J and 1 / ``tol.ADDITIVE_RIDGE_EXACT`` for
   one that moves a single one (there the additive part is all there is). As the ridge goes to 0
-  this is the minimum-norm additive interpolant.
+  this is the minimum-norm additive interpolant. Where the examples tell the joints apart only by
+  cancellation (frames of a shot where they all move, some sculpted and some left as they
+  were), that interpolant is steep through close centres and swells off the shot: the ridge is
+  raised tenfold at a time (to ``tol.ADDITIVE_RIDGE_MAX``) until no term exceeds
+  ``tol.ADDITIVE_AMPLIFICATION`` times the largest sculpted offset at its probe poses (its joint
+  turned 15-90 degrees: ``_probe_poses``).
 
 Centres. A joint's centres are its poses in the examples that move it (those where it moves
 alone, when there are any), farthest from the bind pose and from each other first, each kept

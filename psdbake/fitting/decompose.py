@@ -299,13 +299,12 @@ def _activation_gated(mesh: _Mesh, data: DriverData, joints: Joints, centres: Se
 
 def _warn_unskinned(mesh: _Mesh, own: Sequence[Joints], skinned: Sequence[Joints], sets: Sequence[Joints],
                     parents: NDArray[np.int64], here: str, notes: list[str]) -> None:
-    """Sculpted points that no joint the examples move skins or carries, at any weight (``own``:
-    every influence; a face edited on a pose where only an arm bends: neither the neck nor any
-    joint above it turns): ``locality.separate``
-    drives them by the nearest moving joints, so the edit comes and goes with that arm. Said,
-    with where a pose-independent edit belongs. Points whose sculpt is under a hundredth of the
-    mesh's largest (round-off of a rig's own look, as dual-quaternion sculpts on a linear rig
-    leave on the still torso) are not counted."""
+    """Sculpted points that no joint the examples turn skins or carries, at any weight (``own``:
+    every influence). A face edited on a pose where only an arm bends (neither the neck nor any
+    joint above it turns) gets the nearest turning joints from ``locality.separate``, so the edit
+    comes and goes with that arm: said, with where a pose-independent edit belongs. Points whose
+    sculpt is under a hundredth of the mesh's largest (the trace of a rig's own look, as
+    dual-quaternion sculpts on a linear rig leave on a still torso) are not counted."""
     moved = set(int(j) for j in mesh.moved)
     size = np.abs(mesh.data[:, :, :3]).max(axis=(0, 2)) if mesh.data.size else np.zeros(len(own))
     floor = 0.01 * float(size.max(initial=0.0))
