@@ -358,12 +358,17 @@ def _check_not_dropping(path: str, asset: str, groups: Groups, command: str) -> 
     if atomic.forced():
         return
     before, records = existing_groups(asset, path)
-    lost = sorted(names_of(before) - names_of(groups))
-    if lost:
-        raise OutputError(
-            f"{path}: holds groups this {command} would drop: "
-            f"{', '.join(f'{g} ({origin_text(records.get(g))})' for g in lost)}. It replaces the whole layer: write "
-            "to another file, update that layer in place, or give --force to replace it")
+    _refuse_dropping(path, sorted(names_of(before) - names_of(groups)), records, command,
+                     "It replaces the whole layer: write to another file, update that layer in place, or give --force "
+                     "to replace it")
+
+
+def _refuse_dropping(path: str, lost: Sequence[str], records: Mapping[str, Any], command: str, remedy: str) -> None:
+    """Refuse (exit 6, unless forced) a write of the CORRECTIVES layer at path that would drop
+    the groups ``lost``, each named with where it came from."""
+    if lost and not atomic.forced():
+        raise OutputError(f"{path}: holds groups this {command} would drop: "
+                          f"{', '.join(f'{g} ({origin_text(records.get(g))})' for g in lost)}. {remedy}")
 
 
 def _settings_record(settings: FitSettings) -> dict[str, Any]:
@@ -421,12 +426,9 @@ def write_correctives(result: FitResult, path: PathArg, *, update: bool = False,
                 groups = written
                 lost = sorted(g for g in names_of(before) - names_of(written)
                               if (records.get(g) or {}).get("origin") != "fit")
-                if lost and not atomic.forced():
-                    raise OutputError(
-                        f"{path}: holds groups this fit would drop: "
-                        f"{', '.join(f'{g} ({origin_text(records.get(g))})' for g in lost)}. A fit without --group "
-                        f"replaces the whole layer: fit into it with --group, remove them first (psdbake groups {path} "
-                        "--remove NAME), or give --force to replace the layer")
+                _refuse_dropping(path, lost, records, "fit",
+                                 "A fit without --group replaces the whole layer: fit into it with --group, remove them "
+                                 f"first (psdbake groups {path} --remove NAME), or give --force to replace the layer")
             check_not_doubled(groups, written, path)
             for note in cross_talk(result, groups):  # with the groups carried over (its own: said by fit)
                 if note not in result.warnings:
@@ -934,17 +936,7 @@ def plan_stack(layers: Sequence[str], *, strict: bool = False) -> StackResult:
             raise InputError(f"{path}: WEIGHTS for the same animation as {weights_of[anim]}: the stronger layer's "
                              "weights would hide the other's; stack one of them")
         weights_of[anim] = path
-    stacked = {provenance.file_sha256(p): p for p in by_role.get("correctives", [])}
-    for path in by_role.get("weights", []):
-        used = provenance.plain(stamps[path].get("inputs", {})).get("correctives", {})
-        if stacked and used.get("sha256") and used["sha256"] not in stacked:
-            msg = (f"{path}: evaluated from {used.get('path', 'other correctives')} (other bytes than "
-                   f"{', '.join(stacked.values())}): re-run psdbake eval with the stacked CORRECTIVES")
-            if strict:
-                raise InputError(f"{msg} (--strict)")
-            notes.append(msg)
-            warnings.warn(msg, PsdWarning, stacklevel=2)
-    for role in ("anim", "asset"):  # WEIGHTS over another animation (or asset) show the wrong weights
+    for role in ("correctives", "anim", "asset"):  # WEIGHTS made from other layers show the wrong weights
         notes += _weights_made_from(stamps, by_role, role, strict=strict)
     assets = by_role.get("asset", [])
     if assets:
@@ -962,20 +954,25 @@ def plan_stack(layers: Sequence[str], *, strict: bool = False) -> StackResult:
 
 def _weights_made_from(stamps: Mapping[str, dict], by_role: Mapping[str, list[str]], role: str, *,
                        strict: bool) -> list[str]:
-    """Warn (strict: refuse, exit 3) when a WEIGHTS layer records it was evaluated over another
-    ``role`` layer (the ANIM or the ASSET) than any stacked: its weights belong to other frames
-    or another rig, and the stack would show them without a word."""
+    """Warn (strict: refuse, exit 3) when a WEIGHTS layer records it was evaluated from another
+    ``role`` layer (CORRECTIVES, ANIM or ASSET) than any stacked: its weights belong to other
+    channels, frames or another rig, and the stack would show them without a word."""
     stacked = {provenance.file_sha256(p) for p in by_role.get(role, [])}
     notes = []
     for path in by_role.get("weights", []) if stacked else ():
         used = provenance.plain(stamps[path].get("inputs", {})).get(role, {})
-        if isinstance(used, dict) and used.get("sha256") and used["sha256"] not in stacked:
+        if not (isinstance(used, dict) and used.get("sha256") and used["sha256"] not in stacked):
+            continue
+        if role == "correctives":
+            msg = (f"{path}: evaluated from {used.get('path', 'other correctives')} (other bytes than "
+                   f"{', '.join(by_role[role])}): re-run psdbake eval with the stacked CORRECTIVES")
+        else:
             msg = (f"{path}: evaluated over {used.get('path', 'another ' + role)} (other bytes than the stacked "
                    f"{role.upper()} {', '.join(by_role[role])}): re-run psdbake eval with the stacked layers")
-            if strict:
-                raise InputError(f"{msg} (--strict)")
-            notes.append(msg)
-            warnings.warn(msg, PsdWarning, stacklevel=3)
+        if strict:
+            raise InputError(f"{msg} (--strict)")
+        notes.append(msg)
+        warnings.warn(msg, PsdWarning, stacklevel=3)
     return notes
 
 

@@ -419,18 +419,10 @@ def _joint_tree(paths: list[str]) -> list[str]:
     return [f"{'  ' * p.count('/')}{p.split('/')[-1]}" for p in paths]
 
 
-#: How ``psdbake inspect`` names each kind of psdbake layer (``provenance`` kinds).
-_KIND_LABELS = {
-    "examples": "EXAMPLES layer (posed points, for sculpting)", "sculpted_examples": "sculpted EXAMPLES layer",
-    "correctives": "CORRECTIVES layer", "weights": "WEIGHTS layer", "points_cache": "points cache",
-    "stack": "stack", "clip_manifest": "clip manifest (WEIGHTS or points cache in chunks)",
-}
-
-
 def say_inspect(file: str, info: dict, verbose: int = 0) -> None:
     for warning in info.get("warnings", []):
         click.echo(f"psdbake: warning: {warning}", err=True)
-    kind = _KIND_LABELS.get(info.get("kind") or "", "")
+    kind = outputs.LABELS.get(info.get("kind") or "", "")
     click.echo(f"{file}" + (f": {kind}" if kind else "") + (f", written by `{info['command']}`" if info.get("command") else ""))
     if info.get("layers"):
         click.echo("  layers, strongest first: " + " > ".join(
