@@ -550,8 +550,9 @@ def write_weights(result: WeightsResult, path: PathArg, *, points_cache: tuple[s
     paths = [p for p, _ in written]
     with _forced(force), updating(*paths):  # one step for another eval writing here (a farm chunk)
         earlier = [f for p in paths for f in stitched_files(p)]  # a chunked eval's, now replaced by one layer
-        usdwrite.export_all(written, files_read([result.asset, result.correctives, result.anim], deformers))
-        remove_unstitched(earlier, paths)
+        inputs = files_read([result.asset, result.correctives, result.anim], deformers)
+        usdwrite.export_all(written, inputs)
+        remove_unstitched(earlier, [*paths, *inputs])  # an old chunk read as an input (--anim) stays
     return path
 
 

@@ -132,6 +132,21 @@ def test_eval_written_anew_removes_the_chunks_of_an_earlier_cut(layers, tmp_path
     assert _chunks(tmp_path, "w") == [foreign.name]
 
 
+def test_an_earlier_chunk_read_as_an_input_is_not_removed(layers, tmp_path):
+    """Inputs are never modified: an old chunk given as --anim while its manifest's output is
+    written anew stays where it is."""
+    out = tmp_path / "w.usda"
+    _ok(run_cli("eval", HUMANOID, layers["humanoid"], "--anim", HUMANOID_ANIM, "-o", out, "-q", "--chunk-size", "50"))
+    chunk = tmp_path / "w.f0001-0050.usda"
+    anim = Sdf.Layer.CreateNew(str(tmp_path / "anim_with_old_weights.usda"))  # the shot, the old weights over it
+    for sub in (chunk.name, HUMANOID_ANIM):
+        anim.subLayerPaths.append(sub)
+    anim.Save()
+    before = digest([chunk])
+    _ok(run_cli("eval", HUMANOID, layers["humanoid"], "--anim", anim.realPath, "-o", out, "-q"))
+    assert digest([chunk]) == before
+
+
 def test_inspect_names_each_kind_of_output(layers, tmp_path):
     """inspect says what a psdbake file is and what it holds: a WEIGHTS layer its animation's
     channels and frames, a points cache its points over time (not 'examples'), a stack its

@@ -265,7 +265,7 @@ def write_chunks(
                        (points_cache, cache_manifest)]
         usdwrite.export_all(layers, inputs)
         every = [chunk_path(m, ev.plan, c) for m in manifests for c in ev.plan.chunks]  # other tasks' chunks too
-        clips.remove_unstitched(earlier, [*every, *(path for path, _ in layers)])
+        clips.remove_unstitched(earlier, [*every, *(path for path, _ in layers), *inputs])
     return WrittenChunks(
         manifest=output, clip_manifest=clip_manifest_path(output), points_cache=points_cache,
         points_clip_manifest=clip_manifest_path(points_cache) if points_cache else None,

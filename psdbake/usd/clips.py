@@ -136,8 +136,9 @@ def stitched_files(path: str) -> list[str]:
 
 def remove_unstitched(earlier: Sequence[str], written: Sequence[str]) -> list[str]:
     """Remove the files of ``earlier`` (``stitched_files`` of an output before it was written
-    again) that this run did not write, where psdbake wrote them (a WEIGHTS layer, points cache
-    or clip manifest; anything else is left alone): the chunks of an earlier cut of the shot,
+    again) that are not in ``written`` (what this run wrote, and every file it read: an old
+    chunk given as ``--anim`` stays), where psdbake wrote them (a WEIGHTS layer, points cache or
+    clip manifest; anything else is left alone): the chunks of an earlier cut of the shot,
     stitched by nothing now. Returns what was removed."""
     kept = {os.path.realpath(p) for p in written}
     removed = []
