@@ -13,6 +13,10 @@ from __future__ import annotations
 import importlib
 from typing import TYPE_CHECKING, Any
 
+from . import reproducible
+
+reproducible.pin()  # before numpy loads: the same BLAS kernel, so the same bytes, on every x86-64 machine
+
 __version__ = "0.1.0"
 
 #: The public surface, by defining module: the one list (``__all__`` and the type checker's

@@ -16,7 +16,7 @@ from warnings import WarningMessage
 
 import click
 
-from . import __version__, outputs
+from . import __version__, outputs, reproducible
 from . import tolerances as tol
 from .errors import PsdWarning, StrictError
 
@@ -159,6 +159,7 @@ def fit_report(result: FitResult, output: str) -> dict:
         "skipped_examples": list(result.skipped), "layout": list(result.layout),
         "degraded": [f"{c.label} <{c.mesh}>" for c in result.degraded], "written": True,
         "roundtrip_tolerance": tol.ROUNDTRIP_RTOL,
+        "numerics": reproducible.describe(),  # the BLAS kernel: fits agree bit for bit where it does
         "explained": [{"mesh": x.mesh, "example": x.label, "source": x.source, "time": x.time, "norm": x.norm,
                        "additive": x.shares[0], "interaction": x.shares[1], "terms_rel": x.terms,
                        "combinations_rel": x.combination} for x in result.splits],
