@@ -1,0 +1,219 @@
+"""Gauss-Newton on directions the chain's response was measured along, one call each.
+
+The coupled inverse's finish where the smooth start leaves the sculpt nearly reproduced, and
+its polish after the slower stages (``psdbake.solver.coupled``). What is left then is small
+and sits where the smoothing model is wrong: at a fold, the last vertices' own offsets; over a
+coarse mesh, directions the chain passes weakly. Each round measures new directions of the
+offsets (forward differences, ``STEP_RTOL`` of the diagonal, about 100 float32 ulps of the
+coordinates, so a column's noise is near 1%), every one a call:
+
+* one **global** direction: the blocks' inverse on the residual the linear model of the
+  directions so far leaves (weighted as below). Kept from round to round, these span a Krylov
+  space that is never thrown away, where Newton-Krylov restarted its space at every step;
+* once few vertices are above the tolerance (``OWN_MISSING``), the **own** directions of the
+  ``OWN_PER_ROUND`` worst of them: first a
+  vertex's Newton direction (its block's inverse on its residual), then the two orthogonal to
+  it; where every such vertex has all three, its edge neighbours' Newton directions.
+
+Then up to ``STEPS`` least-squares steps on every direction measured so far, 1 call each, with
+Broyden's update of their responses from each call. The residual is weighted so that the few
+vertices that miss are not outweighed by the many within the tolerance (``weights``), and
+reweighted on the linear model, without calls, where the model predicts vertices above
+``REWEIGHT_TARGET`` of the tolerance (a least-squares step otherwise trades a few vertices
+just above it for many just above it). A step is kept where it leaves fewer vertices above
+the tolerance, then a smaller worst residual. The solve ends when every vertex is within the
+tolerance, ``STALL_CALLS`` calls after its last kept step, or at its budget of calls.
+
+Measured on the bench rigs through LBS + Delta Mush (docs/decisions/coupled-inverse-coarse-meshes.md,
+"Measured directions"): the global directions alone stall at folds of the 1.3k rig (15 of
+582 vertices left after 200 calls), the own directions alone cost a call per vertex where
+thousands miss a little (13k), and together they finish both.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+from numpy.typing import NDArray
+
+from .. import tolerances as tol
+from ..arrays import Points, is_singular
+from .inverse import BlackBox
+
+#: Calls the solve may take.
+CALLS = 200
+#: Own directions a round measures, of the worst vertices first, once at most ``OWN_MISSING``
+#: vertices are above the tolerance (where more are, a call on one vertex moves too few of them).
+OWN_PER_ROUND = 8
+OWN_MISSING = 64
+#: Least-squares steps after each round (each a call; a step not kept ends the round's steps).
+STEPS = 2
+#: Forward-difference step of a direction (its largest vertex move), a fraction of the diagonal.
+STEP_RTOL = 1e-5
+#: Singular values of the weighted responses below this fraction of the largest are dropped.
+RCOND = 1e-6
+#: Reweightings of a step on the linear model (no call), and the share of the tolerance it aims at.
+REWEIGHTS = 20
+REWEIGHT_TARGET = 0.8
+#: Calls since the last kept step before the solve stops (the bench rigs' folds have gone 30
+#: calls without one, then finished).
+STALL_CALLS = 80
+#: ``weights``: the unit a vertex's residual is weighed in is at least this share of the tolerance.
+WEIGHT_FLOOR = 0.5
+
+
+@dataclass(frozen=True)
+class SubspaceResult:
+    """Where the solve ended: offsets (k, 3), each vertex's residual (k,), directions measured."""
+
+    offsets: Points
+    residual: NDArray[np.float64]
+    directions: int
+
+
+def weights(norms: NDArray[np.float64], atol: float) -> NDArray[np.float64]:
+    """Each vertex's weight in a least-squares step where few vertices miss, (k, 1): max(1,
+    |r| / u), u the larger of the residuals' RMS and ``WEIGHT_FLOOR`` times the tolerance. The
+    many vertices far within the tolerance then do not outweigh the few that miss it."""
+    unit = max(WEIGHT_FLOOR * atol, float(np.sqrt(np.mean(norms**2))))
+    return np.maximum(norms / unit, 1.0)[:, None]
+
+
+def region_neighbours(adjacency: sp.csr_matrix, idx: NDArray[np.int64], positions: NDArray[np.int64]
+                      ) -> NDArray[np.int64]:
+    """The sculpted vertices (positions in ``idx``, sorted) one edge from those at ``positions``."""
+    near = np.unique(adjacency[idx[positions]].indices)
+    return np.intersect1d(idx, near, assume_unique=True, return_indices=True)[1]
+
+
+def solve(call: BlackBox, rest: Points, target: Points, idx: NDArray[np.int64], offsets: Points, outputs: Points,
+          blocks: NDArray[np.float64], atol: float, scale: float, adjacency: sp.csr_matrix | None,
+          max_calls: int = CALLS) -> SubspaceResult:
+    """Offsets on the sculpted vertices ``idx`` from ``offsets``, whose chain outputs there are
+    ``outputs`` (module docstring). ``target`` is the sculpt at ``idx`` (k, 3), ``blocks`` the
+    per-vertex 3x3 blocks, ``scale`` the diagonal. At most ``max_calls`` calls of ``call``."""
+    offsets = np.array(offsets, dtype=np.float64)
+    out = np.asarray(outputs, dtype=np.float64)
+    r = target - out
+    norms = np.linalg.norm(r, axis=1)
+    if not np.all(np.isfinite(norms)):
+        return SubspaceResult(offsets, norms, 0)
+    k = len(idx)
+    h = STEP_RTOL * scale
+    ok = ~is_singular(blocks, tol.JACOBIAN_RCOND)
+    inverse = np.tile(np.eye(3), (k, 1, 1))
+    if ok.any():
+        inverse[ok] = np.linalg.inv(blocks[ok])
+    moves = np.empty((0, 3 * k))  # one row per direction: the offsets' move (largest vertex move 1)
+    responses = np.empty((0, 3 * k))  # and the chain's response to it
+    own: dict[int, NDArray[np.float64]] = {}  # vertex -> its own directions so far, (m, 3)
+    linear = r  # what the linear model of the directions so far leaves
+    calls = last_kept = 0
+
+    def evaluate(at: Points) -> Points:
+        moved = rest.copy()
+        moved[idx] += at
+        return call(moved)[idx]
+
+    def rank(n: NDArray[np.float64]) -> tuple[int, float]:
+        return int(np.count_nonzero(n > atol)), float(n.max())
+
+    while calls < max_calls and np.any(norms > atol) and calls - last_kept < STALL_CALLS:
+        towards = _global(inverse, weights(norms, atol) * linear)
+        fresh = [] if towards is None else [towards]
+        if np.count_nonzero(norms > atol) <= OWN_MISSING:
+            fresh += _own(r, norms, atol, inverse, own, adjacency, idx)
+        fresh = fresh[: max_calls - calls]
+        if not fresh:
+            break
+        measured = []
+        for move in fresh:
+            measured.append(((evaluate(offsets + h * move) - out) / h).ravel())
+            calls += 1
+        if not np.all(np.isfinite(measured)):
+            break  # the chain gave non-finite values: the directions so far
+        moves = np.vstack([moves, np.array(fresh).reshape(len(fresh), -1)])
+        responses = np.vstack([responses, measured])
+        for _ in range(STEPS):
+            if calls >= max_calls or not np.any(norms > atol):
+                break
+            y = _step(responses, r, norms, atol)
+            yy = float(y @ y)
+            if yy == 0.0:
+                break
+            linear = (r.ravel() - y @ responses).reshape(r.shape)
+            trial = offsets + (y @ moves).reshape(r.shape)
+            out_trial = evaluate(trial)
+            calls += 1
+            if not np.all(np.isfinite(out_trial)):
+                break
+            responses += np.outer(y, (out_trial - out).ravel() - y @ responses) / yy  # Broyden
+            r_trial = target - out_trial
+            n_trial = np.linalg.norm(r_trial, axis=1)
+            if not rank(n_trial) < rank(norms):
+                break
+            offsets, out, r, norms, linear, last_kept = trial, out_trial, r_trial, n_trial, r_trial, calls
+    return SubspaceResult(offsets, norms, len(moves))
+
+
+def _global(inverse: NDArray[np.float64], residual: Points) -> Points | None:
+    """The blocks' inverse on a residual, its largest vertex move 1 (None where it is zero)."""
+    d = np.einsum("kab,kb->ka", inverse, residual)
+    size = float(np.abs(d).max(initial=0.0))
+    return d / size if size > 0 and np.isfinite(size) else None
+
+
+def _own(r: Points, norms: NDArray[np.float64], atol: float, inverse: NDArray[np.float64],
+         own: dict[int, NDArray[np.float64]], adjacency: sp.csr_matrix | None, idx: NDArray[np.int64]
+         ) -> list[Points]:
+    """The next own directions of the worst vertices above the tolerance (module docstring),
+    each a (k, 3) move of one vertex; ``own`` records them."""
+    around = np.nonzero(norms > atol)[0]
+    while True:
+        picked: list[tuple[int, NDArray[np.float64]]] = []
+        for v in map(int, around):
+            if v not in own:
+                d = inverse[v] @ r[v]
+                size = float(np.linalg.norm(d))
+                picked.append((v, d / size if size > 0 and np.isfinite(size) else np.eye(3)[0]))
+            elif len(own[v]) < 3:  # the directions orthogonal to those it has
+                q = np.linalg.qr(np.vstack([own[v], np.eye(3)]).T)[0]
+                picked.extend((v, q[:, j]) for j in range(len(own[v]), 3))
+        if picked or adjacency is None:
+            break
+        wider = np.union1d(around, region_neighbours(adjacency, idx, around))
+        if len(wider) == len(around):
+            break
+        around = wider
+    if len(picked) > OWN_PER_ROUND:  # the worst vertices' first, in vertex order
+        worst = np.argsort(-norms[[v for v, _ in picked]], kind="stable")[:OWN_PER_ROUND]
+        picked = [picked[i] for i in sorted(worst)]
+    moves = []
+    for v, d in picked:
+        move = np.zeros_like(r)
+        move[v] = d
+        moves.append(move)
+        own[v] = np.vstack([own[v], d]) if v in own else d[None, :]
+    return moves
+
+
+def _step(responses: NDArray[np.float64], r: Points, norms: NDArray[np.float64], atol: float) -> NDArray[np.float64]:
+    """The directions' coefficients of a least-squares step: the residual weighted
+    (``weights``), then reweighted where the linear model leaves vertices above
+    ``REWEIGHT_TARGET`` of the tolerance, by how far above (``REWEIGHTS`` times at most)."""
+    weight = np.repeat(weights(norms, atol)[:, 0], 3)
+    b = r.ravel()
+    y = np.asarray(np.linalg.lstsq(responses.T * weight[:, None], b * weight, rcond=RCOND)[0], dtype=np.float64)
+    aim = REWEIGHT_TARGET * atol
+    for _ in range(REWEIGHTS):
+        predicted = np.linalg.norm((b - y @ responses).reshape(r.shape), axis=1)
+        over = predicted > aim
+        if not over.any():
+            break
+        grow = np.ones(len(predicted))
+        grow[over] = predicted[over] / aim
+        weight = weight * np.repeat(grow, 3)
+        y = np.asarray(np.linalg.lstsq(responses.T * weight[:, None], b * weight, rcond=RCOND)[0], dtype=np.float64)
+    return y
