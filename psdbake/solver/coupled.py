@@ -34,8 +34,7 @@ Jacobian, for a smoothing deformer the skinning's own blocks) and its linearised
    sculpt needs come out of the chain at a fifth of their size or less; the blocks alone took
    them at full size, and the smooth start undershot by that much at every step.
 2. Where the smooth start leaves the sculpt nearly reproduced (the RMS residual within
-   ``pieces.REACHABLE_SLACK`` times the tolerance) and few vertices above it (``FEW_MISSING``):
-   **Gauss-Newton on measured directions** (``psdbake.solver.subspace``), one call a direction:
+   ``pieces.REACHABLE_SLACK`` times the tolerance): **Gauss-Newton on measured directions** (``psdbake.solver.subspace``), one call a direction:
    a global one a round (the blocks' inverse on what the directions so far leave, a Krylov
    space kept from step to step) and, once few vertices miss, the own directions of the worst
    of them, then their neighbours'. At a fold of a coarse mesh what is left sits on a few
@@ -155,10 +154,6 @@ FINISH_EVALUATIONS = 40
 #: above the tolerance is finished on measured directions (``_measured``); with more, the slower
 #: stages run first. Results that leave at most this many rank before any other (``_rank``).
 POLISH_VERTICES = 128
-#: Where the smooth start leaves at most this many vertices above the tolerance, and the sculpt
-#: nearly reproduced (the RMS residual within ``pieces.REACHABLE_SLACK`` times the tolerance),
-#: the solve on measured directions finishes it instead of Newton-Krylov.
-FEW_MISSING = 256
 #: What a result finished on measured directions (``_measured``) says after its regime.
 MEASURED = ", on measured directions"
 #: And one whose pieces were solved on their exact Jacobians (``_exact_pieces``).
@@ -312,7 +307,7 @@ def invert(blackbox: BlackBox, rest: Points, sculpt: Points, *, rtol: float = to
             if start is not None:
                 offsets, outputs = start
                 begun = _at(sculpt, idx, offsets, outputs, diagonal, floor, rtol, call.calls, started)
-                if 0 < len(begun.missed) <= FEW_MISSING and begun.rms_residual <= pieces.REACHABLE_SLACK * begun.atol:
+                if len(begun.missed) and begun.rms_residual <= pieces.REACHABLE_SLACK * begun.atol:
                     # 1a. nearly reproduced: finished on measured directions
                     candidates.extend(_measured(call, rest, sculpt, idx, max(diagonal, floor), begun, blocks,
                                                 adjacency, started=started, outputs=outputs))

@@ -7,13 +7,15 @@ coarse mesh, directions the chain passes weakly. Each round measures new directi
 offsets (forward differences, ``STEP_RTOL`` of the diagonal, about 100 float32 ulps of the
 coordinates, so a column's noise is near 1%), every one a call:
 
-* one **global** direction: the blocks' inverse on the residual the linear model of the
+* a **global** direction: the blocks' inverse on the residual the linear model of the
   directions so far leaves (weighted as below). Kept from round to round, these span a Krylov
-  space that is never thrown away, where Newton-Krylov restarted its space at every step;
-* once few vertices are above the tolerance (``OWN_MISSING``), the **own** directions of the
-  ``OWN_PER_ROUND`` worst of them: first a
-  vertex's Newton direction (its block's inverse on its residual), then the two orthogonal to
-  it; where every such vertex has all three, its edge neighbours' Newton directions.
+  space that is never thrown away, where Newton-Krylov restarted its space at every step.
+  While many vertices miss (more than ``OWN_MISSING``), more of them, until the linear model
+  predicts a step worth its call (``FORCING``, at most ``KRYLOV_PER_ROUND``), as GMRES does;
+* once few vertices miss, the **own** directions of the worst of them (``OWN_PER_ROUND`` a
+  round): first a vertex's Newton direction (its block's inverse on its residual), then the
+  two orthogonal to it; where every such vertex has all three, its edge neighbours' Newton
+  directions.
 
 Then up to ``STEPS`` least-squares steps on every direction measured so far, 1 call each, with
 Broyden's update of their responses from each call. The residual is weighted so that the few
@@ -25,13 +27,16 @@ the tolerance, then a smaller worst residual. The solve ends when every vertex i
 tolerance, ``STALL_CALLS`` calls after its last kept step, or at its budget of calls.
 
 Measured on the bench rigs through LBS + Delta Mush (docs/decisions/coupled-inverse-coarse-meshes.md,
-"Measured directions"): the global directions alone stall at folds of the 1.3k rig (15 of
-582 vertices left after 200 calls), the own directions alone cost a call per vertex where
-thousands miss a little (13k), and together they finish both.
+"Measured directions"): with the global directions alone the 1.3k rig's 80 degree elbow
+stalls and goes on to the slower stages and the exact Jacobian (809 calls in all, against 60);
+with own directions from the first round, where 133 of the character fixture's 168 vertices
+miss at its 140 degree elbow, 903 calls (against 103), and the 3k rig's 100 degree elbow 97
+(against 45).
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -57,6 +62,12 @@ RCOND = 1e-6
 #: Reweightings of a step on the linear model (no call), and the share of the tolerance it aims at.
 REWEIGHTS = 20
 REWEIGHT_TARGET = 0.8
+#: While more than ``OWN_MISSING`` vertices miss, a round adds up to this many more global
+#: directions, until the linear model predicts the largest residual within ``FORCING`` of
+#: today's: the 13k bench rig 30.5 -> 20.0 calls an example, the 100k 20.1 -> 17.5 (with one
+#: global direction a round); with few missing it cost the 1.3k rig's random poses 40.7 -> 55.1.
+KRYLOV_PER_ROUND = 8
+FORCING = 0.1
 #: Calls since the last kept step before the solve stops (the bench rigs' folds have gone 30
 #: calls without one, then finished).
 STALL_CALLS = 80
@@ -136,6 +147,11 @@ def solve(call: BlackBox, rest: Points, target: Points, idx: NDArray[np.int64], 
             break  # the chain gave non-finite values: the directions so far
         moves = np.vstack([moves, np.array(fresh).reshape(len(fresh), -1)])
         responses = np.vstack([responses, measured])
+        if np.count_nonzero(norms > atol) > OWN_MISSING:  # many miss: more of the Krylov space first
+            before = len(moves)
+            moves, responses = _krylov(evaluate, inverse, moves, responses, offsets, out, r, norms, atol, h,
+                                       min(KRYLOV_PER_ROUND, max_calls - calls - 1))
+            calls += len(moves) - before
         for _ in range(STEPS):
             if calls >= max_calls or not np.any(norms > atol):
                 break
@@ -197,6 +213,30 @@ def _own(r: Points, norms: NDArray[np.float64], atol: float, inverse: NDArray[np
         moves.append(move)
         own[v] = np.vstack([own[v], d]) if v in own else d[None, :]
     return moves
+
+
+def _krylov(evaluate: Callable[[Points], Points], inverse: NDArray[np.float64], moves: NDArray[np.float64],
+            responses: NDArray[np.float64], offsets: Points, out: Points, r: Points, norms: NDArray[np.float64],
+            atol: float, h: float, most: int) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """More global directions, 1 call each and at most ``most``, each from what the linear model
+    of those so far leaves, until that model predicts the largest residual within ``FORCING``
+    of today's (or within ``REWEIGHT_TARGET`` of the tolerance): as GMRES grows its Krylov
+    space before a Newton step. Returns the directions and responses with them."""
+    weight = np.repeat(weights(norms, atol)[:, 0], 3)
+    for _ in range(most):
+        y = np.asarray(np.linalg.lstsq(responses.T * weight[:, None], r.ravel() * weight, rcond=RCOND)[0],
+                       dtype=np.float64)
+        left = (r.ravel() - y @ responses).reshape(r.shape)
+        if np.linalg.norm(left, axis=1).max() <= max(FORCING * float(norms.max()), REWEIGHT_TARGET * atol):
+            break
+        towards = _global(inverse, weights(norms, atol) * left)
+        if towards is None:
+            break
+        response = ((evaluate(offsets + h * towards) - out) / h).ravel()
+        if not np.all(np.isfinite(response)):
+            break
+        moves, responses = np.vstack([moves, towards.ravel()]), np.vstack([responses, response])
+    return moves, responses
 
 
 def _step(responses: NDArray[np.float64], r: Points, norms: NDArray[np.float64], atol: float) -> NDArray[np.float64]:
