@@ -34,12 +34,13 @@ Jacobian, for a smoothing deformer the skinning's own blocks) and its linearised
    sculpt needs come out of the chain at a fifth of their size or less; the blocks alone took
    them at full size, and the smooth start undershot by that much at every step.
 2. Where the smooth start leaves the sculpt nearly reproduced (the RMS residual within
-   ``pieces.REACHABLE_SLACK`` times the tolerance): **Gauss-Newton on measured directions** (``psdbake.solver.subspace``), one call a direction:
-   a global one a round (the blocks' inverse on what the directions so far leave, a Krylov
-   space kept from step to step) and, once few vertices miss, the own directions of the worst
-   of them, then their neighbours'. At a fold of a coarse mesh what is left sits on a few
-   vertices' own offsets, which Krylov spaces hold little of: the 1.3k bench rig's 80 and 100
-   degree elbows took 60 and 76 calls in all, against 128 and 171 through the stages below.
+   ``pieces.REACHABLE_SLACK`` times the tolerance): **Gauss-Newton on measured directions**
+   (``psdbake.solver.subspace``), one call a direction: global ones (the blocks' inverse on
+   what the directions so far leave, a Krylov space kept from step to step) and, once few
+   vertices miss, the own directions of the worst of them, then their neighbours'. At a fold
+   of a coarse mesh what is left sits on a few vertices' own offsets, which Krylov spaces hold
+   little of: the 1.3k bench rig's 80 and 100 degree elbows took 60 and 76 calls in all,
+   against 128 and 171 through the stages below.
    Otherwise **Newton-Krylov** from there: GMRES (right-preconditioned by the blocks, Arnoldi with
    modified Gram-Schmidt) on ``J delta = r``, each Jacobian-vector product one black-box call
    (forward difference, the largest vertex move a tenth of the largest residual, within
