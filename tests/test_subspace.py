@@ -127,3 +127,18 @@ def test_a_round_measures_at_most_its_share_of_own_directions_worst_first(count)
     moves = subspace._own(r, norms, 1e-6, np.tile(np.eye(3), (k, 1, 1)), {}, adjacency, region)
     moved = [int(np.nonzero(np.linalg.norm(m, axis=1))[0][0]) for m in moves]
     assert moved == sorted(picked[-subspace.OWN_PER_ROUND:].tolist())
+
+
+def test_the_directions_kept_fit_their_memory_bound(monkeypatch):
+    """On a region too large for ``CALLS`` directions in ``MAX_ENTRIES``, the solve takes no more
+    calls than that many directions allow."""
+    rest, adjacency, chain, region, sculpt, start = _problem()
+    monkeypatch.setattr(subspace, "MAX_ENTRIES", 6 * len(region) * 5)
+    box = Counted(chain)
+    moved = rest.copy()
+    moved[region] += start
+    outputs = chain(moved)[region]
+    diagonal = float(np.linalg.norm(rest.max(axis=0) - rest.min(axis=0)))
+    blocks = coupled.chain_blocks(chain, rest, chain(rest), region, diagonal, 0.0)
+    subspace.solve(box, rest, sculpt[region], region, start, outputs, blocks, 1e-6 * diagonal, diagonal, adjacency)
+    assert 0 < box.calls <= 5

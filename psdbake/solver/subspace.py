@@ -49,6 +49,10 @@ from .inverse import BlackBox
 
 #: Calls the solve may take.
 CALLS = 200
+#: Entries the directions and their responses may hold (2 x 3k a direction, float64: 400 MB).
+#: A region of 34k vertices (the 100k bench rig's) keeps every one of its 200; a
+#: region of 400k vertices stops at 20 directions (a third of the 1M bench mesh: 25).
+MAX_ENTRIES = 50_000_000
 #: Own directions a round measures, of the worst vertices first, once at most ``OWN_MISSING``
 #: vertices are above the tolerance (where more are, a call on one vertex moves too few of them).
 OWN_PER_ROUND = 8
@@ -104,7 +108,8 @@ def solve(call: BlackBox, rest: Points, target: Points, idx: NDArray[np.int64], 
           max_calls: int = CALLS) -> SubspaceResult:
     """Offsets on the sculpted vertices ``idx`` from ``offsets``, whose chain outputs there are
     ``outputs`` (module docstring). ``target`` is the sculpt at ``idx`` (k, 3), ``blocks`` the
-    per-vertex 3x3 blocks, ``scale`` the diagonal. At most ``max_calls`` calls of ``call``."""
+    per-vertex 3x3 blocks, ``scale`` the diagonal. At most ``max_calls`` calls of ``call``, and
+    no more than ``MAX_ENTRIES`` allow."""
     offsets = np.array(offsets, dtype=np.float64)
     out = np.asarray(outputs, dtype=np.float64)
     r = target - out
@@ -112,6 +117,7 @@ def solve(call: BlackBox, rest: Points, target: Points, idx: NDArray[np.int64], 
     if not np.all(np.isfinite(norms)):
         return SubspaceResult(offsets, norms, 0)
     k = len(idx)
+    max_calls = min(max_calls, MAX_ENTRIES // max(6 * k, 1))
     h = STEP_RTOL * scale
     ok = ~is_singular(blocks, tol.JACOBIAN_RCOND)
     inverse = np.tile(np.eye(3), (k, 1, 1))
