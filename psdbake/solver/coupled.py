@@ -554,8 +554,7 @@ def _exact_pieces_instead(result: InverseResult, adjacency: sp.csr_matrix, idx: 
 def _rank(result: InverseResult) -> tuple[int, int, float]:
     """The better of two results ranks lower. One that leaves few enough vertices above the
     tolerance for the polish on measured directions (``POLISH_VERTICES``) ranks before any
-    other, by fewer of them,
-    then the smaller worst residual: the goal is every vertex within it. Among results that
+    other, by fewer of them, then the smaller worst residual: the goal is every vertex within it. Among results that
     leave more, the smaller sum of squared residuals ranks first: where most of the sculpt is
     out of the chain's reach, the count says nothing, and the least-squares misfit is what the
     inverse minimises. On the 3k bench rig's sculpts made on the plain-skinned mesh (one

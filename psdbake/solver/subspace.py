@@ -59,7 +59,7 @@ OWN_PER_ROUND = 8
 OWN_MISSING = 64
 #: Least-squares steps after each round (each a call; a step not kept ends the round's steps).
 STEPS = 2
-#: Forward-difference step of a direction (its largest vertex move), a fraction of the diagonal.
+#: Forward-difference step of a direction (scaled to a largest move of 1), a fraction of the diagonal.
 STEP_RTOL = 1e-5
 #: Singular values of the weighted responses below this fraction of the largest are dropped.
 RCOND = 1e-6
@@ -81,11 +81,11 @@ WEIGHT_FLOOR = 0.5
 
 @dataclass(frozen=True)
 class SubspaceResult:
-    """Where the solve ended: offsets (k, 3), each vertex's residual (k,), directions measured."""
+    """Where the solve ended: offsets (k, 3) and each vertex's residual there (k,), from the
+    chain's own outputs."""
 
     offsets: Points
     residual: NDArray[np.float64]
-    directions: int
 
 
 def weights(norms: NDArray[np.float64], atol: float) -> NDArray[np.float64]:
@@ -115,7 +115,7 @@ def solve(call: BlackBox, rest: Points, target: Points, idx: NDArray[np.int64], 
     r = target - out
     norms = np.linalg.norm(r, axis=1)
     if not np.all(np.isfinite(norms)):
-        return SubspaceResult(offsets, norms, 0)
+        return SubspaceResult(offsets, norms)
     k = len(idx)
     max_calls = min(max_calls, MAX_ENTRIES // max(6 * k, 1))
     h = STEP_RTOL * scale
@@ -123,7 +123,7 @@ def solve(call: BlackBox, rest: Points, target: Points, idx: NDArray[np.int64], 
     inverse = np.tile(np.eye(3), (k, 1, 1))
     if ok.any():
         inverse[ok] = np.linalg.inv(blocks[ok])
-    moves = np.empty((0, 3 * k))  # one row per direction: the offsets' move (largest vertex move 1)
+    moves = np.empty((0, 3 * k))  # one row per direction: the offsets' move, of size about 1
     responses = np.empty((0, 3 * k))  # and the chain's response to it
     own: dict[int, NDArray[np.float64]] = {}  # vertex -> its own directions so far, (m, 3)
     linear = r  # what the linear model of the directions so far leaves
@@ -177,11 +177,11 @@ def solve(call: BlackBox, rest: Points, target: Points, idx: NDArray[np.int64], 
             if not rank(n_trial) < rank(norms):
                 break
             offsets, out, r, norms, linear, last_kept = trial, out_trial, r_trial, n_trial, r_trial, calls
-    return SubspaceResult(offsets, norms, len(moves))
+    return SubspaceResult(offsets, norms)
 
 
 def _global(inverse: NDArray[np.float64], residual: Points) -> Points | None:
-    """The blocks' inverse on a residual, its largest vertex move 1 (None where it is zero)."""
+    """The blocks' inverse on a residual, its largest coordinate 1 (None where it is zero)."""
     d = np.einsum("kab,kb->ka", inverse, residual)
     size = float(np.abs(d).max(initial=0.0))
     return d / size if size > 0 and np.isfinite(size) else None
