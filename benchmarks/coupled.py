@@ -22,6 +22,7 @@ rest + offsets. Usage: ``python -m benchmarks.coupled [--sizes 1.3k,3k,13k,100k]
 from __future__ import annotations
 
 import argparse
+import os
 import tempfile
 import time
 from collections.abc import Callable, Sequence
@@ -314,6 +315,58 @@ def bench_plain(folder: str, poses: dict, poses_layer: str, sizes: Sequence[str]
     return rows
 
 
+#: Random poses per rig for the robustness table (``bench_random``): elbow 20-160 degrees and
+#: wrist -60-60, from a fixed seed, so the same poses every run.
+RANDOM_POSES = 16
+RANDOM_SEED = 7
+#: The rigs the robustness table runs on (100k is the bench's own: 8 examples take ~40 s).
+RANDOM_SIZES = ("1.3k", "3k", "13k")
+
+
+def random_poses(count: int = RANDOM_POSES, seed: int = RANDOM_SEED) -> dict[float, dict]:
+    """``count`` example poses at times 1..count, elbow and wrist drawn uniformly (0.1 degree)."""
+    rng = np.random.default_rng(seed)
+    return {float(i + 1): {"Elbow": ((0, 0, 1), float(np.round(rng.uniform(20.0, 160.0), 1))),
+                           "Wrist": ((1, 0, 0), float(np.round(rng.uniform(-60.0, 60.0), 1)))} for i in range(count)}
+
+
+def bench_random(folder: str, sizes: Sequence[str], count: int, raw: list[dict]) -> list[list[str]]:
+    """psdbake on the bench rigs at random poses, sculpts made through the chain from the
+    bench's known offsets: the bench's eight elbows are a small sample of the poses a fit
+    meets. Per rig: calls (mean, median, range), seconds, vertices above the tolerance, and
+    each example that misses (its pose, and whether it was called an optimum)."""
+
+    poses = random_poses(count)
+    sub = os.path.join(folder, "random")
+    os.makedirs(sub, exist_ok=True)
+    poses_layer = rigs.generate.write_animation(os.path.join(sub, "poses.usda"), poses)
+    rows = []
+    for size in sizes:
+        rig = rigs.build(sub, VARIANT, size, poses, poses_layer)
+        scene = rig.scene()
+        adjacency = edge_adjacency(rest_mesh(scene.stage, rigs.MESH)[1])
+        tally, misses = Tally(), []
+        for t in rig.times:
+            pose = f"elbow {poses[t]['Elbow'][1]:g}, wrist {poses[t]['Wrist'][1]:g}"
+            started = time.perf_counter()
+            res = coupled.invert(rig.blackbox(scene, t), rig.rest, rig.sculpts[t],
+                                 neighbours=lambda adjacency=adjacency: adjacency)
+            seconds = time.perf_counter() - started
+            residual, atol, diagonal = residuals(rig.blackbox(scene, t), rig.rest, rig.sculpts[t], res.indices,
+                                                 res.offsets)
+            tally.add(f"{rig.name} {pose}", res.evaluations, seconds, residual, atol, diagonal)
+            tally.examples[-1].update(regime=res.regime, at_optimum=res.at_optimum)
+            missed = int(np.count_nonzero(residual > atol))
+            if missed:
+                misses.append(f"{pose}: {missed} ({'called an optimum' if res.at_optimum else 'short of an optimum'})")
+        calls = tally.cells()
+        rows.append([f"{size} ({rig.points:,} points)", str(len(rig.times)), calls[0], f"{np.median(tally.calls):.0f}",
+                     calls[1], calls[4], "; ".join(misses) or "none"])
+        _show(rows[-1])
+        raw.append({"rig": rig.name, "examples": tally.examples})
+    return rows
+
+
 ABOUT = (
     "LBS followed by the reference Delta Mush (10 iterations, step 0.5). The bench rigs (`benchmarks/rigs.py`) at "
     "about 1.3k, 3k, 13k and 100k points, 8 examples each bending the elbow from 20° to 160° with the wrist "
@@ -336,6 +389,12 @@ SHIPPED_ABOUT = (
     "summary reports: the RMS residual over the RMS of the sculpt's own displacement."
 )
 
+RANDOM_ABOUT = (
+    f"The bench rigs at {RANDOM_POSES} random poses (`benchmarks.coupled.random_poses`: elbow 20-160°, wrist -60-60°, seed "
+    f"{RANDOM_SEED}), each sculpt made through LBS + Delta Mush from the bench's own offsets, so an exact answer exists. "
+    "An example that misses is listed with its pose; one \"called an optimum\" ended where no nearby offset reproduces "
+    "more (a local optimum: the truth is elsewhere)."
+)
 PLAIN_ABOUT = (
     "Each example's sculpt made on the rig's plain LBS mesh (the `lbs` rig's sculpts), as an artist makes it, "
     "inverted through LBS + Delta Mush: no offset reproduces it. Each mesh is one piece: the 1.3k rig's (1,312 "
@@ -355,6 +414,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--reference-iterations", type=int, default=REFERENCE_ITERATIONS,
                         help="the reference optimiser's iterations on CesiumMan's shipped sculpts (0: skip it)")
     parser.add_argument("--no-plain", action="store_true", help="skip the rigs' plain-skinned sculpts")
+    parser.add_argument("--random", type=int, default=RANDOM_POSES, help="random poses per rig for the robustness "
+                        "table (0: skip it)")
     parser.add_argument("--json", default=results.path_of("coupled"), help="where to write the results record")
     args = parser.parse_args(argv)
     methods = tuple(m for m in args.methods.split(",") if m)
@@ -366,8 +427,9 @@ def main(argv: list[str] | None = None) -> None:
     print(f"# {VARIANT}: per-vertex vs one-shot vs coupled inverse (residuals by running the chain)")
     rig_rows: list[list[str]] = []
     character_rows: list[list[str]] = []
-    raw: dict[str, list[dict]] = {"rigs": [], "characters": [], "shipped": [], "plain": []}
+    raw: dict[str, list[dict]] = {"rigs": [], "characters": [], "shipped": [], "plain": [], "random": []}
     plain_rows: list[list[str]] = []
+    random_rows: list[list[str]] = []
     with tempfile.TemporaryDirectory() as folder:
         poses_layer, poses = rigs.write_poses(folder)
         for size in sizes:
@@ -378,6 +440,9 @@ def main(argv: list[str] | None = None) -> None:
                                           raw["characters"])
             character_rows += bench_cases("character fixture (3 tubes + sleeve, 8 examples)",
                                           characters.whole_character(folder), methods, raw["characters"])
+        if args.random > 0:
+            print(f"# the bench rigs at {args.random} random poses, through {VARIANT}")
+            random_rows = bench_random(folder, [s for s in RANDOM_SIZES if s in sizes], args.random, raw["random"])
         if not args.no_plain:
             print(f"# the bench rigs' sculpts made on the plain-skinned mesh, through {VARIANT}")
             plain_rows = bench_plain(folder, poses, poses_layer, [s for s in PLAIN_SIZES if s in sizes],
@@ -395,6 +460,11 @@ def main(argv: list[str] | None = None) -> None:
              "reference RMS / diag", "reference largest offset / diag", "RMS ratio (psdbake / reference)",
              "objective ratio"], shipped,
             notes=SHIPPED_ABOUT))
+    if random_rows:
+        tables.append(results.table(
+            "The bench rigs at random poses", ["rig", "examples", "calls / example (range)", "median calls", "s / example",
+                                              "vertices above tolerance", "examples that miss"],
+            random_rows, notes=RANDOM_ABOUT))
     if plain_rows:
         tables.append(results.table(
             "The bench rigs' sculpts made on the plain-skinned mesh", ["rig", "examples", "calls / example (range)",

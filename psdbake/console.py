@@ -175,7 +175,11 @@ def _worst(inv: Any, count: int = 20) -> list[list[float]]:
 
 def _unreachable_line(label: str, inv: Any) -> str:
     """Where an example missed: how much of its sculpt is not reproduced, where, and whether the
-    solve ended at an optimum (the chain smooths it away) or short of one (the solver stopped).
+    solve ended at an optimum or short of one (the solver stopped). An optimum is local: no
+    nearby offset reproduces more, which is what a chain that smooths the sculpt away leaves,
+    but not a proof that no offset does (on the 1.3k bench rig at a 62 degree elbow, a sculpt
+    made through Delta Mush from known offsets that fold its smoothed surface over at the inner
+    elbow ends at one 6,000 times the tolerance; docs/decisions/coupled-inverse-coarse-meshes.md).
     Short of one, a residual whose RMS is ``pieces.REACHABLE_SLACK`` times the tolerance or more
     is said to be mostly out of the chain's reach: sculpts the chain can reproduce end within
     2x of it where they miss at all; the bench rigs' sculpts made on the plain-skinned mesh end
@@ -186,7 +190,7 @@ def _unreachable_line(label: str, inv: Any) -> str:
     worst = ", ".join(str(v) for v, _ in _worst(inv, 3))
     away = inv.rms_residual / inv.atol if inv.atol > 0 else 0.0
     if inv.at_optimum:
-        verdict = "at a least-squares optimum: the deformer chain cannot reproduce it"
+        verdict = "at a least-squares optimum: the deformer chain reproduces no more of it from any nearby offset"
     elif away >= REACHABLE_SLACK:
         verdict = (f"the solver stopped short of an optimum; at {away:,.0f}x the tolerance (RMS) it is mostly what "
                    "the chain cannot reproduce")

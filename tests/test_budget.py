@@ -133,68 +133,55 @@ def test_broyden_update_satisfies_the_secant_equation():
                                atol=1e-12)
 
 
-#: Calls per example of the coupled inverse on the coarse rig with Delta Mush (10 iterations):
-#: the issue's goal at every size. Measured: 38, 29, 25 and 29 calls at elbow 60, 120, 140
-#: and 160 degrees, where LBS folds the inner elbow (they were 364, 372, 407 and 428, with
-#: 574, 387 and 26 vertices above the tolerance on the first three).
-COUPLED_MAX_CALLS = 40
+#: Calls per example of the coupled inverse on the coarse rig with Delta Mush (10 iterations),
+#: elbow 20-160 degrees: the issue's goal, at most 40 on average over the eight. Measured with
+#: the pinned BLAS kernel (psdbake.reproducible): 17, 19, 38, 60, 76, 29, 22 and 29 calls, mean
+#: 36.2 (the 80 and 100 degree folds, where the smooth start leaves 18 and 22 vertices at up to
+#: 5.7 times the tolerance, finish on measured directions; they took 113 and 184 calls when a
+#: per-vertex polish measured 3 columns a vertex after a Newton-Krylov finish).
+COUPLED_MEAN_CALLS = 40
+#: Each example's own ceiling: what was measured and a tenth more, at least 3 calls.
+COUPLED_MAX_CALLS = {1.0: 20, 2.0: 22, 3.0: 42, 4.0: 66, 5.0: 84, 6.0: 32, 7.0: 25, 8.0: 32}
 
 
-@pytest.mark.parametrize("time", [3.0, 6.0, 7.0, 8.0])
-def test_coupled_chain_on_a_coarse_folded_rig_within_forty_calls(bench, time):
+@pytest.fixture(scope="module")
+def coupled_results(bench):
+    """The coupled inverse on each of the coarse rig's eight examples, and each vertex's residual
+    from running the whole chain on rest + offsets."""
     rig = bench["lbs+deltamush"]
-    box = rig.blackbox(rig.scene(), time)
-    res = coupled.invert(box, rig.rest, rig.sculpts[time], neighbours=lambda: _adjacency(rig))
-    assert res.evaluations == box.evaluations  # every call is counted
-    assert res.regime == "coupled, from the smooth start"
-    assert res.evaluations <= COUPLED_MAX_CALLS, res.evaluations
-    # every residual within atol, checked by running the whole chain on rest + offsets
-    moved = rig.rest.copy()
-    moved[res.indices] += res.offsets
-    residual = np.linalg.norm(rig.sculpts[time][res.indices] - rig.blackbox(rig.scene(), time)(moved)[res.indices], axis=1)
-    assert len(res.indices) > 500 and residual.max() <= res.atol, (residual.max(), res.atol)
+    found = {}
+    for time in rig.times:
+        box = rig.blackbox(rig.scene(), time)
+        res = coupled.invert(box, rig.rest, rig.sculpts[time], neighbours=lambda: _adjacency(rig))
+        assert res.evaluations == box.evaluations  # every call is counted
+        moved = rig.rest.copy()
+        moved[res.indices] += res.offsets
+        residual = np.linalg.norm(rig.sculpts[time][res.indices] - rig.blackbox(rig.scene(), time)(moved)[res.indices],
+                                  axis=1)
+        found[time] = (res, residual)
+    return found
 
 
-#: The coarse rig's 80 and 100 degree elbows, where the smooth start's finish stalls with a few
-#: vertices just above the tolerance at the fold (11 and 36 of about 580, at up to 7e-6 of the
-#: diagonal): the local polish measures their own columns of the chain's Jacobian and brings
-#: every vertex within it. Measured: 113 and 184 calls.
-POLISHED_MAX_CALLS = {4.0: 120, 5.0: 190}
-
-
-@pytest.mark.parametrize("time", sorted(POLISHED_MAX_CALLS))
-def test_a_fold_the_finish_leaves_a_few_vertices_above_is_polished(bench, time):
-    rig = bench["lbs+deltamush"]
-    box = rig.blackbox(rig.scene(), time)
-    res = coupled.invert(box, rig.rest, rig.sculpts[time], neighbours=lambda: _adjacency(rig))
-    assert res.evaluations == box.evaluations  # every call is counted
-    assert res.regime == "coupled, from the smooth start" + coupled.POLISHED
-    assert res.evaluations <= POLISHED_MAX_CALLS[time], res.evaluations
-    moved = rig.rest.copy()
-    moved[res.indices] += res.offsets
-    residual = np.linalg.norm(rig.sculpts[time][res.indices] - rig.blackbox(rig.scene(), time)(moved)[res.indices], axis=1)
+@pytest.mark.parametrize("time", sorted(COUPLED_MAX_CALLS))
+def test_coupled_chain_on_a_coarse_rig_every_vertex_within_its_call_ceiling(coupled_results, time):
+    res, residual = coupled_results[time]
+    assert res.regime.startswith("coupled, from the smooth start") and not res.regime.endswith(coupled.EXACT)
+    assert res.evaluations <= COUPLED_MAX_CALLS[time], res.evaluations
     assert len(res.indices) > 500 and residual.max() <= res.atol and not len(res.missed), (residual.max(), res.atol)
 
 
-#: The 13k rig's 60 degree elbow: the finish leaves 3 vertices at about twice the tolerance, which
-#: their own columns cannot bring within it (the least-squares step on 9 unknowns trades them
-#: against the hundreds just inside it). Their edge neighbours' columns finish it: 85 calls
-#: measured, where the slower stages had taken it to 118.
-NEIGHBOURS_MAX_CALLS = 100
+def test_coupled_chain_on_a_coarse_rig_within_forty_calls_an_example(coupled_results):
+    calls = [res.evaluations for res, _ in coupled_results.values()]
+    assert len(calls) == 8 and np.mean(calls) <= COUPLED_MEAN_CALLS, calls
 
 
-def test_few_vertices_their_own_columns_cannot_move_are_polished_with_their_neighbours(tmp_path):
-    poses_layer, poses = rigs.write_poses(str(tmp_path))
-    rig = rigs.build(str(tmp_path), "lbs+deltamush", "13k", poses, poses_layer)
-    time = next(t for t in rig.times if poses[t]["Elbow"][1] == 60.0)
-    box = rig.blackbox(rig.scene(), time)
-    res = coupled.invert(box, rig.rest, rig.sculpts[time], neighbours=lambda: _adjacency(rig))
-    assert res.evaluations == box.evaluations <= NEIGHBOURS_MAX_CALLS, res.evaluations
-    assert res.regime == "coupled, from the smooth start" + coupled.POLISHED  # not the slower stages
-    moved = rig.rest.copy()
-    moved[res.indices] += res.offsets
-    residual = np.linalg.norm(rig.sculpts[time][res.indices] - rig.blackbox(rig.scene(), time)(moved)[res.indices], axis=1)
-    assert len(res.indices) > 4000 and residual.max() <= res.atol, (residual.max(), res.atol)
+def test_the_folds_finish_on_measured_directions(coupled_results):
+    """The 80 and 100 degree elbows: what the smooth start leaves sits at the fold, and the
+    solve on measured directions (psdbake.solver.subspace) takes it from there, without the
+    Newton-Krylov finish or the slower stages."""
+    for time in (4.0, 5.0):
+        res, _ = coupled_results[time]
+        assert res.regime == "coupled, from the smooth start" + coupled.MEASURED, res.regime
 
 
 def _adjacency(rig):

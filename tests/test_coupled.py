@@ -15,7 +15,7 @@ from conftest import ROOT, sculpt
 from psdbake import tolerances as tol
 from psdbake.delta_mush import DeltaMush, make
 from psdbake.normals import Topology
-from psdbake.solver import coupled, pieces, powell, smoothstart
+from psdbake.solver import coupled, pieces, powell, smoothstart, subspace
 from psdbake.solver.inverse import Counted, InverseResult, invert_example, sculpted_vertices
 from psdbake.solver.smoothbasis import edge_adjacency
 from psdbake.usd.meshrest import rest_mesh
@@ -145,8 +145,9 @@ def test_a_folded_elbow_reaches_the_tolerance_from_the_smooth_start(run, tmp_pat
     mesh collapses there. The chain's Jacobian is so ill-conditioned that Newton-Krylov from
     zero stalls, and the per-vertex solver leaves over 500 of the 4,604 sculpted vertices above
     the tolerance. fit's Gauss-Newton on the region's smoothest fields, then Newton-Krylov,
-    brings every one within it (measured: 0 missed in 51 calls, 300 when the span's Jacobian
-    was measured), and the points cache of the written stack reproduces the sculpt."""
+    brings every one within it, and the points cache of the written stack reproduces the sculpt
+    (measured: 0 missed in 43 calls, finished on measured directions; 51 with Newton-Krylov's
+    finish, 300 when the span's Jacobian was measured)."""
     poses_layer, poses = rigs.write_poses(str(tmp_path), 8)
     rig = rigs.build(str(tmp_path), "lbs+deltamush", "13k", {4.0: poses[4.0]}, poses_layer)
     assert len(invert_example(rig.blackbox(rig.scene(), 4.0), rig.rest, rig.sculpts[4.0]).missed) > 500
@@ -156,7 +157,7 @@ def test_a_folded_elbow_reaches_the_tolerance_from_the_smooth_start(run, tmp_pat
                        "--report", report, "-q")
     assert code == 0, err
     (ex,) = json.loads(report.read_text())["meshes"][0]["examples"]
-    assert ex["regime"] == "coupled, from the smooth start" and ex["missed"] == 0
+    assert ex["regime"].startswith("coupled, from the smooth start") and ex["missed"] == 0
     assert ex["evaluations"] <= SMOOTH_CALL_BUDGET
     # the same bytes from a process whose BLAS has one thread (a farm machine with one core):
     # the joint stages' sums do not depend on the machine
@@ -180,8 +181,8 @@ def test_a_folded_elbow_reaches_the_tolerance_from_the_smooth_start(run, tmp_pat
 
 #: Calls the joint stages of one example may take when every one runs: the smooth start's
 #: probe of the chain's smoothing and its two span solves, its Newton-Krylov finish; where that
-#: misses short of an optimum, the local polish of a few vertices (before and after the
-#: escalation), and the escalation: the blocks' smooth start (its steps) and Newton-Krylov
+#: misses short of an optimum, the solve on measured directions (before and after the
+#: escalation, each with a call at its start), and the escalation: the blocks' smooth start (its steps) and Newton-Krylov
 #: from it, the span's Jacobian measured (3 calls a field), its steps and Newton-Krylov from
 #: it, the joint solve from zero (each stage's budget counted from its start). Before them: the
 #: per-vertex solver's calls, and the chain at rest, the probe and the blocks (3) when the
@@ -191,7 +192,7 @@ def test_a_folded_elbow_reaches_the_tolerance_from_the_smooth_start(run, tmp_pat
 JOINT_STAGES_BOUND = (1 + coupled.COARSE_SPAN_CALLS + coupled.FINE_SPAN_CALLS + coupled.FINISH_EVALUATIONS
                       + coupled.MEASURED_STEPS + coupled.MAX_EVALUATIONS + coupled.FROM_ZERO_EVALUATIONS
                       + 3 * coupled.MEASURED_FIELDS + coupled.MEASURED_STEPS + coupled.MAX_EVALUATIONS
-                      + 2 * (1 + 3 * coupled.POLISH_VERTICES + coupled.POLISH_STEPS) + 1 + 3
+                      + 2 * (1 + subspace.CALLS) + 1 + 3
                       + coupled.EXACT_CALLS + 2 + coupled.OUT_OF_REACH_EVALUATIONS)
 
 
@@ -445,7 +446,8 @@ def test_cesiummans_shipped_sculpts_end_at_an_optimum_with_bounded_offsets(run, 
     code, _, err = run("fit", asset, examples, "-o", corr, "--deformer", rigs.DELTA_MUSH_SPEC, "--allow-degraded",
                        "--group", "main", "--report", report)  # one cardinal RBF: its shapes are the inverse's offsets
     assert code == 0, err
-    assert err.count("at a least-squares optimum: the deformer chain cannot reproduce it") == 2, err
+    assert err.count("at a least-squares optimum: the deformer chain reproduces no more of it from any nearby "
+                     "offset") == 2, err
     found = json.loads(report.read_text())["meshes"][0]["examples"]
     assert [ex["at_optimum"] for ex in found] == [True, True]
     assert all(0.2 < ex["unreachable_fraction"] < 0.6 for ex in found)  # measured 0.472 and 0.300
@@ -648,16 +650,44 @@ def test_a_one_piece_mesh_sculpted_on_its_plain_skinning_ends_at_an_optimum(plai
 
 def test_a_piece_too_large_for_stage_4_keeps_its_offsets_bounded(plain_skinned_60, monkeypatch):
     """The same sculpt where the piece is beyond stage 4's reach (as a one-piece body of 3k-13k
-    vertices is): the stages before it leave offsets of 10.4x the sculpt's move, beyond what
-    the unreachable ridge lets through, and the out-of-reach stage brings them within 2.5x
-    (measured 1.90x, RMS 5.80e-4 of the diagonal against stage 4's optimum's 5.84e-4), not
-    called an optimum (it is not one: Krylov spaces hold few of the directions the ridge
-    shrinks)."""
+    vertices is): the offsets stay within 2.5x the sculpt's move (measured 1.96x, RMS 5.66e-4
+    of the diagonal against stage 4's optimum's 5.84e-4, which pays for its smaller offsets;
+    10.4x before the out-of-reach stage on the machine the budgets were first measured on), and
+    the result is not called an optimum."""
     monkeypatch.setattr(pieces, "EXACT_PIECE", 1000)
     box, rest, target, adjacency, move = plain_skinned_60
     res = coupled.invert(box, rest, target, neighbours=lambda: adjacency)
-    assert res.regime.endswith(coupled.OUT_OF_REACH) and not res.at_optimum
+    assert not res.regime.endswith(coupled.EXACT) and not res.at_optimum
     assert np.linalg.norm(res.offsets, axis=1).max() <= 2.5 * move
+
+
+def test_the_out_of_reach_stage_bounds_offsets_the_chain_does_not_see(plain_skinned_60):
+    """Offsets grown where the chain does not look (a checkerboard around the 16-segment tube,
+    which Delta Mush's step of 1/2 annihilates, ten times the sculpt's move) leave the residual
+    as it was; the out-of-reach stage (``coupled._regularised``: Newton-Krylov from zero on the
+    unreachable ridge) returns offsets within 2.5x the move, with a lower objective, not called
+    an optimum."""
+    box, rest, target, _adjacency, move = plain_skinned_60
+    base = box(rest)
+    diagonal, floor, idx = sculpted_vertices(rest, base, target)
+    blocks = coupled.chain_blocks(box, rest, base, idx, diagonal, floor)
+    ring, segment = np.divmod(idx, 16)
+    checker = np.where((ring + segment) % 2 == 0, 1.0, -1.0)[:, None] * np.array([0.0, 0.0, 10.0 * move])
+    moved = rest.copy()
+    moved[idx] += checker
+    residual = np.linalg.norm(target[idx] - box(moved)[idx], axis=1)
+    start = InverseResult(idx, checker, residual, np.full(len(idx), powell.STALLED, dtype=np.int8), 0, diagonal,
+                          max(1e-6 * diagonal, floor), 0.0, regime="grown")
+    assert coupled._out_of_bounds(start, target, base, blocks)
+    call = Counted(box)
+    kept = coupled._regularised(call, rest, target, base, idx, diagonal, floor, start, blocks, rtol=1e-6, started=0.0)
+    rho = smoothstart.ridge(blocks, coupled.UNREACHABLE_RIDGE)
+
+    def objective(result: InverseResult) -> float:
+        return float(np.sum(result.residual**2) + rho * np.sum(result.offsets**2))
+
+    assert kept.regime == "grown" + coupled.OUT_OF_REACH and not kept.at_optimum
+    assert objective(kept) < objective(start) and np.linalg.norm(kept.offsets, axis=1).max() <= 2.5 * move
 
 
 def test_the_summary_tells_a_sculpt_out_of_reach_from_a_solve_that_stopped():
@@ -676,7 +706,7 @@ def test_the_summary_tells_a_sculpt_out_of_reach_from_a_solve_that_stopped():
                              sculpt_rms=1e-2, at_optimum=optimum)
 
     assert _unreachable_line("x", result(1e-3, True)).endswith("at a least-squares optimum: the deformer chain "
-                                                                "cannot reproduce it")
+                                                                "reproduces no more of it from any nearby offset")
     far = _unreachable_line("x", result(1e-3, False))
     assert far.endswith("stopped short of an optimum; at 100x the tolerance (RMS) it is mostly what the chain "
                         "cannot reproduce")

@@ -120,7 +120,7 @@ def test_registries_are_keyed_by_their_names():
 #: The layers, lowest first: a module imports only from its own layer or lower ones. The tree
 #: reads as the pipeline: read USD -> pose space -> black-box skinning -> inverse -> RBF -> write.
 LAYERS = (
-    ("base", ("errors", "names", "tolerances", "arrays", "lookup", "outputs", "atomic", "paths")),
+    ("base", ("reproducible", "errors", "names", "tolerances", "arrays", "lookup", "outputs", "atomic", "paths")),
     ("model", ("model",)),
     ("geometry", ("normals", "deformers")),
     ("usd", ("usd",)),

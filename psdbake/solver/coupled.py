@@ -33,23 +33,30 @@ Jacobian, for a smoothing deformer the skinning's own blocks) and its linearised
    step's call. Where the smoothing reaches across a large part of a small mesh, the fields a
    sculpt needs come out of the chain at a fifth of their size or less; the blocks alone took
    them at full size, and the smooth start undershot by that much at every step.
-2. **Newton-Krylov** from there: GMRES (right-preconditioned by the blocks, Arnoldi with
+2. Where the smooth start leaves the sculpt nearly reproduced (the RMS residual within
+   ``pieces.REACHABLE_SLACK`` times the tolerance): **Gauss-Newton on measured directions**
+   (``psdbake.solver.subspace``), one call a direction: global ones (the blocks' inverse on
+   what the directions so far leave, a Krylov space kept from step to step) and, once few
+   vertices miss, the own directions of the worst of them, then their neighbours'. At a fold
+   of a coarse mesh what is left sits on a few vertices' own offsets, which Krylov spaces hold
+   little of: the 1.3k bench rig's 80 and 100 degree elbows took 60 and 76 calls in all,
+   against 128 and 171 through the stages below.
+   Otherwise **Newton-Krylov** from there: GMRES (right-preconditioned by the blocks, Arnoldi with
    modified Gram-Schmidt) on ``J delta = r``, each Jacobian-vector product one black-box call
    (forward difference, the largest vertex move a tenth of the largest residual, within
    ``JVP_MIN_STEP_RTOL`` and ``JVP_STEP_RTOL`` of the diagonal), stopping once the linear model
    predicts every vertex within a fraction of the tolerance; the step is the one in the
    Krylov space that minimises the regularised misfit's linear model; one call at
    ``rest + D`` checks it (halved up to ``BACKTRACKS`` times where it does not help). In this
-   finish the vertices still above the tolerance weigh by how far above they are.
-3. Where that misses short of an optimum: a **local polish** (``_polish``) of the few vertices
-   left above the tolerance, their own Jacobian columns measured (then their neighbours' where
-   some are left); where that misses too, the
-   **slower stages** (``_escalate``: the blocks' smooth start over the region's smoothest
-   fields, the span's Jacobian measured, Newton-Krylov from zero; each while more vertices
-   miss than the polish takes), then the polish of the best.
+   finish the vertices still above the tolerance weigh by how far above they are. Where it
+   misses short of an optimum with at most ``POLISH_VERTICES`` left, measured directions
+   finish it as above.
+3. Where that misses: the **slower stages** (``_escalate``: the blocks' smooth start over the
+   region's smoothest fields, the span's Jacobian measured, Newton-Krylov from zero; each while
+   more vertices miss than ``POLISH_VERTICES``), then measured directions on the best.
    The fast path alone costs a few dozen calls; these cost hundreds where they run, and the
    best of every result is kept, so an example never ends worse than the fast path left it.
-   Where more vertices miss than the polish takes and all of them are on pieces that stage 4
+   Where more vertices miss than that and all of them are on pieces that stage 4
    measures, the slower stages are left out for it (``_exact_pieces_instead``).
 4. Where vertices still miss on pieces of the mesh of at most ``pieces.EXACT_PIECE`` vertices:
    **those pieces' exact Jacobians** (``_exact_pieces``, ``pieces.solve_exactly``), measured
@@ -65,8 +72,8 @@ Jacobian, for a smoothing deformer the skinning's own blocks) and its linearised
    lets through: **Newton-Krylov from zero on that ridge's objective** (``_regularised``),
    kept where it lowers it. It bounds the offsets; it is not called an optimum.
 
-Of the stages' results the one kept leaves the fewest vertices above the tolerance while the
-polish can take them, else the smallest sum of squared residuals (``_rank``).
+Of the stages' results the one kept leaves the fewest vertices above the tolerance where at most
+``POLISH_VERTICES`` do, else the smallest sum of squared residuals (``_rank``).
 
 The result is ``at_optimum`` when the last Krylov space could not lower the residual's linear
 model by ``OPTIMUM_RTOL``, or when the pieces stage 4 could not settle at their optimum hold at
@@ -98,7 +105,7 @@ from threadpoolctl import threadpool_limits
 
 from .. import tolerances as tol
 from ..arrays import Points, is_singular
-from . import pieces, powell, smoothstart
+from . import pieces, powell, smoothstart, subspace
 from .inverse import COUPLING_SEEN, BlackBox, Counted, InverseResult, invert_example_with, sculpted_vertices
 from .smoothbasis import basis_sizes, smooth_bases, smooth_basis
 
@@ -144,25 +151,12 @@ COARSE_SPAN_CALLS = 20
 FINE_SPAN_CALLS = 15
 #: Newton-Krylov's calls after the smooth start, counted from its end.
 FINISH_EVALUATIONS = 40
-#: The local polish (``_polish``): at most this many vertices above the tolerance (3 calls
-#: each for their Jacobian columns), its finite-difference step (a fraction of the diagonal:
-#: about 100 float32 ulps of the coordinates, so the columns' noise is near 1%), its
-#: least-squares steps and their truncation. On the 1.3k bench rig's 80 and 100 degree
-#: elbows, where the finish stalled with 11 and 36 vertices at up to 7e-6 of the diagonal,
-#: one step brought every vertex within the tolerance; on the character fixture's 140 degree
-#: elbow, 77 vertices at up to 3e-6 (at most 64 left them; 128 polished both of its folded
-#: elbows, 200 polished 168 vertices first and left 29 of them).
+#: The polish: a result Newton-Krylov or the slower stages leave with at most this many vertices
+#: above the tolerance is finished on measured directions (``_measured``); with more, the slower
+#: stages run first. Results that leave at most this many rank before any other (``_rank``).
 POLISH_VERTICES = 128
-POLISH_STEP_RTOL = 1e-5
-POLISH_STEPS = 3
-POLISH_RCOND = 1e-6
-#: The polish's rounds: the vertices above the tolerance, then, where some are left, their edge
-#: neighbours too (the 13k bench rig's 60 degree elbow: 3 vertices at twice the tolerance that
-#: their own columns do not move, 85 calls with the second round, 118 through the slower
-#: stages without it; the other folds finish in the first round, unchanged).
-POLISH_ROUNDS = 2
-#: What a polished result's regime says after the regime it was polished from.
-POLISHED = ", polished per vertex"
+#: What a result finished on measured directions (``_measured``) says after its regime.
+MEASURED = ", on measured directions"
 #: And one whose pieces were solved on their exact Jacobians (``_exact_pieces``).
 EXACT = "; pieces by their exact Jacobians"
 #: A piece of the mesh that ``pieces.solve_exactly`` finds the chain cannot reproduce (still
@@ -210,12 +204,6 @@ OPTIMUM_RTOL = 0.02
 #: grew to 5.8x the sculpt's largest move at 1e-3); this leaves the smooth start's own offsets,
 #: which the sculpt needs at full size, unpulled.
 FINISH_RIDGE = 1e-2
-#: The finish after the smooth start weighs each vertex's residual by max(1, |r| / u), u the
-#: larger of the residuals' RMS and WEIGHT_FLOOR * atol: there the residual's RMS is far
-#: within the tolerance and a few vertices miss it (13k bench, five examples: 245 calls in
-#: all weighted, 290 not; from zero, on the 1.3k test rig, weighting cost 28 and 31 calls
-#: against 16 and 25).
-WEIGHT_FLOOR = 0.5
 
 
 def probe_vertices(rest: Points, candidates: NDArray[np.int64], count: int = PROBE_VERTICES) -> NDArray[np.int64]:
@@ -265,8 +253,8 @@ def invert(blackbox: BlackBox, rest: Points, sculpt: Points, *, rtol: float = to
     pay nothing to find out. When they show coupling and the linearised start misses, the
     joint solve takes over from what the per-vertex solver measured (the chain at rest and the
     blocks cost no call again): the smooth start (``smooth_start``; ``neighbours()`` gives the
-    mesh's edge adjacency), then Newton-Krylov; where that misses short of an optimum, the
-    polish and the slower stages (module docstring). Without edges, Newton-Krylov from zero, then
+    mesh's edge adjacency), then measured directions or Newton-Krylov; where that misses short
+    of an optimum, the slower stages (module docstring). Without edges, Newton-Krylov from zero, then
     the per-vertex solve and a restart from it; the kept result has the fewest vertices above
     the tolerance, then the smallest worst residual, both measured by running the chain. A
     sculpt that leaves no unsculpted neighbour is probed (1 call) once the linearised start
@@ -319,20 +307,34 @@ def invert(blackbox: BlackBox, rest: Points, sculpt: Points, *, rtol: float = to
                                  max(rtol * diagonal, floor))
             if start is not None:
                 offsets, outputs = start
-                smooth = invert_coupled(call, rest, sculpt, base, idx, diagonal, floor, rtol=rtol, started=started,
-                                        max_evaluations=call.calls + FINISH_EVALUATIONS, start=offsets,
-                                        start_outputs=outputs, blocks=blocks, weighted=True)
-                candidates.append(dataclasses.replace(smooth, regime="coupled, from the smooth start"))
-                if len(smooth.missed) and not smooth.at_optimum:  # 1b. polish, then escalate
-                    candidates.extend(_polish(call, rest, sculpt, idx, max(diagonal, floor), candidates[-1],
-                                              started=started, adjacency=adjacency))
-                    if len(candidates[-1].missed) and not _exact_pieces_instead(candidates[-1], adjacency, idx):
+                begun = _at(sculpt, idx, offsets, outputs, diagonal, floor, rtol, call.calls, started)
+                if len(begun.missed) and begun.rms_residual <= pieces.REACHABLE_SLACK * begun.atol:
+                    # 1a. nearly reproduced: finished on measured directions
+                    candidates.extend(_measured(call, rest, sculpt, idx, max(diagonal, floor), begun, blocks,
+                                                adjacency, started=started, outputs=outputs))
+                    if candidates and len(candidates[-1].missed) and not _exact_pieces_instead(candidates[-1],
+                                                                                              adjacency, idx):
                         candidates.extend(_escalate(call, blackbox, rest, sculpt, base, idx, diagonal, floor, first,
                                                     blocks, adjacency, rtol=rtol, started=started))
-                        best = min(candidates, key=_rank)
-                        if not (best.at_optimum or best.regime.endswith(POLISHED)):
-                            candidates.extend(_polish(call, rest, sculpt, idx, max(diagonal, floor), best,
-                                                      started=started, adjacency=adjacency))
+                else:  # 1b. Newton-Krylov, then measured directions, then the slower stages
+                    smooth = invert_coupled(call, rest, sculpt, base, idx, diagonal, floor, rtol=rtol, started=started,
+                                            max_evaluations=call.calls + FINISH_EVALUATIONS, start=offsets,
+                                            start_outputs=outputs, blocks=blocks, weighted=True)
+                    candidates.append(dataclasses.replace(smooth, regime="coupled, from the smooth start"))
+                    if len(smooth.missed) and not smooth.at_optimum and len(smooth.missed) <= POLISH_VERTICES:
+                        candidates.extend(_measured(call, rest, sculpt, idx, max(diagonal, floor), candidates[-1],
+                                                    blocks, adjacency, started=started))
+                    if len(candidates[-1].missed) and not candidates[-1].at_optimum and not _exact_pieces_instead(
+                            candidates[-1], adjacency, idx):
+                        candidates.extend(_escalate(call, blackbox, rest, sculpt, base, idx, diagonal, floor, first,
+                                                    blocks, adjacency, rtol=rtol, started=started))
+                best = min(candidates or [begun], key=_rank)
+                if len(best.missed) and not best.at_optimum and not best.regime.endswith(MEASURED) and len(
+                        best.missed) <= POLISH_VERTICES:  # the best of the slower stages, finished likewise
+                    candidates.extend(_measured(call, rest, sculpt, idx, max(diagonal, floor), best, blocks, adjacency,
+                                                started=started))
+                if not candidates:
+                    candidates.append(begun)
         if not candidates:  # 2. no smooth start (no edges, or ARPACK failed): from zero
             joint = invert_coupled(call, rest, sculpt, base, idx, diagonal, floor, rtol=rtol, started=started,
                                    max_evaluations=call.calls + FROM_ZERO_EVALUATIONS, blocks=blocks)
@@ -352,6 +354,18 @@ def invert(blackbox: BlackBox, rest: Points, sculpt: Points, *, rtol: float = to
                                 started=started)
     return dataclasses.replace(best, evaluations=call.calls, seconds=time.perf_counter() - started,
                                sculpt_rms=first.sculpt_rms)
+
+
+def _at(sculpt: Points, idx: NDArray[np.int64], offsets: Points, outputs: Points, diagonal: float, floor: float,
+        rtol: float, calls: int, started: float) -> InverseResult:
+    """The smooth start's result from its offsets and the chain's outputs there (no call)."""
+    atol = max(rtol * diagonal, floor)
+    norms = np.linalg.norm(sculpt[idx] - outputs, axis=1)
+    status = np.where(norms <= atol, powell.CONVERGED, powell.STALLED).astype(np.int8)
+    status[~np.isfinite(norms)] = powell.NONFINITE
+    return InverseResult(indices=idx, offsets=np.asarray(offsets, dtype=np.float64), residual=norms, status=status,
+                         evaluations=calls, diagonal=diagonal, atol=atol, seconds=time.perf_counter() - started,
+                         regime="coupled, from the smooth start")
 
 
 def _small_pieces_first(call: Counted, blackbox: BlackBox, rest: Points, sculpt: Points, base: Points,
@@ -522,7 +536,7 @@ def _regularised(call: Counted, rest: Points, sculpt: Points, base: Points, idx:
 
 def _exact_pieces_instead(result: InverseResult, adjacency: sp.csr_matrix, idx: NDArray[np.int64]) -> bool:
     """Whether the slower stages (``_escalate``) are left out for the pieces' exact Jacobians
-    (``_exact_pieces``): where more vertices miss than the polish takes and every one of them
+    (``_exact_pieces``): where more vertices miss than ``POLISH_VERTICES`` and every one of them
     is on a piece the exact stage measures. There the slower stages cost hundreds of calls and
     leave most of them (CesiumMan from known offsets: 425 and 662 vertices after ~400 calls),
     and the exact stage reaches the tolerance from the fast path's result as well: CesiumMan
@@ -539,8 +553,8 @@ def _exact_pieces_instead(result: InverseResult, adjacency: sp.csr_matrix, idx: 
 
 def _rank(result: InverseResult) -> tuple[int, int, float]:
     """The better of two results ranks lower. One that leaves few enough vertices above the
-    tolerance for the polish (``POLISH_VERTICES``) ranks before any other, by fewer of them,
-    then the smaller worst residual: the goal is every vertex within it. Among results that
+    tolerance for the polish on measured directions (``POLISH_VERTICES``) ranks before any
+    other, by fewer of them, then the smaller worst residual: the goal is every vertex within it. Among results that
     leave more, the smaller sum of squared residuals ranks first: where most of the sculpt is
     out of the chain's reach, the count says nothing, and the least-squares misfit is what the
     inverse minimises. On the 3k bench rig's sculpts made on the plain-skinned mesh (one
@@ -555,97 +569,36 @@ def _rank(result: InverseResult) -> tuple[int, int, float]:
     return 1, 0, float(np.sum(result.residual**2))
 
 
-def _polish(call: Counted, rest: Points, sculpt: Points, idx: NDArray[np.int64], scale: float,
-            result: InverseResult, *, started: float, adjacency: sp.csr_matrix | None = None) -> list[InverseResult]:
-    """A local Gauss-Newton on the offsets of the few vertices ``result`` leaves above the
-    tolerance (at most ``POLISH_VERTICES``), the others held: their columns of the chain's
-    Jacobian measured, 3 calls a vertex (forward differences of ``POLISH_STEP_RTOL`` of
-    ``scale``), over every sculpted vertex's output, then up to ``POLISH_STEPS`` least-squares
-    steps (singular values below ``POLISH_RCOND`` of the largest dropped), 1 call each, with
-    Broyden's update of those columns. A step is kept where it leaves fewer vertices above the
-    tolerance, then a smaller worst residual. Where the smooth start's finish stalls on a few
-    vertices at a fold, their own offsets are what is left to find. Where they are not enough
-    (a few vertices apart from each other, whose own columns pass little of what they need),
-    the edge neighbours of those still above the tolerance join them (``adjacency``), their
-    columns measured where the steps left the offsets, and the steps go on. Empty where there
-    is nothing to polish (none missing, too many, or non-finite residuals)."""
-    missing = np.nonzero(result.status != powell.CONVERGED)[0]
-    if not 0 < len(missing) <= POLISH_VERTICES or not np.all(np.isfinite(result.residual)):
+def _measured(call: Counted, rest: Points, sculpt: Points, idx: NDArray[np.int64], scale: float,
+              result: InverseResult, blocks: NDArray[np.float64], adjacency: sp.csr_matrix | None, *,
+              started: float, outputs: Points | None = None) -> list[InverseResult]:
+    """``result`` finished on measured directions (``psdbake.solver.subspace``): its offsets, the
+    chain's outputs there (``outputs``, else one call), up to ``subspace.CALLS`` calls more.
+    Empty where the chain gives non-finite values there."""
+    offsets = np.asarray(result.offsets, dtype=np.float64)
+    out = _outputs(call, rest, idx, offsets) if outputs is None else np.asarray(outputs, dtype=np.float64)
+    if not np.all(np.isfinite(out)):
         return []
-    atol = result.atol
-    target = sculpt[idx]
-    offsets = np.array(result.offsets, dtype=np.float64)
-    out = _outputs(call, rest, idx, offsets)
-    r = target - out
-    norms = np.linalg.norm(r, axis=1)
-    if not np.all(np.isfinite(norms)):
-        return []
-    h = POLISH_STEP_RTOL * scale
-    polished = np.empty(0, dtype=np.int64)  # the unknowns, positions in idx
-    columns = np.empty((0, r.size))  # one row per unknown: its column of the Jacobian
-
-    def rank(n: NDArray[np.float64]) -> tuple[int, float]:
-        return int(np.count_nonzero(n > atol)), float(n.max())
-
-    fresh = missing
-    for _ in range(POLISH_ROUNDS):
-        measured = np.empty((3 * len(fresh), r.size))
-        for j, vertex in enumerate(fresh):
-            for axis in range(3):
-                moved = offsets.copy()
-                moved[vertex, axis] += h
-                measured[3 * j + axis] = ((_outputs(call, rest, idx, moved) - out) / h).ravel()
-        if not np.all(np.isfinite(measured)):
-            if not len(polished):
-                return []  # the chain gave non-finite values: nothing to polish with
-            break
-        polished, columns = np.concatenate([polished, fresh]), np.vstack([columns, measured])
-        for _ in range(POLISH_STEPS):
-            if not np.any(norms > atol):
-                break
-            y = np.asarray(np.linalg.lstsq(columns.T, r.ravel(), rcond=POLISH_RCOND)[0], dtype=np.float64)
-            yy = float(y @ y)
-            if yy == 0.0:
-                break
-            trial = offsets.copy()
-            trial[polished] += y.reshape(-1, 3)
-            out_trial = _outputs(call, rest, idx, trial)
-            if not np.all(np.isfinite(out_trial)):
-                break
-            columns += np.outer(y, (out_trial - out).ravel() - y @ columns) / yy
-            r_trial = target - out_trial
-            n_trial = np.linalg.norm(r_trial, axis=1)
-            if rank(n_trial) < rank(norms):
-                offsets, out, r, norms = trial, out_trial, r_trial, n_trial
-        if adjacency is None or not np.any(norms > atol):
-            break
-        fresh = np.setdiff1d(_region_neighbours(adjacency, idx, np.nonzero(norms > atol)[0]), polished)
-        if not len(fresh) or len(polished) + len(fresh) > POLISH_VERTICES:
-            break
-    return [InverseResult(indices=idx, offsets=offsets, residual=norms, status=_checked(result.status, norms, atol),
-                          evaluations=call.calls, diagonal=result.diagonal, atol=atol, seconds=time.perf_counter() - started,
-                          regime=result.regime + POLISHED)]
-
-
-def _region_neighbours(adjacency: sp.csr_matrix, idx: NDArray[np.int64], positions: NDArray[np.int64]
-                       ) -> NDArray[np.int64]:
-    """The sculpted vertices (positions in ``idx``, sorted) one edge from those at ``positions``."""
-    near = np.unique(adjacency[idx[positions]].indices)
-    return np.intersect1d(idx, near, assume_unique=True, return_indices=True)[1]
+    found = subspace.solve(call, rest, sculpt[idx], idx, offsets, out, blocks, result.atol, scale, adjacency)
+    return [InverseResult(indices=idx, offsets=found.offsets, residual=found.residual,
+                          status=_checked(result.status, found.residual, result.atol), evaluations=call.calls,
+                          diagonal=result.diagonal, atol=result.atol, seconds=time.perf_counter() - started,
+                          regime=result.regime + MEASURED)]
 
 
 def _escalate(call: Counted, blackbox: BlackBox, rest: Points, sculpt: Points, base: Points, idx: NDArray[np.int64],
               diagonal: float, floor: float, first: InverseResult, blocks: NDArray[np.float64],
               adjacency: sp.csr_matrix, *, rtol: float, started: float) -> list[InverseResult]:
-    """Where the smooth start's finish misses, is not at an optimum and the polish does not
-    finish it: the slower stages, unregularised, each while the best so far leaves more
-    vertices above the tolerance than the polish takes (``POLISH_VERTICES``; ``invert``
-    polishes the best). The smooth start over the region's ``MEASURED_FIELDS`` smoothest fields
+    """Where the smooth start's finish (and the polish on measured directions after it) misses
+    short of an optimum: the slower stages, unregularised, each while the best so far leaves
+    more vertices above the tolerance than ``POLISH_VERTICES`` (``invert`` polishes the best on
+    measured directions). The smooth start over the region's ``MEASURED_FIELDS`` smoothest fields
     with the blocks as the span's model (``measured_smooth_start``) and Newton-Krylov from it
     (up to ``MAX_EVALUATIONS``), the same with the span's Jacobian measured (3 calls a field),
     then Newton-Krylov from zero (``FROM_ZERO_EVALUATIONS``); where ARPACK finds no basis,
     Newton-Krylov from zero, the per-vertex solution and Newton-Krylov restarted from it. On the
-    folds where the stages ran (the 3k rig's 100 degree elbow; with the polish held back, the
+    folds where the stages ran before measured directions (the 3k rig's 100 degree elbow; with
+    the per-vertex polish of the time held back, the
     1.3k rig's 80 and 100, the 3k rig's 80 and the character fixture's 140) the blocks' model
     left 150-562 vertices above the tolerance, the measured span 6-580 and Newton-Krylov from
     zero 168-1,230; the 13k rig's 60 degree elbow, which the polish leaves to them, finishes
@@ -655,7 +608,7 @@ def _escalate(call: Counted, blackbox: BlackBox, rest: Points, sculpt: Points, b
     found: list[InverseResult] = []
 
     def keep(result: InverseResult) -> bool:
-        """Keeps ``result``; whether the best kept leaves few enough vertices for the polish."""
+        """Keeps ``result``; whether the best kept leaves at most ``POLISH_VERTICES`` vertices."""
         found.append(result)
         return len(min(found, key=_rank).missed) <= POLISH_VERTICES
 
@@ -843,7 +796,7 @@ def invert_coupled(
     zero; after the smooth start ``FINISH_RIDGE`` and the start, with ``weighted``); the result is
     ``at_optimum`` where no direction of a step's Krylov space could lower its linear model
     by ``OPTIMUM_RTOL``. ``weighted``: each vertex's residual weighs by how far above the
-    residuals' RMS it is (``WEIGHT_FLOOR``), for a finish where few vertices are left above
+    residuals' RMS it is (``subspace.weights``), for a finish where few vertices are left above
     the tolerance. ``ridge``, where given, replaces that rule: this ridge, towards zero (0: none,
     the escalation's stages, ``_escalate``; the out-of-reach stage's, ``_regularised``)."""
     atol = max(rtol * diagonal, floor)
@@ -892,8 +845,7 @@ def invert_coupled(
         budget = min(KRYLOV_MAX, max_evaluations - 2 - call.calls)
         # vertices above the tolerance weigh by how far above they are: the least-squares
         # model then works on the vertices that miss, not on the many already far within it
-        unit = max(WEIGHT_FLOOR * atol, float(np.sqrt(np.mean(norms**2))))
-        weight = np.maximum(norms / unit, 1.0)[:, None] if weighted else np.ones((k, 1))
+        weight = subspace.weights(norms, atol) if weighted else np.ones((k, 1))
         target_lin = max(KRYLOV_TARGET * atol, FORCING * float(norms.max())) * float(weight.max())
 
         def weighted_jvp(z: Points, jvp: Callable[[Points], Points] = jvp, weight: NDArray[np.float64] = weight

@@ -1,0 +1,144 @@
+"""Gauss-Newton on measured directions (``psdbake.solver.subspace``), on synthetic chains whose
+Jacobian is known: a linear smoothing chain it must invert to the tolerance within its budget,
+the order in which it measures a vertex's own directions, and its budget kept."""
+
+from __future__ import annotations
+
+import sys
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+from conftest import ROOT
+
+from psdbake.normals import Topology
+from psdbake.solver import coupled, subspace
+from psdbake.solver.inverse import Counted
+from psdbake.solver.smoothbasis import edge_adjacency
+
+sys.path.insert(0, ROOT)
+from benchmarks import rigs
+
+
+def _tube(rings: int = 24, segments: int = 12) -> tuple[np.ndarray, sp.csr_matrix]:
+    counts, indices = rigs.generate.tube_faces(rings, segments)
+    rest = rigs.generate.tube_points(rings, segments)
+    return rest, edge_adjacency(Topology(np.array(counts), np.array(indices), len(rest)))
+
+
+def _smoothing(rest: np.ndarray, adjacency: sp.csr_matrix, steps: int = 6):
+    """A linear coupling chain: a rotation that varies along the tube, then ``steps`` uniform
+    smoothing steps of 1/2 along the edges (Delta Mush's smoothing without its frames)."""
+    degree = np.asarray(adjacency.sum(axis=1)).ravel()
+    walk = (0.5 * sp.identity(len(rest)) + 0.5 * sp.diags(1.0 / degree) @ adjacency).tocsr()
+    angle = 0.8 * rest[:, 0] / rest[:, 0].max()
+    c, s = np.cos(angle), np.sin(angle)
+
+    def chain(points: np.ndarray) -> np.ndarray:
+        out = np.stack([c * points[:, 0] - s * points[:, 1], s * points[:, 0] + c * points[:, 1], points[:, 2]], axis=1)
+        for _ in range(steps):
+            out = walk @ out
+        return out
+
+    return chain
+
+
+def _problem(seed: int = 3):
+    """The tube's middle third sculpted by the chain from a smooth offset (an exact answer
+    exists), the start a little off it: what the smooth start leaves at a fold."""
+    rest, adjacency = _tube()
+    chain = _smoothing(rest, adjacency)
+    region = np.arange(12 * 8, 12 * 16)
+    truth = np.zeros_like(rest)
+    x = rest[region, 0]
+    truth[region, 1] = 0.05 * np.sin(np.pi * (x - x.min()) / (x.max() - x.min())) ** 2
+    sculpt = chain(rest + truth)
+    rng = np.random.default_rng(seed)
+    start = truth[region] + 2e-4 * rng.standard_normal((len(region), 3))
+    return rest, adjacency, chain, region, sculpt, start
+
+
+def test_a_linear_coupling_chain_is_inverted_to_the_tolerance_within_the_budget():
+    rest, adjacency, chain, region, sculpt, start = _problem()
+    box = Counted(chain)
+    base = box(rest)
+    diagonal = float(np.linalg.norm(rest.max(axis=0) - rest.min(axis=0)))
+    blocks = coupled.chain_blocks(box, rest, base, region, diagonal, 0.0)
+    moved = rest.copy()
+    moved[region] += start
+    outputs = box(moved)[region]
+    atol = 1e-6 * diagonal
+    before = box.calls
+    found = subspace.solve(box, rest, sculpt[region], region, start, outputs, blocks, atol, diagonal, adjacency)
+    assert box.calls - before <= subspace.CALLS
+    moved = rest.copy()
+    moved[region] += found.offsets
+    residual = np.linalg.norm(sculpt[region] - chain(moved)[region], axis=1)
+    assert np.array_equal(residual, found.residual)  # the residual it reports is the chain's own
+    start_residual = np.linalg.norm(sculpt[region] - outputs, axis=1)
+    assert start_residual.max() > 10 * atol and residual.max() <= atol, (start_residual.max(), residual.max(), atol)
+
+
+def test_the_budget_holds_where_the_tolerance_cannot_be_met():
+    """A chain that annihilates what is left (a constant output): every call the solve makes
+    counts against its budget, and it ends with the start's residual, not a worse one."""
+    rest, adjacency, _chain, region, sculpt, start = _problem()
+    box = Counted(lambda points: np.zeros_like(points))
+    blocks = np.tile(np.eye(3), (len(region), 1, 1))
+    found = subspace.solve(box, rest, sculpt[region], region, start, np.zeros((len(region), 3)), blocks, 1e-9, 1.0,
+                           adjacency, max_calls=17)
+    assert box.calls <= 17
+    np.testing.assert_array_equal(found.offsets, start)  # no step kept
+    np.testing.assert_allclose(found.residual, np.linalg.norm(sculpt[region], axis=1), rtol=0, atol=0)
+
+
+def test_a_vertex_gets_its_newton_direction_then_the_two_orthogonal_to_it_then_its_neighbours():
+    _rest, adjacency = _tube()
+    region = np.arange(12 * 8, 12 * 16)
+    k = len(region)
+    r = np.zeros((k, 3))
+    r[5] = (0.0, 3e-5, 4e-5)
+    norms = np.linalg.norm(r, axis=1)
+    inverse = np.tile(np.diag([1.0, 2.0, 1.0]), (k, 1, 1))
+    own: dict[int, np.ndarray] = {}
+    first = subspace._own(r, norms, 1e-6, inverse, own, adjacency, region)
+    assert len(first) == 1 and np.count_nonzero(np.linalg.norm(first[0], axis=1)) == 1
+    newton = inverse[5] @ r[5]
+    np.testing.assert_allclose(first[0][5], newton / np.linalg.norm(newton), rtol=0, atol=1e-15)
+    second = subspace._own(r, norms, 1e-6, inverse, own, adjacency, region)
+    assert len(second) == 2
+    together = np.array([first[0][5], second[0][5], second[1][5]])
+    np.testing.assert_allclose(together @ together.T, np.eye(3), rtol=0, atol=1e-12)  # an orthonormal frame
+    third = subspace._own(r, norms, 1e-6, inverse, own, adjacency, region)
+    moved = sorted(int(np.nonzero(np.linalg.norm(m, axis=1))[0][0]) for m in third)
+    neighbours = sorted(int(v) for v in subspace.region_neighbours(adjacency, region, np.array([5])))
+    assert 0 < len(third) <= subspace.OWN_PER_ROUND and set(moved) <= set(neighbours) and 5 not in moved
+
+
+@pytest.mark.parametrize("count", [3, 40])
+def test_a_round_measures_at_most_its_share_of_own_directions_worst_first(count):
+    _rest, adjacency = _tube()
+    region = np.arange(12 * 8, 12 * 16)
+    k = len(region)
+    r = np.zeros((k, 3))
+    picked = np.linspace(0, k - 1, count).astype(int)
+    r[picked, 2] = np.arange(1, count + 1) * 1e-5  # the later, the worse
+    norms = np.linalg.norm(r, axis=1)
+    moves = subspace._own(r, norms, 1e-6, np.tile(np.eye(3), (k, 1, 1)), {}, adjacency, region)
+    moved = [int(np.nonzero(np.linalg.norm(m, axis=1))[0][0]) for m in moves]
+    assert moved == sorted(picked[-subspace.OWN_PER_ROUND:].tolist())
+
+
+def test_the_directions_kept_fit_their_memory_bound(monkeypatch):
+    """On a region too large for ``CALLS`` directions in ``MAX_ENTRIES``, the solve takes no more
+    calls than that many directions allow."""
+    rest, adjacency, chain, region, sculpt, start = _problem()
+    monkeypatch.setattr(subspace, "MAX_ENTRIES", 6 * len(region) * 5)
+    box = Counted(chain)
+    moved = rest.copy()
+    moved[region] += start
+    outputs = chain(moved)[region]
+    diagonal = float(np.linalg.norm(rest.max(axis=0) - rest.min(axis=0)))
+    blocks = coupled.chain_blocks(chain, rest, chain(rest), region, diagonal, 0.0)
+    subspace.solve(box, rest, sculpt[region], region, start, outputs, blocks, 1e-6 * diagonal, diagonal, adjacency)
+    assert 0 < box.calls <= 5
