@@ -179,7 +179,7 @@ def _unreachable_line(label: str, inv: Any) -> str:
     nearby offset reproduces more, which is what a chain that smooths the sculpt away leaves,
     but not a proof that no offset does (on the 1.3k bench rig at a 62 degree elbow, a sculpt
     made through Delta Mush from known offsets that fold its smoothed surface over at the inner
-    elbow ends at one 6,000 times the tolerance; docs/decisions/coupled-inverse-coarse-meshes.md).
+    elbow ends at one 919 times the tolerance; docs/decisions/coupled-inverse-coarse-meshes.md).
     Short of one, a residual whose RMS is ``pieces.REACHABLE_SLACK`` times the tolerance or more
     is said to be mostly out of the chain's reach: sculpts the chain can reproduce end within
     2x of it where they miss at all; the bench rigs' sculpts made on the plain-skinned mesh end

@@ -144,10 +144,10 @@ def test_a_folded_elbow_reaches_the_tolerance_from_the_smooth_start(run, tmp_pat
     """13k bench rig, elbow at 80 degrees: LBS folds the inner elbow and Delta Mush's smoothed
     mesh collapses there. The chain's Jacobian is so ill-conditioned that Newton-Krylov from
     zero stalls, and the per-vertex solver leaves over 500 of the 4,604 sculpted vertices above
-    the tolerance. fit's Gauss-Newton on the region's smoothest fields, then Newton-Krylov,
-    brings every one within it, and the points cache of the written stack reproduces the sculpt
-    (measured: 0 missed in 43 calls, finished on measured directions; 51 with Newton-Krylov's
-    finish, 300 when the span's Jacobian was measured)."""
+    the tolerance. fit's Gauss-Newton on the region's smoothest fields, then on measured
+    directions, brings every one within it, and the points cache of the written stack
+    reproduces the sculpt (measured: 0 missed in 21 calls; 51 with Newton-Krylov's finish
+    instead, 300 when the span's Jacobian was measured)."""
     poses_layer, poses = rigs.write_poses(str(tmp_path), 8)
     rig = rigs.build(str(tmp_path), "lbs+deltamush", "13k", {4.0: poses[4.0]}, poses_layer)
     assert len(invert_example(rig.blackbox(rig.scene(), 4.0), rig.rest, rig.sculpts[4.0]).missed) > 500
@@ -182,9 +182,10 @@ def test_a_folded_elbow_reaches_the_tolerance_from_the_smooth_start(run, tmp_pat
 #: Calls the joint stages of one example may take when every one runs: the smooth start's
 #: probe of the chain's smoothing and its two span solves, its Newton-Krylov finish; where that
 #: misses short of an optimum, the solve on measured directions (before and after the
-#: escalation, each with a call at its start), and the escalation: the blocks' smooth start (its steps) and Newton-Krylov
-#: from it, the span's Jacobian measured (3 calls a field), its steps and Newton-Krylov from
-#: it, the joint solve from zero (each stage's budget counted from its start). Before them: the
+#: escalation, each with a call at its start), and the escalation: the blocks' smooth start
+#: (its steps) and Newton-Krylov from it, the span's Jacobian measured (3 calls a field), its
+#: steps and Newton-Krylov from it, the joint solve from zero (each stage's budget counted from
+#: its start). Before them: the
 #: per-vertex solver's calls, and the chain at rest, the probe and the blocks (3) when the
 #: per-vertex solver's own calls did not show the coupling. After them, on a mesh of pieces
 #: small enough for it (the 1.3k rig is one piece of 1,312 vertices), the pieces' exact
