@@ -142,3 +142,22 @@ def test_the_directions_kept_fit_their_memory_bound(monkeypatch):
     blocks = coupled.chain_blocks(chain, rest, chain(rest), region, diagonal, 0.0)
     subspace.solve(box, rest, sculpt[region], region, start, outputs, blocks, 1e-6 * diagonal, diagonal, adjacency)
     assert 0 < box.calls <= 5
+
+
+def test_a_chain_that_turns_non_finite_ends_the_solve_within_its_budget():
+    """A chain that returns NaN from its 4th call on (many vertices miss, so the Krylov
+    directions are what meets it): the solve stops, its offsets finite and its budget kept."""
+    rest, adjacency, chain, region, sculpt, _start = _problem()
+    diagonal = float(np.linalg.norm(rest.max(axis=0) - rest.min(axis=0)))
+    blocks = coupled.chain_blocks(chain, rest, chain(rest), region, diagonal, 0.0)
+    made = [0]
+
+    def failing(points: np.ndarray) -> np.ndarray:
+        made[0] += 1
+        return chain(points) if made[0] < 4 else np.full_like(points, np.nan)
+
+    box = Counted(failing)
+    start = np.zeros((len(region), 3))
+    found = subspace.solve(box, rest, sculpt[region], region, start, chain(rest)[region], blocks, 1e-6 * diagonal,
+                           diagonal, adjacency, max_calls=12)
+    assert box.calls <= 12 and np.all(np.isfinite(found.offsets)) and np.all(np.isfinite(found.residual))

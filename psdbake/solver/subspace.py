@@ -154,10 +154,9 @@ def solve(call: BlackBox, rest: Points, target: Points, idx: NDArray[np.int64], 
         moves = np.vstack([moves, np.array(fresh).reshape(len(fresh), -1)])
         responses = np.vstack([responses, measured])
         if np.count_nonzero(norms > atol) > OWN_MISSING:  # many miss: more of the Krylov space first
-            before = len(moves)
-            moves, responses = _krylov(evaluate, inverse, moves, responses, offsets, out, r, norms, atol, h,
-                                       min(KRYLOV_PER_ROUND, max_calls - calls - 1))
-            calls += len(moves) - before
+            moves, responses, made = _krylov(evaluate, inverse, moves, responses, offsets, out, r, norms, atol, h,
+                                             min(KRYLOV_PER_ROUND, max_calls - calls - 1))
+            calls += made
         for _ in range(STEPS):
             if calls >= max_calls or not np.any(norms > atol):
                 break
@@ -223,12 +222,14 @@ def _own(r: Points, norms: NDArray[np.float64], atol: float, inverse: NDArray[np
 
 def _krylov(evaluate: Callable[[Points], Points], inverse: NDArray[np.float64], moves: NDArray[np.float64],
             responses: NDArray[np.float64], offsets: Points, out: Points, r: Points, norms: NDArray[np.float64],
-            atol: float, h: float, most: int) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+            atol: float, h: float, most: int) -> tuple[NDArray[np.float64], NDArray[np.float64], int]:
     """More global directions, 1 call each and at most ``most``, each from what the linear model
     of those so far leaves, until that model predicts the largest residual within ``FORCING``
     of today's (or within ``REWEIGHT_TARGET`` of the tolerance): as GMRES grows its Krylov
-    space before a Newton step. Returns the directions and responses with them."""
+    space before a Newton step. Returns the directions and responses with them, and the calls
+    made."""
     weight = np.repeat(weights(norms, atol)[:, 0], 3)
+    calls = 0
     for _ in range(most):
         y = np.asarray(np.linalg.lstsq(responses.T * weight[:, None], r.ravel() * weight, rcond=RCOND)[0],
                        dtype=np.float64)
@@ -239,10 +240,11 @@ def _krylov(evaluate: Callable[[Points], Points], inverse: NDArray[np.float64], 
         if towards is None:
             break
         response = ((evaluate(offsets + h * towards) - out) / h).ravel()
+        calls += 1
         if not np.all(np.isfinite(response)):
             break
         moves, responses = np.vstack([moves, towards.ravel()]), np.vstack([responses, response])
-    return moves, responses
+    return moves, responses, calls
 
 
 def _step(responses: NDArray[np.float64], r: Points, norms: NDArray[np.float64], atol: float) -> NDArray[np.float64]:
