@@ -18,7 +18,9 @@ where the other stages leave vertices above the tolerance: on CesiumMan's large 
 sculpt needs ~2,500 directions the chain passes at 1e-3 of its gain, which no span of a few
 dozen calls holds. There the Jacobian is coloured (Curtis, Powell and Reid's sparse
 differences): one call measures how far a vertex's move reaches (``measure_reach``), and
-vertices more than twice that apart move in one call (``colouring``). Its columns are those
+vertices more than twice that apart move in one call (``colouring``); a piece's first Jacobian
+is coloured by half that reach (``TRUNCATED_REACH``: approximate columns, fewer calls), and what
+its steps leave above the tolerance is measured again exactly. Its columns are those
 of the vertices still above the tolerance and their 1-ring (on CesiumMan 103 of the 731-vertex
 piece's vertices miss when the stage starts), read on every sculpted vertex's output, and
 widened where others go above it; the chord steps run on each piece's regularised misfit, and
@@ -83,6 +85,22 @@ EXACT_PIECE = int(np.sqrt(EXACT_ENTRIES)) // 3
 #: probed one's still stays within its colour's rows; one much longer shows as a stray output
 #: and the Jacobian is measured a vertex a call instead.
 REACH_MARGIN = 1
+#: ``solve_exactly`` colours a piece's first Jacobian by this share of that reach, each output
+#: read as the column of the nearest vertex its call moved. Where two moved vertices' reaches
+#: overlap, a column then holds a little of the other's (Delta Mush's response 5 rings out is a
+#: few percent of a vertex's own). Chord steps need the right fixed point, not exact columns,
+#: and where the residual vanishes any columns give it; what they leave above the tolerance is
+#: measured again exactly, on those vertices and their neighbours. Measured on CesiumMan
+#: through the chain (docs/decisions/coupled-inverse-cesiumman.md, "Truncated colouring").
+TRUNCATED_REACH = 0.5
+#: Only a piece whose RMS residual is within this many times the tolerance where the stage
+#: starts is measured so: one further away is more often one the chain cannot reproduce, whose
+#: optimum needs the exact Jacobian anyway, so a truncated one first is calls lost. Measured at
+#: the stage's start: the sculpts made through the chain at 0.4-3.7 times (CesiumMan's pieces)
+#: and 21.7 (the character fixture's 135 degree elbow); those made on the plain-skinned mesh at
+#: 63.6 and 86.7 (the 1.3k rig's 20 and 40 degree elbows, where a truncated Jacobian first
+#: cost 343 calls more, 39%) and up to 1e3-1e4 (CesiumMan's shipped sculpts).
+TRUNCATE_WITHIN = 30.0
 #: ``solve_exactly``'s unknowns: a piece's vertices within this many edges of those above the
 #: tolerance where the stage starts (then within one more of those above it after the steps).
 #: CesiumMan through the chain, calls an example (every vertex within the tolerance): 902 and
@@ -175,12 +193,14 @@ def _rings(adjacency: sp.csr_matrix, piece: Piece, sources: NDArray[np.int64]) -
 
 
 def colouring(adjacency: sp.csr_matrix, piece: Piece, idx: NDArray[np.int64], reach: int,
-              unknown: NDArray[np.int64] | None = None) -> Colouring:
+              unknown: NDArray[np.int64] | None = None, nearest: bool = False) -> Colouring:
     """Greedy colouring of ``piece``'s sculpted vertices (of those at ``unknown``, positions
     among them, where given) so that two of one colour are more than ``2 * reach`` edges apart
     (through the whole piece): moved together, no output within ``reach`` edges of one is
     within ``reach`` of another, so each output (every sculpted vertex's) changes for one of
-    them only and is that one's column (Curtis-Powell-Reid's idea for sparse Jacobians)."""
+    them only and is that one's column (Curtis-Powell-Reid's idea for sparse Jacobians).
+    ``nearest``: each output is the column of the nearest moved vertex, however far (with a
+    ``reach`` shorter than the chain's: approximate columns in fewer calls)."""
     inside = np.searchsorted(piece.vertices, idx[piece.positions])  # the sculpted vertices, in the piece
     moving = np.arange(len(inside)) if unknown is None else unknown
     rings = _rings(adjacency, piece, inside[moving])[:, inside]  # (s, m): from each moved vertex to each output
@@ -194,6 +214,9 @@ def colouring(adjacency: sp.csr_matrix, piece: Piece, idx: NDArray[np.int64], re
     classes = [np.nonzero(colour == c)[0] for c in range(int(colour.max()) + 1)]
     owner = []
     for members in classes:
+        if nearest:
+            owner.append(members[np.argmin(rings[members], axis=0)].astype(np.int64))
+            continue
         close = rings[members].T <= reach  # (m, len(members))
         found = np.where(close.any(axis=1), members[np.argmax(close, axis=1)], -1)
         owner.append(found.astype(np.int64))
@@ -421,6 +444,7 @@ def solve_exactly(call: BlackBox, rest: Points, sculpt: Points, idx: NDArray[np.
     optimal = [False] * count  # settled by a step that gained next to nothing, not by cut steps
     gained = [False] * count
     factors: list[NormalEquations | None] = [None] * count
+    rough = [False] * count  # its Jacobian's colouring was truncated (``TRUNCATED_REACH``): columns approximate
     inside = [np.searchsorted(p.vertices, v) for p, v in zip(pieces, vertex, strict=True)]
 
     def around(q: int, seeds: NDArray[np.int64], rings: int) -> NDArray[np.int64]:
@@ -446,6 +470,9 @@ def solve_exactly(call: BlackBox, rest: Points, sculpt: Points, idx: NDArray[np.
             moved[v] = rest[v] + (offsets[q] if changes is None or q not in changes else changes[q]).reshape(-1, 3)
         return moved
 
+    def rms(q: int) -> float:
+        return float(np.sqrt(np.mean(np.sum((targets[q] - current[q]).reshape(-1, 3) ** 2, axis=1))))
+
     def worst(q: int) -> float:
         return float(np.max(np.linalg.norm((targets[q] - current[q]).reshape(-1, 3), axis=1)))
 
@@ -468,9 +495,10 @@ def solve_exactly(call: BlackBox, rest: Points, sculpt: Points, idx: NDArray[np.
     reach: list[int | None] = []  # measured once, by the first measure
     plans: dict[int, Colouring] = {}  # each piece's colouring, for its measures again
 
-    def measure(which: list[int]) -> bool:
+    def measure(which: list[int], truncated: frozenset[int] = frozenset()) -> bool:
         """The Jacobians of pieces ``which`` where they are now (coloured by the chain's
-        measured reach, else a vertex a call), and their normal equations."""
+        measured reach, those in ``truncated`` by ``TRUNCATED_REACH`` of it, else a vertex a
+        call), and their normal equations."""
         nonlocal calls
         at = moved_by()
         base = call(at)
@@ -480,23 +508,32 @@ def solve_exactly(call: BlackBox, rest: Points, sculpt: Points, idx: NDArray[np.
         if not reach:
             reach.append(measure_reach(call, at, base, adjacency, chosen, where, STEP_RTOL * diagonal))
             calls += 1
-        found = None
+        found, short = None, [False] * len(which)
         if reach[0] is not None:
-            for q in which:
+            full = reach[0] + REACH_MARGIN
+            span = max(int(TRUNCATED_REACH * full), 1)
+            short = [q in truncated and span < full for q in which]
+            plan = []
+            for q, cut in zip(which, short, strict=True):
+                if cut:
+                    plan.append(colouring(adjacency, pieces[q], idx, span, unknown[q], nearest=True))
+                    continue
                 if q not in plans:
-                    plans[q] = colouring(adjacency, pieces[q], idx, reach[0] + REACH_MARGIN, unknown[q])
-            plan = [plans[q] for q in which]
+                    plans[q] = colouring(adjacency, pieces[q], idx, full, unknown[q])
+                plan.append(plans[q])
             if max(len(c.classes) for c in plan) < max(len(u) for u in moving):
                 found = jacobians(call, at, base, chosen, where, STEP_RTOL * diagonal, plan, moving)
                 if found is None:  # an output beyond the reach moved: a vertex a call (its calls, at most)
                     calls += 3 * max(len(c.classes) for c in plan)
         if found is None:
+            short = [False] * len(which)
             found = jacobians(call, at, base, chosen, where, STEP_RTOL * diagonal, unknowns=moving)
         if found is None:
             return False
         calls += found[1]
-        for q, a in zip(which, found[0], strict=True):
+        for q, a, cut in zip(which, found[0], short, strict=True):
             factors[q] = NormalEquations(a)
+            rough[q] = cut
         return True
 
     def measure_calls(sizes: list[int]) -> int:
@@ -558,26 +595,42 @@ def solve_exactly(call: BlackBox, rest: Points, sculpt: Points, idx: NDArray[np.
                 rho[q], settled[q], optimal[q] = unreachable_ridge, False, False
         if not todo:
             continue
-        stale = [q for q in todo if factors[q] is None or len(unknown[q]) < len(pieces[q].positions)]
+        stale = [q for q in todo if factors[q] is None or rough[q] or len(unknown[q]) < len(pieces[q].positions)]
         if phase == 1:
             for q in stale:
                 widen(q, np.arange(len(pieces[q].positions)))
-        if stale and not measure(stale):
+        near_enough = frozenset(q for q in stale if phase == 0 and rms(q) <= TRUNCATE_WITHIN * atol)
+        if stale and not measure(stale, near_enough):
             return None
         for _ in range(1 + REMEASURES):
             if not chord(todo):
                 return None
+            # a truncated Jacobian's optimum is not the objective's: a piece it leaves above the
+            # tolerance is measured again exactly, on the vertices above it and their neighbours
+            # where it came near (else on the same unknowns), before anything is concluded of it
+            near = [q for q in todo if rough[q] and worst(q) > atol]
+            for q in todo:
+                optimal[q] = optimal[q] and not rough[q]
+            for q in near:
+                if worst(q) <= REACHABLE_SLACK * atol:
+                    above = np.nonzero(np.linalg.norm((targets[q] - current[q]).reshape(-1, 3), axis=1) > atol)[0]
+                    unknown[q] = around(q, above, UNKNOWN_RINGS)
+                    plans.pop(q, None)
+                settled[q] = False
+            todo = [q for q in todo if not rough[q]]
             left = sum(float(np.sum((targets[p] - current[p]) ** 2)) for p in range(count))
             more = {q: newcomers(q) for q in todo if worst(q) > atol and gained[q]  # still on its way,
                     and (phase == 1 or worst(q) <= REACHABLE_SLACK * atol)}  # (far off: on to the stronger ridge)
             todo = [q for q in more if (len(more[q]) or not optimal[q])  # with new unknowns or short of its optimum,
                     and (len(pieces[q].positions) <= SMALL_PIECE  # and cheap to measure again
                          or float(np.sum((targets[q] - current[q]) ** 2)) > REMEASURE_SHARE * left)]  # or worth it
-            if not todo or calls + measure_calls([len(unknown[q]) + len(more[q]) for q in todo]) > max_calls:
+            sizes = [len(unknown[q]) + len(more[q]) for q in todo] + [len(unknown[q]) for q in near]
+            if not sizes or calls + measure_calls(sizes) > max_calls:
                 break
             for q in todo:  # measured again where they are, and on
                 widen(q, more[q])
                 settled[q] = False
+            todo = sorted(todo + near)
             if not measure(todo):
                 return None
     outputs = call(moved_by())
