@@ -11,7 +11,8 @@ import re
 import shutil
 import sys
 import tempfile
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
+from typing import Any
 
 import numpy as np
 import pytest
@@ -27,13 +28,43 @@ os.environ["PSDBAKE_CACHE_DIR"] = tempfile.mkdtemp(prefix="psdbake-test-cache-")
 atexit.register(shutil.rmtree, os.environ["PSDBAKE_CACHE_DIR"], ignore_errors=True)
 
 
-import generate  # noqa: E402, F401  (fixtures/generate.py, re-exported for the tests)
+import generate  # noqa: E402  (fixtures/generate.py, re-exported for the tests)
 
 from psdbake.cli import main  # noqa: E402
 
 
 def fixture(*parts: str) -> str:
     return os.path.join(FIXTURES, *parts)
+
+
+def tube_with_edges(rings: int, segments: int) -> tuple[np.ndarray, Any]:
+    """The generated tube's rest points and its edge adjacency (sparse, n x n)."""
+    from psdbake.normals import Topology
+    from psdbake.solver.smoothbasis import edge_adjacency
+
+    counts, indices = generate.tube_faces(rings, segments)
+    rest = generate.tube_points(rings, segments)
+    return rest, edge_adjacency(Topology(np.array(counts), np.array(indices), len(rest)))
+
+
+def smoothing_chain(rest: np.ndarray, adjacency: Any, steps: int, twist: float) -> Callable[[np.ndarray], np.ndarray]:
+    """A linear coupling chain: a per-vertex rotation growing to ``twist`` radians along the
+    tube (skinning's part), then ``steps`` uniform smoothing steps of 1/2 along the edges (Delta
+    Mush's smoothing, without its detail frames)."""
+    import scipy.sparse as sp
+
+    degree = np.asarray(adjacency.sum(axis=1)).ravel()
+    walk = (0.5 * sp.identity(len(rest)) + 0.5 * sp.diags(1.0 / degree) @ adjacency).tocsr()
+    angle = twist * rest[:, 0] / rest[:, 0].max()
+    c, s = np.cos(angle), np.sin(angle)
+
+    def chain(points: np.ndarray) -> np.ndarray:
+        out = np.stack([c * points[:, 0] - s * points[:, 1], s * points[:, 0] + c * points[:, 1], points[:, 2]], axis=1)
+        for _ in range(steps):
+            out = walk @ out
+        return out
+
+    return chain
 
 
 CESIUM = fixture("cesiumman", "CesiumMan.usdz")

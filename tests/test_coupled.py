@@ -375,6 +375,20 @@ def _tube_and_small_pieces() -> tuple[np.ndarray, Topology]:
     return np.concatenate(points), Topology(np.concatenate(counts), np.concatenate(indices), n)
 
 
+def _turned_tube_and_small_pieces():
+    """The tube with small pieces behind a rigid turn and Delta Mush, and known smooth offsets
+    (a bump at its middle): (rest, topology, chain, offsets)."""
+    rest, topology = _tube_and_small_pieces()
+    mush = DeltaMush(rest, topology)
+    turn = np.array([[0.8, -0.6, 0.0], [0.6, 0.8, 0.0], [0.0, 0.0, 1.0]])
+
+    def chain(points: np.ndarray) -> np.ndarray:
+        return mush(points @ turn.T + 0.25)
+
+    bump = np.exp(-((np.linalg.norm(rest - rest.mean(axis=0), axis=1) / 1.5) ** 2))
+    return rest, topology, chain, 0.03 * bump[:, None] * np.array([0.2, 1.0, 0.5])
+
+
 #: Calls for the tube with small pieces (measured: 40, of which 3 x 5 probe the pieces; 72
 #: without the small-piece stage, which needed the per-vertex polish at the end).
 SMALL_PIECES_BUDGET = 48
@@ -385,16 +399,8 @@ def test_small_pieces_of_the_mesh_are_solved_by_their_own_jacobians():
     through the chain from a smooth offset (so an exact answer exists): the small pieces take
     their exact Jacobians (3 calls a vertex of the largest, shared by all), the tube the smooth
     start, and every sculpted vertex ends within the tolerance, checked by running the chain."""
-    rest, topology = _tube_and_small_pieces()
-    mush = DeltaMush(rest, topology)
-    turn = np.array([[0.8, -0.6, 0.0], [0.6, 0.8, 0.0], [0.0, 0.0, 1.0]])
-
-    def chain(points: np.ndarray) -> np.ndarray:
-        return mush(points @ turn.T + 0.25)
-
-    centre = rest.mean(axis=0)
-    bump = np.exp(-((np.linalg.norm(rest - centre, axis=1) / 1.5) ** 2))
-    target = chain(rest + 0.03 * bump[:, None] * np.array([0.2, 1.0, 0.5]))
+    rest, topology, chain, truth = _turned_tube_and_small_pieces()
+    target = chain(rest + truth)
     adjacency = edge_adjacency(topology)
     res = coupled.invert(chain, rest, target, neighbours=lambda: adjacency)
     base = chain(rest)
@@ -466,15 +472,8 @@ def test_pieces_exact_jacobians_reach_a_sculpt_in_batches(monkeypatch):
     that the tube's Jacobian fills a batch and the small pieces take another: each batch is
     measured and solved from where the last left the offsets, and every sculpted vertex ends
     within the tolerance, checked by running the chain."""
-    rest, topology = _tube_and_small_pieces()
-    mush = DeltaMush(rest, topology)
-    turn = np.array([[0.8, -0.6, 0.0], [0.6, 0.8, 0.0], [0.0, 0.0, 1.0]])
-
-    def chain(points: np.ndarray) -> np.ndarray:
-        return mush(points @ turn.T + 0.25)
-
-    bump = np.exp(-((np.linalg.norm(rest - rest.mean(axis=0), axis=1) / 1.5) ** 2))
-    target = chain(rest + 0.03 * bump[:, None] * np.array([0.2, 1.0, 0.5]))
+    rest, topology, chain, truth = _turned_tube_and_small_pieces()
+    target = chain(rest + truth)
     adjacency = edge_adjacency(topology)
     base = chain(rest)
     diagonal, floor, idx = sculpted_vertices(rest, base, target)
@@ -605,15 +604,7 @@ def _tube_near_its_answer(ripple: float = 0.0):
     noise no offset reproduces), the offsets at 0.99 of the known ones (at them, with noise),
     so the RMS residual is within ``pieces.TRUNCATE_WITHIN`` of the tolerance (18.9 and 25.6
     times), as the stages before leave a sculpt the chain reproduces."""
-    rest, topology = _tube_and_small_pieces()
-    mush = DeltaMush(rest, topology)
-    turn = np.array([[0.8, -0.6, 0.0], [0.6, 0.8, 0.0], [0.0, 0.0, 1.0]])
-
-    def chain(points: np.ndarray) -> np.ndarray:
-        return mush(points @ turn.T + 0.25)
-
-    bump = np.exp(-((np.linalg.norm(rest - rest.mean(axis=0), axis=1) / 1.5) ** 2))
-    truth = 0.03 * bump[:, None] * np.array([0.2, 1.0, 0.5])
+    rest, topology, chain, truth = _turned_tube_and_small_pieces()
     target = chain(rest + truth)
     adjacency = edge_adjacency(topology)
     base = chain(rest)

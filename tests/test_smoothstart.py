@@ -4,44 +4,22 @@ span, on synthetic chains whose Jacobian is known."""
 
 from __future__ import annotations
 
-import sys
-
 import numpy as np
 import pytest
 import scipy.sparse as sp
-from conftest import ROOT
+from conftest import smoothing_chain, tube_with_edges
 
-from psdbake.normals import Topology
 from psdbake.solver import coupled, smoothstart
 from psdbake.solver.inverse import Counted
-from psdbake.solver.smoothbasis import edge_adjacency, smooth_bases
-
-sys.path.insert(0, ROOT)
-from benchmarks import rigs
+from psdbake.solver.smoothbasis import smooth_bases
 
 
 def _tube(rings: int = 40, segments: int = 16) -> tuple[np.ndarray, sp.csr_matrix]:
-    counts, indices = rigs.generate.tube_faces(rings, segments)
-    rest = rigs.generate.tube_points(rings, segments)
-    return rest, edge_adjacency(Topology(np.array(counts), np.array(indices), len(rest)))
+    return tube_with_edges(rings, segments)
 
 
 def _smoothing_chain(rest: np.ndarray, adjacency: sp.csr_matrix, steps: int):
-    """A linear chain: a per-vertex rotation that varies along the tube (skinning's part), then
-    ``steps`` uniform smoothing steps of 1/2 along the edges (Delta Mush's smoothing, without
-    its detail frames)."""
-    degree = np.asarray(adjacency.sum(axis=1)).ravel()
-    walk = (0.5 * sp.identity(len(rest)) + 0.5 * sp.diags(1.0 / degree) @ adjacency).tocsr()
-    angle = 0.6 * rest[:, 0] / rest[:, 0].max()
-    c, s = np.cos(angle), np.sin(angle)
-
-    def chain(points: np.ndarray) -> np.ndarray:
-        out = np.stack([c * points[:, 0] - s * points[:, 1], s * points[:, 0] + c * points[:, 1], points[:, 2]], axis=1)
-        for _ in range(steps):
-            out = walk @ out
-        return out
-
-    return chain
+    return smoothing_chain(rest, adjacency, steps, twist=0.6)
 
 
 @pytest.mark.parametrize("steps", [0, 4, 10])

@@ -4,43 +4,21 @@ the order in which it measures a vertex's own directions, and its budget kept.""
 
 from __future__ import annotations
 
-import sys
-
 import numpy as np
 import pytest
 import scipy.sparse as sp
-from conftest import ROOT
+from conftest import smoothing_chain, tube_with_edges
 
-from psdbake.normals import Topology
 from psdbake.solver import coupled, subspace
 from psdbake.solver.inverse import Counted
-from psdbake.solver.smoothbasis import edge_adjacency
-
-sys.path.insert(0, ROOT)
-from benchmarks import rigs
 
 
 def _tube(rings: int = 24, segments: int = 12) -> tuple[np.ndarray, sp.csr_matrix]:
-    counts, indices = rigs.generate.tube_faces(rings, segments)
-    rest = rigs.generate.tube_points(rings, segments)
-    return rest, edge_adjacency(Topology(np.array(counts), np.array(indices), len(rest)))
+    return tube_with_edges(rings, segments)
 
 
 def _smoothing(rest: np.ndarray, adjacency: sp.csr_matrix, steps: int = 6):
-    """A linear coupling chain: a rotation that varies along the tube, then ``steps`` uniform
-    smoothing steps of 1/2 along the edges (Delta Mush's smoothing without its frames)."""
-    degree = np.asarray(adjacency.sum(axis=1)).ravel()
-    walk = (0.5 * sp.identity(len(rest)) + 0.5 * sp.diags(1.0 / degree) @ adjacency).tocsr()
-    angle = 0.8 * rest[:, 0] / rest[:, 0].max()
-    c, s = np.cos(angle), np.sin(angle)
-
-    def chain(points: np.ndarray) -> np.ndarray:
-        out = np.stack([c * points[:, 0] - s * points[:, 1], s * points[:, 0] + c * points[:, 1], points[:, 2]], axis=1)
-        for _ in range(steps):
-            out = walk @ out
-        return out
-
-    return chain
+    return smoothing_chain(rest, adjacency, steps, twist=0.8)
 
 
 def _problem(seed: int = 3):

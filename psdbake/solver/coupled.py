@@ -363,7 +363,7 @@ def _at(sculpt: Points, idx: NDArray[np.int64], offsets: Points, outputs: Points
     """The smooth start's result from its offsets and the chain's outputs there (no call)."""
     atol = max(rtol * diagonal, floor)
     norms = np.linalg.norm(sculpt[idx] - outputs, axis=1)
-    status = np.where(norms <= atol, powell.CONVERGED, powell.STALLED).astype(np.int8)
+    status = _checked(np.full(len(idx), powell.STALLED, dtype=np.int8), norms, atol)
     status[~np.isfinite(norms)] = powell.NONFINITE
     return InverseResult(indices=idx, offsets=np.asarray(offsets, dtype=np.float64), residual=norms, status=status,
                          evaluations=calls, diagonal=diagonal, atol=atol, seconds=time.perf_counter() - started,

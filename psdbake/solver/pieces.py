@@ -454,11 +454,18 @@ def solve_exactly(call: BlackBox, rest: Points, sculpt: Points, idx: NDArray[np.
         near = _rings(adjacency, pieces[q], inside[q][seeds])[:, inside[q]] <= rings
         return np.nonzero(near.any(axis=0))[0]
 
+    def residuals(q: int) -> NDArray[np.float64]:
+        """Piece q's residual per sculpted vertex where its offsets are now."""
+        return np.asarray(np.linalg.norm((targets[q] - current[q]).reshape(-1, 3), axis=1))
+
+    def above(q: int) -> NDArray[np.int64]:
+        """Piece q's sculpted vertices above the tolerance now (positions among them)."""
+        return np.nonzero(residuals(q) > atol)[0]
+
     # each piece's unknowns (positions among its sculpted vertices): those near the ones above
     # the tolerance where the stages left them, and near those that go above it later; every
     # one where the chain cannot reproduce the piece
-    unknown = [around(q, np.nonzero(np.linalg.norm((targets[q] - current[q]).reshape(-1, 3), axis=1) > atol)[0],
-                      UNKNOWN_RINGS) for q in range(count)]
+    unknown = [around(q, above(q), UNKNOWN_RINGS) for q in range(count)]
     calls = 0
 
     held = rest.copy()  # every other sculpted vertex where ``start`` has it
@@ -471,10 +478,10 @@ def solve_exactly(call: BlackBox, rest: Points, sculpt: Points, idx: NDArray[np.
         return moved
 
     def rms(q: int) -> float:
-        return float(np.sqrt(np.mean(np.sum((targets[q] - current[q]).reshape(-1, 3) ** 2, axis=1))))
+        return float(np.sqrt(np.mean(residuals(q) ** 2)))
 
     def worst(q: int) -> float:
-        return float(np.max(np.linalg.norm((targets[q] - current[q]).reshape(-1, 3), axis=1)))
+        return float(np.max(residuals(q)))
 
     def objective(q: int, out: NDArray[np.float64], off: NDArray[np.float64]) -> float:
         return float(np.sum((targets[q] - out) ** 2)) + rho[q] * float(off @ off)
@@ -484,8 +491,7 @@ def solve_exactly(call: BlackBox, rest: Points, sculpt: Points, idx: NDArray[np.
 
     def newcomers(q: int) -> NDArray[np.int64]:
         """Piece q's vertices near those above the tolerance now that are not yet unknowns."""
-        left_above = np.nonzero(np.linalg.norm((targets[q] - current[q]).reshape(-1, 3), axis=1) > atol)[0]
-        return np.setdiff1d(around(q, left_above, UNKNOWN_RINGS + 1), unknown[q])
+        return np.setdiff1d(around(q, above(q), UNKNOWN_RINGS + 1), unknown[q])
 
     def widen(q: int, more: NDArray[np.int64]) -> None:
         """Piece q's unknowns with ``more`` (only right before its Jacobian is measured again)."""
@@ -613,8 +619,7 @@ def solve_exactly(call: BlackBox, rest: Points, sculpt: Points, idx: NDArray[np.
                 optimal[q] = optimal[q] and not rough[q]
             for q in near:
                 if worst(q) <= REACHABLE_SLACK * atol:
-                    above = np.nonzero(np.linalg.norm((targets[q] - current[q]).reshape(-1, 3), axis=1) > atol)[0]
-                    unknown[q] = around(q, above, UNKNOWN_RINGS)
+                    unknown[q] = around(q, above(q), UNKNOWN_RINGS)
                     plans.pop(q, None)
                 settled[q] = False
             todo = [q for q in todo if not rough[q]]
