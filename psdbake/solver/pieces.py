@@ -19,8 +19,9 @@ sculpt needs ~2,500 directions the chain passes at 1e-3 of its gain, which no sp
 dozen calls holds. There the Jacobian is coloured (Curtis, Powell and Reid's sparse
 differences): one call measures how far a vertex's move reaches (``measure_reach``), and
 vertices more than twice that apart move in one call (``colouring``); a piece's first Jacobian
-is coloured by half that reach (``TRUNCATED_REACH``: approximate columns, fewer calls), and what
-its steps leave above the tolerance is measured again exactly. Its columns are those
+is coloured by half that reach where it is near the answer and by two-fifths nearer still
+(``TRUNCATED_REACH``, ``TRUNCATED_REACH_NEAR``: approximate columns, fewer calls, Broyden's
+secant at each step), and what its steps leave above the tolerance is measured again exactly. Its columns are those
 of the vertices still above the tolerance and their 1-ring (on CesiumMan 103 of the 731-vertex
 piece's vertices miss when the stage starts), read on every sculpted vertex's output, and
 widened where others go above it; the chord steps run on each piece's regularised misfit, and
@@ -101,6 +102,16 @@ TRUNCATED_REACH = 0.5
 #: 63.6 and 86.7 (the 1.3k rig's 20 and 40 degree elbows, where a truncated Jacobian first
 #: cost 343 calls more, 39%) and up to 1e3-1e4 (CesiumMan's shipped sculpts).
 TRUNCATE_WITHIN = 30.0
+#: A piece nearer still, within TRUNCATE_NEAR_WITHIN times the tolerance, is coloured by this
+#: smaller share: what a chord step on approximate columns leaves grows with the correction it
+#: makes, so the smaller the correction, the rougher the columns may be. Each rough Jacobian
+#: takes Broyden's secant at every chord step. Measured from where the stages before leave
+#: them: CesiumMan's pieces (0.4-3.7 times) reach the tolerance with 4 of its 11 rings (90
+#: and 89 colours for its 251-vertex piece, against 130 at half), and with 3 leave 61 vertices
+#: at up to 2.1 times; the character fixture's 135 degree elbow (21.7 times) stalls at 40 times
+#: with 4 (docs/decisions/coupled-inverse-cesiumman.md, "Two-fifths of the reach near the answer").
+TRUNCATED_REACH_NEAR = 0.4
+TRUNCATE_NEAR_WITHIN = 10.0
 #: ``solve_exactly``'s unknowns: a piece's vertices within this many edges of those above the
 #: tolerance where the stage starts (then within one more of those above it after the steps).
 #: CesiumMan through the chain, calls an example (every vertex within the tolerance): 902 and
@@ -192,25 +203,45 @@ def _rings(adjacency: sp.csr_matrix, piece: Piece, sources: NDArray[np.int64]) -
     return np.asarray(shortest_path(graph, unweighted=True, directed=False, indices=sources), dtype=np.float64)
 
 
+def dsatur(conflict: NDArray[np.bool_]) -> NDArray[np.int64]:
+    """A colour for each vertex of the graph ``conflict`` (symmetric (n, n) adjacency), no two
+    neighbours alike: Brélaz's DSATUR, which colours next the uncoloured vertex whose
+    neighbours already hold the most distinct colours (ties: the most neighbours, then the
+    lowest index), each with the lowest colour they leave free. A colour is 3 calls of the
+    chain: on CesiumMan's 251-vertex piece, with two moved vertices more than 8 edges apart,
+    89 colours against 103 colouring in index order and 92 largest neighbourhood first; at 10
+    apart, 130 against 143 (the 130 vertices within 5 edges of one vertex need a colour each,
+    so 130 is the fewest). Written here rather than taken from networkx: 15 lines of numpy on
+    the dense conflict matrix the colouring has anyway."""
+    n = len(conflict)
+    conflict = conflict & ~np.eye(n, dtype=bool)
+    colour = np.full(n, -1, dtype=np.int64)
+    seen = np.zeros((n, n + 1), dtype=bool)  # seen[v, c]: a neighbour of v has colour c
+    saturation = np.zeros(n, dtype=np.int64)
+    degree = conflict.sum(axis=1)
+    for _ in range(n):
+        v = int(np.argmax(np.where(colour < 0, saturation * (n + 1) + degree, -1)))  # argmax: the lowest index of ties
+        c = int(np.argmin(seen[v]))
+        colour[v] = c
+        fresh = conflict[v] & ~seen[:, c]
+        seen[fresh, c] = True
+        saturation[fresh] += 1
+    return colour
+
+
 def colouring(adjacency: sp.csr_matrix, piece: Piece, idx: NDArray[np.int64], reach: int,
               unknown: NDArray[np.int64] | None = None, nearest: bool = False) -> Colouring:
-    """Greedy colouring of ``piece``'s sculpted vertices (of those at ``unknown``, positions
-    among them, where given) so that two of one colour are more than ``2 * reach`` edges apart
-    (through the whole piece): moved together, no output within ``reach`` edges of one is
-    within ``reach`` of another, so each output (every sculpted vertex's) changes for one of
-    them only and is that one's column (Curtis-Powell-Reid's idea for sparse Jacobians).
+    """A colouring (``dsatur``) of ``piece``'s sculpted vertices (of those at ``unknown``,
+    positions among them, where given) so that two of one colour are more than ``2 * reach``
+    edges apart (through the whole piece): moved together, no output within ``reach`` edges of
+    one is within ``reach`` of another, so each output (every sculpted vertex's) changes for
+    one of them only and is that one's column (Curtis-Powell-Reid's idea for sparse Jacobians).
     ``nearest``: each output is the column of the nearest moved vertex, however far (with a
     ``reach`` shorter than the chain's: approximate columns in fewer calls)."""
     inside = np.searchsorted(piece.vertices, idx[piece.positions])  # the sculpted vertices, in the piece
     moving = np.arange(len(inside)) if unknown is None else unknown
     rings = _rings(adjacency, piece, inside[moving])[:, inside]  # (s, m): from each moved vertex to each output
-    apart = rings[:, moving]
-    colour = np.full(len(moving), -1)
-    for v in range(len(moving)):
-        near = colour[apart[v] <= 2 * reach]
-        taken = np.zeros(len(moving) + 1, dtype=bool)
-        taken[near[near >= 0]] = True
-        colour[v] = int(np.argmin(taken))
+    colour = dsatur(rings[:, moving] <= 2 * reach)
     classes = [np.nonzero(colour == c)[0] for c in range(int(colour.max()) + 1)]
     owner = []
     for members in classes:
@@ -428,7 +459,10 @@ def solve_exactly(call: BlackBox, rest: Points, sculpt: Points, idx: NDArray[np.
     tolerance, has its Jacobian measured again where they left it, those vertices and their
     neighbours unknowns too (a large piece only where it holds ``REMEASURE_SHARE`` of the
     residual), up to ``REMEASURES`` times while ``max_calls`` allows (one whose every step was
-    cut is not: its Jacobian says nothing of the chain at the scale of a step). ``rho`` is
+    cut is not: its Jacobian says nothing of the chain at the scale of a step). A piece whose
+    first Jacobian was coloured short of the reach is measured again exactly on what its steps
+    left above the tolerance and their 1-ring, widened by a ring each time it still misses:
+    an optimum over those few vertices is not the piece's, and is not called one. ``rho`` is
     ``ridge`` (the objective's), and where a piece still misses the tolerance by more than
     ``REACHABLE_SLACK`` times after that, the sculpt asks what the chain cannot produce there:
     that piece goes on with ``unreachable_ridge`` and every vertex an unknown, which bounds its
@@ -445,6 +479,7 @@ def solve_exactly(call: BlackBox, rest: Points, sculpt: Points, idx: NDArray[np.
     gained = [False] * count
     factors: list[NormalEquations | None] = [None] * count
     rough = [False] * count  # its Jacobian's colouring was truncated (``TRUNCATED_REACH``): columns approximate
+    narrowed = [False] * count  # its unknowns cut to those a rough Jacobian's steps left above the tolerance
     inside = [np.searchsorted(p.vertices, v) for p, v in zip(pieces, vertex, strict=True)]
 
     def around(q: int, seeds: NDArray[np.int64], rings: int) -> NDArray[np.int64]:
@@ -501,9 +536,9 @@ def solve_exactly(call: BlackBox, rest: Points, sculpt: Points, idx: NDArray[np.
     reach: list[int | None] = []  # measured once, by the first measure
     plans: dict[int, Colouring] = {}  # each piece's colouring, for its measures again
 
-    def measure(which: list[int], truncated: frozenset[int] = frozenset()) -> bool:
+    def measure(which: list[int], truncated: dict[int, float] | None = None) -> bool:
         """The Jacobians of pieces ``which`` where they are now (coloured by the chain's
-        measured reach, those in ``truncated`` by ``TRUNCATED_REACH`` of it, else a vertex a
+        measured reach, those in ``truncated`` by the share of it it gives, else a vertex a
         call), and their normal equations."""
         nonlocal calls
         at = moved_by()
@@ -517,12 +552,12 @@ def solve_exactly(call: BlackBox, rest: Points, sculpt: Points, idx: NDArray[np.
         found, short = None, [False] * len(which)
         if reach[0] is not None:
             full = reach[0] + REACH_MARGIN
-            span = max(int(TRUNCATED_REACH * full), 1)
-            short = [q in truncated and span < full for q in which]
+            spans = {q: max(int(share * full), 1) for q, share in (truncated or {}).items()}
+            short = [spans.get(q, full) < full for q in which]
             plan = []
             for q, cut in zip(which, short, strict=True):
                 if cut:
-                    plan.append(colouring(adjacency, pieces[q], idx, span, unknown[q], nearest=True))
+                    plan.append(colouring(adjacency, pieces[q], idx, spans[q], unknown[q], nearest=True))
                     continue
                 if q not in plans:
                     plans[q] = colouring(adjacency, pieces[q], idx, full, unknown[q])
@@ -566,7 +601,7 @@ def solve_exactly(call: BlackBox, rest: Points, sculpt: Points, idx: NDArray[np.
                 step[where] = factor.step(targets[q] - current[q], offsets[q][where], rho[q])
                 now = objective(q, current[q], offsets[q])
                 predicted = objective(q, current[q] + factor.jacobian @ step[where], offsets[q] + step)
-                if now - predicted <= CHORD_MIN_GAIN * now:  # the model sees nothing left to gain here
+                if now - predicted <= CHORD_MIN_GAIN * now and not narrowed[q]:  # the model sees nothing left to gain here
                     settled[q] = optimal[q] = True
                     continue
                 trial[q] = offsets[q] + scale[q] * step
@@ -577,6 +612,14 @@ def solve_exactly(call: BlackBox, rest: Points, sculpt: Points, idx: NDArray[np.
             if not np.all(np.isfinite(out)):
                 return False
             for q, off in trial.items():
+                if rough[q]:  # Broyden: an approximate Jacobian takes the secant, whether the step is taken or not
+                    where = coordinates(q)
+                    factor = factors[q]
+                    assert factor is not None
+                    secant = (off - offsets[q])[where]
+                    change = out[vertex[q]].ravel() - current[q]
+                    jac = factor.jacobian + np.outer(change - factor.jacobian @ secant, secant) / float(secant @ secant)
+                    factors[q] = NormalEquations(jac)
                 before, after = objective(q, current[q], offsets[q]), objective(q, out[vertex[q]].ravel(), off)
                 if after < before:
                     offsets[q], current[q], gained[q] = off, out[vertex[q]].ravel(), True
@@ -605,7 +648,8 @@ def solve_exactly(call: BlackBox, rest: Points, sculpt: Points, idx: NDArray[np.
         if phase == 1:
             for q in stale:
                 widen(q, np.arange(len(pieces[q].positions)))
-        near_enough = frozenset(q for q in stale if phase == 0 and rms(q) <= TRUNCATE_WITHIN * atol)
+        near_enough = {q: TRUNCATED_REACH_NEAR if rms(q) <= TRUNCATE_NEAR_WITHIN * atol else TRUNCATED_REACH
+                       for q in stale if phase == 0 and rms(q) <= TRUNCATE_WITHIN * atol}
         if stale and not measure(stale, near_enough):
             return None
         for _ in range(1 + REMEASURES):
@@ -621,13 +665,16 @@ def solve_exactly(call: BlackBox, rest: Points, sculpt: Points, idx: NDArray[np.
                 if worst(q) <= REACHABLE_SLACK * atol:
                     unknown[q] = around(q, above(q), UNKNOWN_RINGS)
                     plans.pop(q, None)
+                    narrowed[q] = True
                 settled[q] = False
             todo = [q for q in todo if not rough[q]]
             left = sum(float(np.sum((targets[p] - current[p]) ** 2)) for p in range(count))
-            more = {q: newcomers(q) for q in todo if worst(q) > atol and gained[q]  # still on its way,
+            # a piece still on its way, or one whose unknowns were cut to a rough Jacobian's
+            # leftovers (an optimum over those few is not the piece's: it widens by a ring)
+            more = {q: newcomers(q) for q in todo if worst(q) > atol and (gained[q] or narrowed[q])
                     and (phase == 1 or worst(q) <= REACHABLE_SLACK * atol)}  # (far off: on to the stronger ridge)
             todo = [q for q in more if (len(more[q]) or not optimal[q])  # with new unknowns or short of its optimum,
-                    and (len(pieces[q].positions) <= SMALL_PIECE  # and cheap to measure again
+                    and (len(pieces[q].positions) <= SMALL_PIECE or narrowed[q]  # and cheap to measure again
                          or float(np.sum((targets[q] - current[q]) ** 2)) > REMEASURE_SHARE * left)]  # or worth it
             sizes = [len(unknown[q]) + len(more[q]) for q in todo] + [len(unknown[q]) for q in near]
             if not sizes or calls + measure_calls(sizes) > max_calls:
@@ -638,6 +685,8 @@ def solve_exactly(call: BlackBox, rest: Points, sculpt: Points, idx: NDArray[np.
             todo = sorted(todo + near)
             if not measure(todo):
                 return None
+    for q in range(count):  # an optimum over a rough Jacobian's leftovers alone is none of the piece's
+        optimal[q] = optimal[q] and not (narrowed[q] and worst(q) > atol)
     outputs = call(moved_by())
     calls += 1
     if not np.all(np.isfinite(outputs)):
