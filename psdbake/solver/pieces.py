@@ -532,6 +532,7 @@ def solve_exactly(call: BlackBox, rest: Points, sculpt: Points, idx: NDArray[np.
         """Piece q's unknowns with ``more`` (only right before its Jacobian is measured again)."""
         unknown[q] = np.union1d(unknown[q], more)
         plans.pop(q, None)
+        narrowed[q] = narrowed[q] and len(unknown[q]) < len(pieces[q].positions)  # every vertex: its optimum is the piece's
 
     reach: list[int | None] = []  # measured once, by the first measure
     plans: dict[int, Colouring] = {}  # each piece's colouring, for its measures again
