@@ -390,6 +390,27 @@ def _turned_tube_and_small_pieces():
     return rest, topology, chain, 0.03 * bump[:, None] * np.array([0.2, 1.0, 0.5])
 
 
+def _turned_tube_sculpt():
+    """The turned tube's sculpt made through the chain from its known offsets, and what stage
+    4 is given with it: (chain, rest, offsets, sculpt, adjacency, chain at rest, diagonal,
+    float32 floor, sculpted vertices, tolerance)."""
+    rest, topology, chain, truth = _turned_tube_and_small_pieces()
+    target = chain(rest + truth)
+    base = chain(rest)
+    diagonal, floor, idx = sculpted_vertices(rest, base, target)
+    atol = max(tol.INVERSE_RTOL * diagonal, floor)
+    return chain, rest, truth, target, edge_adjacency(topology), base, diagonal, floor, idx, atol
+
+
+def _stage_4(call, chain, rest, target, idx, begun, adjacency, blocks):
+    """Stage 4 (``coupled._exact_pieces``) from ``begun`` through ``call``, and each sculpted
+    vertex's residual checked by running the chain on rest + its offsets: (result, residual)."""
+    res = coupled._exact_pieces(call, rest, target, idx, begun, adjacency, blocks)
+    moved = rest.copy()
+    moved[idx] += res.offsets
+    return res, np.linalg.norm(chain(moved)[idx] - target[idx], axis=1)
+
+
 #: Calls for the tube with small pieces (measured: 40, of which 3 x 5 probe the pieces; 72
 #: without the small-piece stage, which needed the per-vertex polish at the end).
 SMALL_PIECES_BUDGET = 48
@@ -502,12 +523,7 @@ def test_pieces_exact_jacobians_reach_a_sculpt_in_batches(monkeypatch):
     that the tube's Jacobian fills a batch and the small pieces take another: each batch is
     measured and solved from where the last left the offsets, and every sculpted vertex ends
     within the tolerance, checked by running the chain."""
-    rest, topology, chain, truth = _turned_tube_and_small_pieces()
-    target = chain(rest + truth)
-    adjacency = edge_adjacency(topology)
-    base = chain(rest)
-    diagonal, floor, idx = sculpted_vertices(rest, base, target)
-    atol = max(tol.INVERSE_RTOL * diagonal, floor)
+    chain, rest, _, target, adjacency, base, diagonal, floor, idx, atol = _turned_tube_sculpt()
     found = pieces.small_pieces(adjacency, idx, pieces.EXACT_PIECE)
     tube = max(found, key=lambda p: len(p.positions))
     monkeypatch.setattr(pieces, "EXACT_ENTRIES", (3 * len(tube.positions)) ** 2)
@@ -516,10 +532,7 @@ def test_pieces_exact_jacobians_reach_a_sculpt_in_batches(monkeypatch):
     blocks = coupled.chain_blocks(call, rest, base, idx, diagonal, floor)
     zero = InverseResult(idx, np.zeros((len(idx), 3)), np.linalg.norm(target[idx] - base[idx], axis=1),
                          np.full(len(idx), powell.MAX_CYCLES, dtype=np.int8), 0, diagonal, atol, 0.0)
-    res = coupled._exact_pieces(call, rest, target, idx, zero, adjacency, blocks)
-    moved = rest.copy()
-    moved[idx] += res.offsets
-    residual = np.linalg.norm(chain(moved)[idx] - target[idx], axis=1)
+    res, residual = _stage_4(call, chain, rest, target, idx, zero, adjacency, blocks)
     small = np.concatenate([p.positions for p in found if p is not tube])
     assert np.all(zero.residual[small] > atol)  # so the second batch was solved too
     assert residual.max() <= atol and not len(res.missed)
@@ -635,12 +648,7 @@ def _tube_near_its_answer(ripple: float = 0.0, share: float = 0.99):
     noise), so the RMS residual is within ``pieces.TRUNCATE_WITHIN`` of the tolerance (18.9
     and 25.6 times; at 0.997, 5.7 times), as the stages before leave a sculpt the chain
     reproduces."""
-    rest, topology, chain, truth = _turned_tube_and_small_pieces()
-    target = chain(rest + truth)
-    adjacency = edge_adjacency(topology)
-    base = chain(rest)
-    diagonal, floor, idx = sculpted_vertices(rest, base, target)
-    atol = max(tol.INVERSE_RTOL * diagonal, floor)
+    chain, rest, truth, target, adjacency, base, diagonal, floor, idx, atol = _turned_tube_sculpt()
     target[idx] += ripple * atol * np.random.default_rng(3).normal(size=(len(idx), 3))
     start = (share if not ripple else 1.0) * truth[idx]
     moved = rest.copy()
@@ -668,10 +676,7 @@ def test_truncated_jacobians_end_where_exact_ones_do(monkeypatch, ripple):
     for share in (pieces.TRUNCATED_REACH, 1.0):
         monkeypatch.setattr(pieces, "TRUNCATED_REACH", share)
         call = Counted(chain)
-        res = coupled._exact_pieces(call, rest, target, idx, begun, adjacency, blocks)
-        moved = rest.copy()
-        moved[idx] += res.offsets
-        residual = np.linalg.norm(chain(moved)[idx] - target[idx], axis=1)
+        res, residual = _stage_4(call, chain, rest, target, idx, begun, adjacency, blocks)
         found.append((call.calls, residual, res, float(np.sum(residual**2) + rho * np.sum(res.offsets**2))))
     (calls, residual, res, objective), (exact_calls, exact_residual, exact, exact_objective) = found
     if not ripple:
@@ -695,10 +700,7 @@ def test_near_the_answer_a_rougher_colouring_reaches_the_tolerance_in_fewer_call
     for share in (pieces.TRUNCATED_REACH_NEAR, pieces.TRUNCATED_REACH):
         monkeypatch.setattr(pieces, "TRUNCATED_REACH_NEAR", share)
         call = Counted(chain)
-        res = coupled._exact_pieces(call, rest, target, idx, begun, adjacency, blocks)
-        moved = rest.copy()
-        moved[idx] += res.offsets
-        residual = np.linalg.norm(chain(moved)[idx] - target[idx], axis=1)
+        res, residual = _stage_4(call, chain, rest, target, idx, begun, adjacency, blocks)
         assert residual.max() <= begun.atol and not len(res.missed)
         found.append(call.calls)
     assert found[0] < found[1]

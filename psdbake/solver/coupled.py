@@ -62,11 +62,12 @@ Jacobian, for a smoothing deformer the skinning's own blocks) and its linearised
    **those pieces' exact Jacobians** (``_exact_pieces``, ``pieces.solve_exactly``), measured
    where the stages above left them, on the vertices still above the tolerance and their
    1-ring (3 calls a colour of the largest piece, its vertices coloured by the chain's measured
-   reach, shared by all pieces; first by half of it, approximate columns, what they leave
-   measured again exactly), and chord Gauss-Newton steps per piece. A piece still far
+   reach, shared by all pieces; first by part of it, two-fifths near the answer and half
+   further, approximate columns, what they leave measured again exactly), and chord
+   Gauss-Newton steps per piece. A piece still far
    above the tolerance at its optimum holds what the chain cannot produce, and is solved on the
    stronger ``UNREACHABLE_RIDGE``, every vertex an unknown, so that its offsets stay bounded.
-   About 450 calls on CesiumMan (its large pieces need ~2,500 directions the chain passes at
+   About 280 calls on CesiumMan (its large pieces need ~2,500 directions the chain passes at
    1e-3 of its gain; 750 coloured by the whole reach), none where the stages above reach the
    tolerance.
 5. Where the sculpt is still out of the chain's reach, no stage settled it at an optimum (a

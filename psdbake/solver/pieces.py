@@ -478,7 +478,7 @@ def solve_exactly(call: BlackBox, rest: Points, sculpt: Points, idx: NDArray[np.
     optimal = [False] * count  # settled by a step that gained next to nothing, not by cut steps
     gained = [False] * count
     factors: list[NormalEquations | None] = [None] * count
-    rough = [False] * count  # its Jacobian's colouring was truncated (``TRUNCATED_REACH``): columns approximate
+    rough = [False] * count  # its Jacobian's colouring was truncated (``TRUNCATED_REACH[_NEAR]``): columns approximate
     narrowed = [False] * count  # its unknowns cut to those a rough Jacobian's steps left above the tolerance
     inside = [np.searchsorted(p.vertices, v) for p, v in zip(pieces, vertex, strict=True)]
 
