@@ -139,3 +139,30 @@ def test_a_chain_that_turns_non_finite_ends_the_solve_within_its_budget():
     found = subspace.solve(box, rest, sculpt[region], region, start, chain(rest)[region], blocks, 1e-6 * diagonal,
                            diagonal, adjacency, max_calls=12)
     assert box.calls <= 12 and np.all(np.isfinite(found.offsets)) and np.all(np.isfinite(found.residual))
+
+
+def test_on_trial_a_round_that_keeps_no_step_ends_the_solve():
+    """Where the measured directions' linear model does not hold (here a chain linear over a
+    forward difference but strongly curved over a step, so that every step is refused), a solve
+    on trial (``trial_rounds=1``, as ``coupled`` runs it before the pieces' exact Jacobians)
+    gives up after its first round and hands back the start; without it the solve goes on to
+    the stall rule. Calls the trial may take: its global direction, its Krylov directions and
+    one refused step."""
+    rest, adjacency, chain, region, sculpt, start = _problem()
+
+    def curved(points: np.ndarray) -> np.ndarray:
+        moved = np.linalg.norm(points - rest, axis=1, keepdims=True) ** 2
+        return chain(points) + 1e4 * moved
+
+    blocks = np.tile(np.eye(3), (len(region), 1, 1))
+    start = np.zeros_like(start)
+    outputs = curved(rest)[region]
+    spent = {}
+    for trial in (1, None):
+        box = Counted(curved)
+        found = subspace.solve(box, rest, sculpt[region], region, start, outputs, blocks, 1e-6, 1.0, adjacency,
+                               trial_rounds=trial)
+        np.testing.assert_array_equal(found.offsets, start)  # no step kept
+        spent[trial] = box.calls
+    assert spent[1] <= 1 + subspace.KRYLOV_PER_ROUND + 1, spent
+    assert spent[None] >= subspace.STALL_CALLS, spent

@@ -105,11 +105,14 @@ def region_neighbours(adjacency: sp.csr_matrix, idx: NDArray[np.int64], position
 
 def solve(call: BlackBox, rest: Points, target: Points, idx: NDArray[np.int64], offsets: Points, outputs: Points,
           blocks: NDArray[np.float64], atol: float, scale: float, adjacency: sp.csr_matrix | None,
-          max_calls: int = CALLS) -> SubspaceResult:
+          max_calls: int = CALLS, trial_rounds: int | None = None) -> SubspaceResult:
     """Offsets on the sculpted vertices ``idx`` from ``offsets``, whose chain outputs there are
     ``outputs`` (module docstring). ``target`` is the sculpt at ``idx`` (k, 3), ``blocks`` the
     per-vertex 3x3 blocks, ``scale`` the diagonal. At most ``max_calls`` calls of ``call``, and
-    no more than ``MAX_ENTRIES`` allow."""
+    no more than ``MAX_ENTRIES`` allow. With ``trial_rounds``, the solve stops where none of its
+    first ``trial_rounds`` rounds kept a step: a caller with a surer, costlier stage to fall back
+    on (``coupled``'s pieces by their exact Jacobians) spends a round to learn whether the
+    measured directions' linear model holds here."""
     offsets = np.array(offsets, dtype=np.float64)
     out = np.asarray(outputs, dtype=np.float64)
     r = target - out
@@ -127,7 +130,7 @@ def solve(call: BlackBox, rest: Points, target: Points, idx: NDArray[np.int64], 
     responses = np.empty((0, 3 * k))  # and the chain's response to it
     own: dict[int, NDArray[np.float64]] = {}  # vertex -> its own directions so far, (m, 3)
     linear = r  # what the linear model of the directions so far leaves
-    calls = last_kept = 0
+    calls = last_kept = rounds = 0
 
     def evaluate(at: Points) -> Points:
         moved = rest.copy()
@@ -137,7 +140,9 @@ def solve(call: BlackBox, rest: Points, target: Points, idx: NDArray[np.int64], 
     def rank(n: NDArray[np.float64]) -> tuple[int, float]:
         return int(np.count_nonzero(n > atol)), float(n.max())
 
-    while calls < max_calls and np.any(norms > atol) and calls - last_kept < STALL_CALLS:
+    while calls < max_calls and np.any(norms > atol) and calls - last_kept < STALL_CALLS and not (
+            trial_rounds is not None and rounds >= trial_rounds and not last_kept):
+        rounds += 1
         towards = _global(inverse, weights(norms, atol) * linear)
         fresh = [] if towards is None else [towards]
         if np.count_nonzero(norms > atol) <= OWN_MISSING:
