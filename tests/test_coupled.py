@@ -470,10 +470,11 @@ def test_cesiumman_through_delta_mush_reaches_every_vertex_on_its_pieces_exact_j
     assert res.evaluations <= CESIUM_BUDGET
 
 
-#: Calls for the character fixture's 135 degree elbow (measured 171: 58 for the smooth start and
-#: Newton-Krylov, which leave all 168 vertices of its arm above the tolerance, 113 on measured
-#: directions; 319 through the pieces' exact Jacobians, 84 colours of its 168 vertices).
-FOLDED_ARM_BUDGET = 200
+#: Calls for the character fixture's 135 degree elbow (measured 131: 58 for the smooth start and
+#: Newton-Krylov, which keeps no step and leaves all 168 vertices of its arm above the tolerance,
+#: 73 on measured directions that start from Newton-Krylov's 24; 171 when they measured those
+#: again, 319 through the pieces' exact Jacobians, 84 colours of its 168 vertices).
+FOLDED_ARM_BUDGET = 150
 
 
 def test_a_piece_within_reach_of_itself_is_learnt_on_measured_directions_on_trial():

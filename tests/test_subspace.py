@@ -166,3 +166,38 @@ def test_on_trial_a_round_that_keeps_no_step_ends_the_solve():
         spent[trial] = box.calls
     assert spent[1] <= 1 + subspace.KRYLOV_PER_ROUND + 1, spent
     assert spent[None] >= subspace.STALL_CALLS, spent
+
+
+def test_directions_measured_before_are_used_as_the_solves_own():
+    """Directions of the offsets measured at the start by a stage before (Newton-Krylov's Krylov
+    space where it kept no step) and handed on (``seeded``) save their calls: the seeded solve
+    reaches the tolerance in fewer calls than the one that measures them again."""
+    rest, adjacency, chain, region, sculpt, start = _problem()
+    diagonal = float(np.linalg.norm(rest.max(axis=0) - rest.min(axis=0)))
+    blocks = coupled.chain_blocks(Counted(chain), rest, np.asarray(chain(rest)), region, diagonal, 0.0)
+    atol = 1e-6 * diagonal
+    moved = rest.copy()
+    moved[region] += start
+    outputs = chain(moved)[region]
+    inverse = np.linalg.inv(blocks)
+    h = subspace.STEP_RTOL * diagonal
+    moves, responses = [], []
+    towards = np.einsum("kab,kb->ka", inverse, sculpt[region] - outputs)
+    for _ in range(12):  # the blocks-preconditioned Krylov space, as Newton-Krylov measures it
+        towards = towards / np.abs(towards).max()
+        moved_h = moved.copy()
+        moved_h[region] += h * towards
+        response = (chain(moved_h)[region] - outputs) / h
+        moves.append(towards.ravel())
+        responses.append(response.ravel())
+        towards = np.einsum("kab,kb->ka", inverse, response)
+    spent = {}
+    for seeded in (None, (3.0 * np.array(moves), 3.0 * np.array(responses))):  # any scale: it is normalised
+        box = Counted(chain)
+        found = subspace.solve(box, rest, sculpt[region], region, start, outputs, blocks, atol, diagonal, adjacency,
+                               seeded=seeded)
+        moved_found = rest.copy()
+        moved_found[region] += found.offsets
+        assert np.linalg.norm(sculpt[region] - chain(moved_found)[region], axis=1).max() <= atol
+        spent[seeded is not None] = box.calls
+    assert spent[True] < spent[False], spent

@@ -54,7 +54,9 @@ Jacobian, for a smoothing deformer the skinning's own blocks) and its linearised
    directions **on trial** first: one round (``MEASURED_TRIAL_ROUNDS``), going on only where
    it keeps a step. Stage 4 colours a piece by the chain's reach, and a piece that lies within
    reach of itself (the character fixture's 168-vertex arm) takes nearly a colour a vertex;
-   the Krylov space learns it for less (that 135 degree elbow: 171 calls, against 319).
+   the Krylov space learns it for less (that 135 degree elbow: 131 calls, against 319). Where
+   Newton-Krylov kept no step, the directions it measured at the start are the measured
+   directions' first (``invert_coupled(measured=...)``): that elbow's 24 (171 calls without).
 3. Where that misses: the **slower stages** (``_escalate``: the blocks' smooth start over the
    region's smoothest fields, the span's Jacobian measured, Newton-Krylov from zero; each while
    more vertices miss than ``POLISH_VERTICES``), then measured directions on the best.
@@ -164,7 +166,8 @@ FINISH_EVALUATIONS = 40
 POLISH_VERTICES = 128
 #: Rounds of measured directions on trial before stage 4 (above): where the first keeps no step,
 #: the Krylov space's model does not hold there and stage 4 follows. The character fixture's 135
-#: degree elbow keeps its first step at the round's 10th call (319 -> 171 calls in all). CesiumMan's
+#: degree elbow keeps its first step at the round's 10th call (319 -> 171 calls in all, 131 with
+#: Newton-Krylov's 24 directions handed on). CesiumMan's
 #: rounds keep none: the trial costs it 11 calls (430 / 468 -> 438 / 475 with the 3-4 calls
 #: ``inverse.Counted``'s memo saves); run to the stall rule's 80 calls, 511 / 549.
 MEASURED_TRIAL_ROUNDS = 1
@@ -330,19 +333,20 @@ def invert(blackbox: BlackBox, rest: Points, sculpt: Points, *, rtol: float = to
                         candidates.extend(_escalate(call, blackbox, rest, sculpt, base, idx, diagonal, floor, first,
                                                     blocks, adjacency, rtol=rtol, started=started))
                 else:  # 1b. Newton-Krylov, then measured directions, then the slower stages
+                    seeds: list[tuple[NDArray[np.float64], NDArray[np.float64]]] = []
                     smooth = invert_coupled(call, rest, sculpt, base, idx, diagonal, floor, rtol=rtol, started=started,
                                             max_evaluations=call.calls + FINISH_EVALUATIONS, start=offsets,
-                                            start_outputs=outputs, blocks=blocks, weighted=True)
+                                            start_outputs=outputs, blocks=blocks, weighted=True, measured=seeds)
                     candidates.append(dataclasses.replace(smooth, regime="coupled, from the smooth start"))
                     if len(smooth.missed) and not smooth.at_optimum and len(smooth.missed) <= POLISH_VERTICES:
                         candidates.extend(_measured(call, rest, sculpt, idx, max(diagonal, floor), candidates[-1],
-                                                    blocks, adjacency, started=started))
+                                                    blocks, adjacency, started=started, seeded=seeds))
                     elif len(smooth.missed) and not smooth.at_optimum and _exact_pieces_instead(smooth, adjacency,
                                                                                                idx):
                         # on trial before the exact pieces: kept where its first round keeps a step
                         candidates.extend(_measured(call, rest, sculpt, idx, max(diagonal, floor), candidates[-1],
                                                     blocks, adjacency, started=started,
-                                                    trial_rounds=MEASURED_TRIAL_ROUNDS))
+                                                    trial_rounds=MEASURED_TRIAL_ROUNDS, seeded=seeds))
                     if len(candidates[-1].missed) and not candidates[-1].at_optimum and not _exact_pieces_instead(
                             candidates[-1], adjacency, idx):
                         candidates.extend(_escalate(call, blackbox, rest, sculpt, base, idx, diagonal, floor, first,
@@ -590,18 +594,19 @@ def _rank(result: InverseResult) -> tuple[int, int, float]:
 
 def _measured(call: Counted, rest: Points, sculpt: Points, idx: NDArray[np.int64], scale: float,
               result: InverseResult, blocks: NDArray[np.float64], adjacency: sp.csr_matrix | None, *,
-              started: float, outputs: Points | None = None, trial_rounds: int | None = None
-              ) -> list[InverseResult]:
+              started: float, outputs: Points | None = None, trial_rounds: int | None = None,
+              seeded: list[tuple[NDArray[np.float64], NDArray[np.float64]]] | None = None) -> list[InverseResult]:
     """``result`` finished on measured directions (``psdbake.solver.subspace``): its offsets, the
     chain's outputs there (``outputs``, else one call), up to ``subspace.CALLS`` calls more, or
-    only ``trial_rounds`` rounds where none of them keeps a step. Empty where the chain gives
-    non-finite values there."""
+    only ``trial_rounds`` rounds where none of them keeps a step; ``seeded``: directions already
+    measured at ``result``'s offsets (``invert_coupled(measured=...)``). Empty where the chain
+    gives non-finite values there."""
     offsets = np.asarray(result.offsets, dtype=np.float64)
     out = _outputs(call, rest, idx, offsets) if outputs is None else np.asarray(outputs, dtype=np.float64)
     if not np.all(np.isfinite(out)):
         return []
     found = subspace.solve(call, rest, sculpt[idx], idx, offsets, out, blocks, result.atol, scale, adjacency,
-                           trial_rounds=trial_rounds)
+                           trial_rounds=trial_rounds, seeded=seeded[0] if seeded else None)
     return [InverseResult(indices=idx, offsets=found.offsets, residual=found.residual,
                           status=_checked(result.status, found.residual, result.atol), evaluations=call.calls,
                           diagonal=result.diagonal, atol=result.atol, seconds=time.perf_counter() - started,
@@ -809,6 +814,7 @@ def invert_coupled(
     blocks: NDArray[np.float64] | None = None,
     weighted: bool = False,
     ridge: float | None = None,
+    measured: list[tuple[NDArray[np.float64], NDArray[np.float64]]] | None = None,
 ) -> InverseResult:
     """Newton-Krylov on the sculpted vertices' offsets (module docstring). ``base`` is
     ``call(rest)``; ``call.calls`` counts the example's calls so far (the budget's measure);
@@ -820,7 +826,9 @@ def invert_coupled(
     by ``OPTIMUM_RTOL``. ``weighted``: each vertex's residual weighs by how far above the
     residuals' RMS it is (``subspace.weights``), for a finish where few vertices are left above
     the tolerance. ``ridge``, where given, replaces that rule: this ridge, towards zero (0: none,
-    the escalation's stages, ``_escalate``; the out-of-reach stage's, ``_regularised``)."""
+    the escalation's stages, ``_escalate``; the out-of-reach stage's, ``_regularised``). Where no step
+    was kept, ``measured`` gets the directions measured at the start and the chain's responses
+    to them, (m, 3k) each: a stage that starts there again (``_measured``) need not measure them."""
     atol = max(rtol * diagonal, floor)
     target = sculpt[idx]
     k = len(idx)
@@ -875,6 +883,8 @@ def invert_coupled(
             return weight * jvp(z)
 
         directions, images = _gmres(weighted_jvp, precondition, weight * r, target_lin, budget)
+        if measured is not None and not steps:
+            measured[:] = [(directions, (images.reshape(-1, k, 3) / weight).reshape(images.shape))]
         scaled = weight * r
         merit = float(np.sum(scaled**2)) + ridge * float(np.sum((offsets - anchor) ** 2))
         delta, left = _ridge_step(scaled, offsets - anchor, directions, images, ridge)
@@ -900,6 +910,8 @@ def invert_coupled(
         offsets, out, r = trial, out_trial, r_trial
         norms = np.linalg.norm(r, axis=1)
         steps += 1
+    if measured is not None and steps:
+        measured.clear()
 
     status = np.full(k, powell.STALLED if stalled or optimum else powell.MAX_CYCLES, dtype=np.int8)
     status[norms <= atol] = powell.CONVERGED

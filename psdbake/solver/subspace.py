@@ -105,14 +105,17 @@ def region_neighbours(adjacency: sp.csr_matrix, idx: NDArray[np.int64], position
 
 def solve(call: BlackBox, rest: Points, target: Points, idx: NDArray[np.int64], offsets: Points, outputs: Points,
           blocks: NDArray[np.float64], atol: float, scale: float, adjacency: sp.csr_matrix | None,
-          max_calls: int = CALLS, trial_rounds: int | None = None) -> SubspaceResult:
+          max_calls: int = CALLS, trial_rounds: int | None = None,
+          seeded: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None) -> SubspaceResult:
     """Offsets on the sculpted vertices ``idx`` from ``offsets``, whose chain outputs there are
     ``outputs`` (module docstring). ``target`` is the sculpt at ``idx`` (k, 3), ``blocks`` the
     per-vertex 3x3 blocks, ``scale`` the diagonal. At most ``max_calls`` calls of ``call``, and
     no more than ``MAX_ENTRIES`` allow. With ``trial_rounds``, the solve stops where none of its
     first ``trial_rounds`` rounds kept a step: a caller with a surer, costlier stage to fall back
     on (``coupled``'s pieces by their exact Jacobians) spends a round to learn whether the
-    measured directions' linear model holds here."""
+    measured directions' linear model holds here. ``seeded``: directions of the offsets already
+    measured at ``offsets`` and the chain's responses to them, (m, 3k) each (Newton-Krylov's
+    Krylov space where it kept no step), kept as the solve's first."""
     offsets = np.array(offsets, dtype=np.float64)
     out = np.asarray(outputs, dtype=np.float64)
     r = target - out
@@ -128,6 +131,10 @@ def solve(call: BlackBox, rest: Points, target: Points, idx: NDArray[np.int64], 
         inverse[ok] = np.linalg.inv(blocks[ok])
     moves = np.empty((0, 3 * k))  # one row per direction: the offsets' move, of size about 1
     responses = np.empty((0, 3 * k))  # and the chain's response to it
+    if seeded is not None and len(seeded[0]):
+        size = np.abs(seeded[0]).max(axis=1, keepdims=True)
+        usable = (size[:, 0] > 0) & np.all(np.isfinite(seeded[1]), axis=1)
+        moves, responses = seeded[0][usable] / size[usable], seeded[1][usable] / size[usable]
     own: dict[int, NDArray[np.float64]] = {}  # vertex -> its own directions so far, (m, 3)
     linear = r  # what the linear model of the directions so far leaves
     calls = last_kept = rounds = 0
