@@ -50,11 +50,13 @@ Jacobian, for a smoothing deformer the skinning's own blocks) and its linearised
    ``rest + D`` checks it (halved up to ``BACKTRACKS`` times where it does not help). In this
    finish the vertices still above the tolerance weigh by how far above they are. Where it
    misses short of an optimum with at most ``POLISH_VERTICES`` left, measured directions
-   finish it as above. With more left, all on pieces that stage 4 measures, measured
-   directions **on trial** first: one round (``MEASURED_TRIAL_ROUNDS``), going on only where
-   it keeps a step. Stage 4 colours a piece by the chain's reach, and a piece that lies within
-   reach of itself (the character fixture's 168-vertex arm) takes nearly a colour a vertex;
-   the Krylov space learns it for less (that 135 degree elbow: 131 calls, against 319). Where
+   finish it as above. With more left, all on pieces that stage 4 measures, and the RMS
+   residual within ``pieces.TRUNCATE_WITHIN`` times the tolerance (a sculpt the chain can
+   reproduce: the plain-skinned ones are 60 times away and more), measured directions **on
+   trial** first: one round (``MEASURED_TRIAL_ROUNDS``), going on only where it keeps a step.
+   Stage 4 colours a piece by the chain's reach, and a piece that lies within reach of itself
+   (the character fixture's 168-vertex arm) takes nearly a colour a vertex; the Krylov space
+   learns it for less (that 135 degree elbow: 131 calls, against 319). Where
    Newton-Krylov kept no step, the directions it measured at the start are the measured
    directions' first (``invert_coupled(measured=...)``): that elbow's 24 (171 calls without).
 3. Where that misses: the **slower stages** (``_escalate``: the blocks' smooth start over the
@@ -341,8 +343,9 @@ def invert(blackbox: BlackBox, rest: Points, sculpt: Points, *, rtol: float = to
                     if len(smooth.missed) and not smooth.at_optimum and len(smooth.missed) <= POLISH_VERTICES:
                         candidates.extend(_measured(call, rest, sculpt, idx, max(diagonal, floor), candidates[-1],
                                                     blocks, adjacency, started=started, seeded=seeds))
-                    elif len(smooth.missed) and not smooth.at_optimum and _exact_pieces_instead(smooth, adjacency,
-                                                                                               idx):
+                    elif (len(smooth.missed) and not smooth.at_optimum
+                          and smooth.rms_residual <= pieces.TRUNCATE_WITHIN * smooth.atol
+                          and _exact_pieces_instead(smooth, adjacency, idx)):
                         # on trial before the exact pieces: kept where its first round keeps a step
                         candidates.extend(_measured(call, rest, sculpt, idx, max(diagonal, floor), candidates[-1],
                                                     blocks, adjacency, started=started,
