@@ -86,6 +86,7 @@ bench: $(STAMP)
 	$(BIN)/python -m benchmarks.jobsfile
 	$(BIN)/python -m benchmarks.conditioning
 	$(BIN)/python -m benchmarks.coupled
+	$(BIN)/python -m benchmarks.krylovfloor
 	$(BIN)/python -m benchmarks.evalspeed
 	$(BIN)/python -m benchmarks.fitspeed
 	$(BIN)/python -m benchmarks.sculptspeed

@@ -41,24 +41,28 @@ CHAIN = tuple(load_deformers([rigs.DELTA_MUSH_SPEC]))
 
 @dataclass
 class Case:
-    """One example: its black box (the whole chain), rest points, sculpt, mesh edges."""
+    """One example: its black box (the whole chain), rest points, sculpt, mesh edges, and for a
+    sculpt made through the chain the offsets it was made from (rounded to float32 as stored)."""
 
     name: str
     box: SkinningBlackBox
     rest: NDArray[np.float64]
     sculpt: NDArray[np.float64]
     adjacency: sp.csr_matrix
+    offsets: NDArray[np.float64] | None = None
 
 
 def _case(name: str, scene: Scene, mesh: str, time: float, offsets: NDArray[np.float64] | None,
           sculpt: NDArray[np.float64] | None = None) -> Case:
     box = SkinningBlackBox(scene, mesh, time, CHAIN)
     rest = scene.rest_points(mesh)
+    moved = None
     if offsets is not None:
         moved = (rest + offsets).astype(np.float32).astype(np.float64)
         sculpt = box(moved).astype(np.float32).astype(np.float64)
     assert sculpt is not None
-    return Case(name, box, rest, sculpt, edge_adjacency(rest_mesh(scene.stage, mesh)[1]))
+    return Case(name, box, rest, sculpt, edge_adjacency(rest_mesh(scene.stage, mesh)[1]),
+                None if moved is None else moved - rest)
 
 
 def cesium_swelling(rest: NDArray[np.float64], example: int) -> NDArray[np.float64]:

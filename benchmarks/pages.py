@@ -30,7 +30,8 @@ PAGES: dict[str, tuple[str, str, list[tuple[str, str]]]] = {
         "produced them. The machines are shared 2-core machines: seconds vary between runs, so read the ratios, each "
         "taken within one run. How these figures shaped the code: [decisions](decisions/index.md).",
         [("run", "The inverse against its references"), ("run_solver", "The solver"),
-         ("coupled", "A chain that couples vertices"), ("conditioning", "Many examples"),
+         ("coupled", "A chain that couples vertices"), ("krylovfloor", "The coupled inverse's floor on real characters"),
+         ("conditioning", "Many examples"),
          ("jobs", "`fit --jobs`"), ("batch", "`batch --workers`"), ("startup", "Start-up"),
          ("evalspeed", "Eval and the points cache at film scale"), ("fitspeed", "Fit at film scale"),
          ("sculptspeed", "Fit time by kind of sculpt"), ("manyjoints", "A big skeleton, a small sculpt"),

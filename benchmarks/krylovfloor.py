@@ -1,0 +1,174 @@
+"""How many measured directions the linear problem alone needs: the floor under the coupled
+inverse's calls on the real characters.
+
+For each sculpt made through LBS + Delta Mush from known offsets (``benchmarks.characters``:
+the character fixture's eight examples and CesiumMan's two), the chain's Jacobian on the
+sculpted vertices is measured *at the answer* (central differences, 2 calls a column, calls
+the solver never gets), and GMRES, right-preconditioned by the per-vertex blocks as the
+solver's Krylov stages are, solves the linear problem ``J D = J D_true`` from zero. The
+products it needs until every vertex's linear residual is within the fit's tolerance are what
+a Krylov method measuring one direction a call spends on the linearised problem alone, with
+the exact Jacobian: no nonlinearity, no noise. The answer's smooth fields are counted too: the
+fewest of the region's smoothest fields (``psdbake.solver.smoothbasis``) in whose span the
+least-squares fit on the exact Jacobian is within the tolerance, 3 unknowns a field.
+
+Beside them, psdbake's own calls on the same example (``coupled.invert``), which include the
+per-vertex solver's first 5 calls and the smooth start.
+
+Run: ``python -m benchmarks.krylovfloor [--no-cesium]`` (``make bench``; CesiumMan's two
+Jacobians take about 16k calls each).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+
+import numpy as np
+from numpy.typing import NDArray
+
+from psdbake import tolerances as tol
+from psdbake.solver import coupled
+from psdbake.solver.inverse import sculpted_vertices
+from psdbake.solver.smoothbasis import smooth_basis
+
+from . import characters, results
+
+#: Central-difference step, a fraction of the diagonal (float32 outputs: ~1e-7 of it is noise).
+STEP_RTOL = 1e-5
+#: GMRES products at most (beyond it the example is reported as "> MAX_PRODUCTS").
+MAX_PRODUCTS = 600
+#: Smooth-field counts tried, smallest first.
+FIELDS = (4, 8, 16, 32, 48, 64, 96, 128, 192, 256)
+
+ABOUT = (
+    "The floor under the coupled inverse's calls on the real characters: for each sculpt made through LBS + Delta "
+    "Mush from known offsets, the chain's Jacobian on the sculpted vertices measured at the answer (central "
+    "differences), then GMRES right-preconditioned by the per-vertex blocks (as psdbake's Krylov stages are) on "
+    "the linear problem J D = J D_true from zero. Its products, until every vertex is within the fit's tolerance, "
+    "are what one measured direction a call spends on the linearised problem alone, with the exact Jacobian; "
+    "beside them psdbake's calls on the nonlinear problem, and the fewest of the region's smoothest fields whose "
+    "span holds the answer within the tolerance (3 unknowns a field).")
+
+
+def log(msg: str) -> None:
+    print(f"[{time.strftime('%H:%M:%S')}] {msg}", file=sys.stderr, flush=True)
+
+
+def jacobian(case: characters.Case, idx: NDArray[np.int64], at: NDArray[np.float64], step: float
+             ) -> NDArray[np.float64]:
+    """d outputs[idx] / d offsets[idx] at ``rest + at`` (3k, 3k), by central differences."""
+    k = len(idx)
+    columns = np.empty((3 * k, 3 * k))
+    moved = case.rest.copy()
+    moved[idx] += at
+    for j in range(3 * k):
+        v, a = divmod(j, 3)
+        moved[idx[v], a] += step
+        plus = case.box(moved)[idx]
+        moved[idx[v], a] -= 2 * step
+        minus = case.box(moved)[idx]
+        moved[idx[v], a] += step
+        columns[:, j] = ((plus - minus) / (2 * step)).ravel()
+    return columns
+
+
+def gmres_products(jac: NDArray[np.float64], blocks_inverse: NDArray[np.float64], b: NDArray[np.float64],
+                   atol: float) -> int | None:
+    """Products of right-preconditioned GMRES (modified Gram-Schmidt) on ``jac x = b`` from zero until
+    every vertex's residual is within ``atol``; None beyond ``MAX_PRODUCTS``."""
+    k = len(b) // 3
+    beta = float(np.linalg.norm(b))
+    basis = np.zeros((MAX_PRODUCTS + 1, len(b)))
+    images = np.zeros((MAX_PRODUCTS, len(b)))
+    hess = np.zeros((MAX_PRODUCTS + 1, MAX_PRODUCTS))
+    basis[0] = b / beta
+    for j in range(MAX_PRODUCTS):
+        w = jac @ np.einsum("kab,kb->ka", blocks_inverse, basis[j].reshape(k, 3)).ravel()
+        images[j] = w
+        for i in range(j + 1):
+            hess[i, j] = basis[i] @ w
+            w = w - hess[i, j] * basis[i]
+        hess[j + 1, j] = np.linalg.norm(w)
+        rhs = np.zeros(j + 2)
+        rhs[0] = beta
+        y = np.linalg.lstsq(hess[: j + 2, : j + 1], rhs, rcond=None)[0]
+        left = (b - y @ images[: j + 1]).reshape(k, 3)
+        if np.linalg.norm(left, axis=1).max() <= atol:
+            return j + 1
+        if hess[j + 1, j] <= 1e-14 * beta:
+            return None
+        basis[j + 1] = w / hess[j + 1, j]
+    return None
+
+
+def fields_needed(case: characters.Case, idx: NDArray[np.int64], jac: NDArray[np.float64],
+                  truth: NDArray[np.float64], atol: float) -> int | None:
+    """The fewest of ``FIELDS`` smoothest fields whose span, fitted by least squares on ``jac``,
+    leaves every vertex within ``atol``; None where none does."""
+    b = jac @ truth.ravel()
+    for count in FIELDS:
+        if count > len(idx):
+            break
+        basis = smooth_basis(case.adjacency, idx, count)
+        if basis is None:
+            return None
+        span = jac @ np.kron(basis, np.eye(3))
+        y = np.linalg.lstsq(span, b, rcond=None)[0]
+        if np.linalg.norm((b - span @ y).reshape(-1, 3), axis=1).max() <= atol:
+            return count
+    return None
+
+
+def measure(case: characters.Case) -> dict:
+    """The floor and psdbake's calls for one example."""
+    assert case.offsets is not None
+    started = time.perf_counter()
+    res = coupled.invert(case.box, case.rest, case.sculpt, neighbours=lambda: case.adjacency)
+    base = case.box(case.rest)
+    diagonal, floor, idx = sculpted_vertices(case.rest, base, case.sculpt)
+    atol = max(tol.INVERSE_RTOL * diagonal, floor)
+    truth = case.offsets[idx]
+    jac = jacobian(case, idx, truth, STEP_RTOL * diagonal)
+    blocks = row_sums(jac, len(idx))
+    products = gmres_products(jac, np.linalg.inv(blocks), jac @ truth.ravel(), atol)
+    fields = fields_needed(case, idx, jac, truth, atol)
+    row = {"example": case.name, "vertices": len(idx), "psdbake_calls": res.evaluations,
+           "psdbake_missed": len(res.missed), "gmres_products": products, "fields": fields,
+           "seconds": time.perf_counter() - started}
+    log(f"{case.name}: {row}")
+    return row
+
+
+def row_sums(jac: NDArray[np.float64], k: int) -> NDArray[np.float64]:
+    """The per-vertex 3x3 blocks the solver measures (3 calls moving every sculpted vertex along
+    x, y, z): the row sums of the Jacobian's 3x3 tiles, (k, 3, 3)."""
+    return jac.reshape(k, 3, k, 3).sum(axis=2)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--no-cesium", action="store_true", help="the character fixture only")
+    parser.add_argument("--json", default=results.path_of("krylovfloor"), help="where to write the results record")
+    args = parser.parse_args(argv)
+    cases = characters.whole_character() + ([] if args.no_cesium else characters.cesium())
+    rows = [measure(case) for case in cases]
+    cells = [[r["example"], f"{r['vertices']:,}", f"{r['psdbake_calls']:,}",
+              str(r["gmres_products"]) if r["gmres_products"] is not None else f"> {MAX_PRODUCTS}",
+              str(r["fields"]) if r["fields"] is not None else f"> {FIELDS[-1]}"] for r in rows]
+    for c in cells:
+        print(" | ".join(c))
+    table = results.table(
+        "The linear problem's floor: measured directions with the exact Jacobian",
+        ["example", "sculpted vertices", "psdbake calls", "GMRES products, exact Jacobian at the answer",
+         "smooth fields the answer needs"], cells,
+        notes="GMRES products: right-preconditioned by the per-vertex blocks, from zero, until every vertex of "
+              "the linear problem is within the fit's tolerance (1e-6 of the diagonal). psdbake's calls include "
+              "its 5 first calls and the smooth start; its smooth start is not given the exact Jacobian.")
+    results.write("krylovfloor", argv, ABOUT, [table], raw=rows, path=args.json)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
