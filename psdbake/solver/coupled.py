@@ -169,9 +169,9 @@ POLISH_VERTICES = 128
 #: Rounds of measured directions on trial before stage 4 (above): where the first keeps no step,
 #: the Krylov space's model does not hold there and stage 4 follows. The character fixture's 135
 #: degree elbow keeps its first step at the round's 10th call (319 -> 171 calls in all, 131 with
-#: Newton-Krylov's 24 directions handed on). CesiumMan's
-#: rounds keep none: the trial costs it 11 calls (430 / 468 -> 438 / 475 with the 3-4 calls
-#: ``inverse.Counted``'s memo saves); run to the stall rule's 80 calls, 511 / 549.
+#: Newton-Krylov's 24 directions handed on). CesiumMan's rounds keep none: the trial costs it 11
+#: calls (430 / 468 -> 438 / 475 with the 3-4 calls ``inverse.Counted``'s memo saves); run to the
+#: stall rule's 80 calls, 511 / 549.
 MEASURED_TRIAL_ROUNDS = 1
 #: What a result finished on measured directions (``_measured``) says after its regime.
 MEASURED = ", on measured directions"
