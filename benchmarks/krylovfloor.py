@@ -65,42 +65,27 @@ def jacobian(case: characters.Case, idx: NDArray[np.int64], at: NDArray[np.float
     moved[idx] += at
     for j in range(3 * k):
         v, a = divmod(j, 3)
-        moved[idx[v], a] += step
+        value = moved[idx[v], a]
+        moved[idx[v], a] = value + step
         plus = case.box(moved)[idx]
-        moved[idx[v], a] -= 2 * step
+        moved[idx[v], a] = value - step
         minus = case.box(moved)[idx]
-        moved[idx[v], a] += step
+        moved[idx[v], a] = value
         columns[:, j] = ((plus - minus) / (2 * step)).ravel()
     return columns
 
 
 def gmres_products(jac: NDArray[np.float64], blocks_inverse: NDArray[np.float64], b: NDArray[np.float64],
                    atol: float) -> int | None:
-    """Products of right-preconditioned GMRES (modified Gram-Schmidt) on ``jac x = b`` from zero until
-    every vertex's residual is within ``atol``; None beyond ``MAX_PRODUCTS``."""
+    """Products the solver's own GMRES (``coupled._gmres``, right-preconditioned by the blocks)
+    takes on ``jac x = b`` from zero until every vertex's residual is within ``atol``; None where
+    it stops short of that (``MAX_PRODUCTS``, or its Krylov space exhausted)."""
     k = len(b) // 3
-    beta = float(np.linalg.norm(b))
-    basis = np.zeros((MAX_PRODUCTS + 1, len(b)))
-    images = np.zeros((MAX_PRODUCTS, len(b)))
-    hess = np.zeros((MAX_PRODUCTS + 1, MAX_PRODUCTS))
-    basis[0] = b / beta
-    for j in range(MAX_PRODUCTS):
-        w = jac @ np.einsum("kab,kb->ka", blocks_inverse, basis[j].reshape(k, 3)).ravel()
-        images[j] = w
-        for i in range(j + 1):
-            hess[i, j] = basis[i] @ w
-            w = w - hess[i, j] * basis[i]
-        hess[j + 1, j] = np.linalg.norm(w)
-        rhs = np.zeros(j + 2)
-        rhs[0] = beta
-        y = np.linalg.lstsq(hess[: j + 2, : j + 1], rhs, rcond=None)[0]
-        left = (b - y @ images[: j + 1]).reshape(k, 3)
-        if np.linalg.norm(left, axis=1).max() <= atol:
-            return j + 1
-        if hess[j + 1, j] <= 1e-14 * beta:
-            return None
-        basis[j + 1] = w / hess[j + 1, j]
-    return None
+    directions, images = coupled._gmres(lambda z: (jac @ z.ravel()).reshape(k, 3),
+                                        lambda v: np.einsum("kab,kb->ka", blocks_inverse, v),
+                                        b.reshape(k, 3), atol, MAX_PRODUCTS)
+    y = np.linalg.lstsq(images.T, b, rcond=None)[0]
+    return len(directions) if np.linalg.norm((b - y @ images).reshape(k, 3), axis=1).max() <= atol else None
 
 
 def fields_needed(case: characters.Case, idx: NDArray[np.int64], jac: NDArray[np.float64],

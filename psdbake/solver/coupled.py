@@ -339,17 +339,18 @@ def invert(blackbox: BlackBox, rest: Points, sculpt: Points, *, rtol: float = to
                     smooth = invert_coupled(call, rest, sculpt, base, idx, diagonal, floor, rtol=rtol, started=started,
                                             max_evaluations=call.calls + FINISH_EVALUATIONS, start=offsets,
                                             start_outputs=outputs, blocks=blocks, weighted=True, measured=seeds)
+                    handed = seeds[0] if seeds else None  # its directions, where it kept no step
                     candidates.append(dataclasses.replace(smooth, regime="coupled, from the smooth start"))
                     if len(smooth.missed) and not smooth.at_optimum and len(smooth.missed) <= POLISH_VERTICES:
                         candidates.extend(_measured(call, rest, sculpt, idx, max(diagonal, floor), candidates[-1],
-                                                    blocks, adjacency, started=started, seeded=seeds))
+                                                    blocks, adjacency, started=started, seeded=handed))
                     elif (len(smooth.missed) and not smooth.at_optimum
                           and smooth.rms_residual <= pieces.TRUNCATE_WITHIN * smooth.atol
                           and _exact_pieces_instead(smooth, adjacency, idx)):
                         # on trial before the exact pieces: kept where its first round keeps a step
                         candidates.extend(_measured(call, rest, sculpt, idx, max(diagonal, floor), candidates[-1],
                                                     blocks, adjacency, started=started,
-                                                    trial_rounds=MEASURED_TRIAL_ROUNDS, seeded=seeds))
+                                                    trial_rounds=MEASURED_TRIAL_ROUNDS, seeded=handed))
                     if len(candidates[-1].missed) and not candidates[-1].at_optimum and not _exact_pieces_instead(
                             candidates[-1], adjacency, idx):
                         candidates.extend(_escalate(call, blackbox, rest, sculpt, base, idx, diagonal, floor, first,
@@ -598,7 +599,7 @@ def _rank(result: InverseResult) -> tuple[int, int, float]:
 def _measured(call: Counted, rest: Points, sculpt: Points, idx: NDArray[np.int64], scale: float,
               result: InverseResult, blocks: NDArray[np.float64], adjacency: sp.csr_matrix | None, *,
               started: float, outputs: Points | None = None, trial_rounds: int | None = None,
-              seeded: list[tuple[NDArray[np.float64], NDArray[np.float64]]] | None = None) -> list[InverseResult]:
+              seeded: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None) -> list[InverseResult]:
     """``result`` finished on measured directions (``psdbake.solver.subspace``): its offsets, the
     chain's outputs there (``outputs``, else one call), up to ``subspace.CALLS`` calls more, or
     only ``trial_rounds`` rounds where none of them keeps a step; ``seeded``: directions already
@@ -609,7 +610,7 @@ def _measured(call: Counted, rest: Points, sculpt: Points, idx: NDArray[np.int64
     if not np.all(np.isfinite(out)):
         return []
     found = subspace.solve(call, rest, sculpt[idx], idx, offsets, out, blocks, result.atol, scale, adjacency,
-                           trial_rounds=trial_rounds, seeded=seeded[0] if seeded else None)
+                           trial_rounds=trial_rounds, seeded=seeded)
     return [InverseResult(indices=idx, offsets=found.offsets, residual=found.residual,
                           status=_checked(result.status, found.residual, result.atol), evaluations=call.calls,
                           diagonal=result.diagonal, atol=result.atol, seconds=time.perf_counter() - started,
@@ -831,7 +832,8 @@ def invert_coupled(
     the tolerance. ``ridge``, where given, replaces that rule: this ridge, towards zero (0: none,
     the escalation's stages, ``_escalate``; the out-of-reach stage's, ``_regularised``). Where no step
     was kept, ``measured`` gets the directions measured at the start and the chain's responses
-    to them, (m, 3k) each: a stage that starts there again (``_measured``) need not measure them."""
+    to them, (m, 3k) each, as its one item: a stage that starts there again (``_measured``) need
+    not measure them."""
     atol = max(rtol * diagonal, floor)
     target = sculpt[idx]
     k = len(idx)
@@ -859,6 +861,7 @@ def invert_coupled(
     norms = np.linalg.norm(r, axis=1)
     stalled = optimum = False
     steps = 0
+    at_start: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None
     # the regularisation: offsets pulled towards zero weakly (``smoothstart.ridge``); after the
     # smooth start, its departures from the smooth start more strongly (``FINISH_RIDGE``)
     anchor = np.zeros((k, 3)) if start is None or not weighted else np.array(start, dtype=np.float64)
@@ -886,8 +889,8 @@ def invert_coupled(
             return weight * jvp(z)
 
         directions, images = _gmres(weighted_jvp, precondition, weight * r, target_lin, budget)
-        if measured is not None and not steps:
-            measured[:] = [(directions, (images.reshape(-1, k, 3) / weight).reshape(images.shape))]
+        if not steps:  # measured at the start (unweighted)
+            at_start = (directions, (images.reshape(-1, k, 3) / weight).reshape(images.shape))
         scaled = weight * r
         merit = float(np.sum(scaled**2)) + ridge * float(np.sum((offsets - anchor) ** 2))
         delta, left = _ridge_step(scaled, offsets - anchor, directions, images, ridge)
@@ -913,8 +916,8 @@ def invert_coupled(
         offsets, out, r = trial, out_trial, r_trial
         norms = np.linalg.norm(r, axis=1)
         steps += 1
-    if measured is not None and steps:
-        measured.clear()
+    if measured is not None and not steps and at_start is not None:
+        measured.append(at_start)
 
     status = np.full(k, powell.STALLED if stalled or optimum else powell.MAX_CYCLES, dtype=np.int8)
     status[norms <= atol] = powell.CONVERGED
