@@ -135,14 +135,15 @@ def test_broyden_update_satisfies_the_secant_equation():
 
 #: Calls per example of the coupled inverse on the coarse rig with Delta Mush (10 iterations),
 #: elbow 20-160 degrees: the issue's goal, at most 40 on average over the eight. Measured with
-#: the pinned BLAS kernel (psdbake.reproducible): 17, 19, 38, 60, 76, 29, 22 and 29 calls, mean
-#: 36.2 (the 80 and 100 degree folds, where the smooth start leaves 18 and 22 vertices at up to
-#: 5.7 times the tolerance, finish on measured directions; with the same kernel they took 128
+#: the pinned BLAS kernel (psdbake.reproducible): 17, 19, 38, 62, 77, 29, 22 and 29 calls, mean
+#: 36.6 (the 80 and 100 degree folds, where the smooth start leaves 18 and 22 vertices at up to
+#: 5.7 times the tolerance, finish on measured directions, after 1 call that tries the blocks
+#: finely and, at 80 degrees, 2 that measure them; with the same kernel they took 128
 #: and 171 calls when a per-vertex polish measured 3 columns a vertex after a Newton-Krylov
 #: finish).
 COUPLED_MEAN_CALLS = 40
 #: Each example's own ceiling: what was measured and a tenth more, at least 3 calls.
-COUPLED_MAX_CALLS = {1.0: 20, 2.0: 22, 3.0: 42, 4.0: 66, 5.0: 84, 6.0: 32, 7.0: 25, 8.0: 32}
+COUPLED_MAX_CALLS = {1.0: 20, 2.0: 22, 3.0: 42, 4.0: 69, 5.0: 85, 6.0: 32, 7.0: 25, 8.0: 32}
 
 
 @pytest.fixture(scope="module")
@@ -179,10 +180,13 @@ def test_coupled_chain_on_a_coarse_rig_within_forty_calls_an_example(coupled_res
 def test_the_folds_finish_on_measured_directions(coupled_results):
     """The 80 and 100 degree elbows: what the smooth start leaves sits at the fold, and the
     solve on measured directions (psdbake.solver.subspace) takes it from there, without the
-    Newton-Krylov finish or the slower stages."""
+    Newton-Krylov finish or the slower stages (at 80 degrees on the fine blocks: the per-vertex
+    solver's blocks there are off by 0.11 of the probe's response)."""
     for time in (4.0, 5.0):
         res, _ = coupled_results[time]
-        assert res.regime == "coupled, from the smooth start" + coupled.MEASURED, res.regime
+        assert res.regime.endswith(coupled.MEASURED), res.regime
+        start = res.regime.removesuffix(coupled.MEASURED).removesuffix(coupled.FINE_BLOCKS)
+        assert start == "coupled, from the smooth start", res.regime
 
 
 def _adjacency(rig):

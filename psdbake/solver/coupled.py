@@ -33,6 +33,13 @@ Jacobian, for a smoothing deformer the skinning's own blocks) and its linearised
    step's call. Where the smoothing reaches across a large part of a small mesh, the fields a
    sculpt needs come out of the chain at a fifth of their size or less; the blocks alone took
    them at full size, and the smooth start undershot by that much at every step.
+   Where it misses, **the blocks are tried finely** (``_on_fine_blocks``): one call moves
+   every sculpted vertex by ``FINE_BLOCKS_RTOL`` of the diagonal along x, y and z from the
+   smooth start's offsets. Where the response is off the blocks' prediction by more than
+   ``BLOCKS_DISAGREE``, their 1e-2 step crossed a fold's non-linearity: 2 calls more measure
+   them there, the stages below use them, and a smooth start that left the sculpt far runs
+   again on them from zero (the character fixture's 135 degree elbow: 131 -> 63 calls; its
+   140, finished on measured directions on them: 103 -> 49).
 2. Where the smooth start leaves the sculpt nearly reproduced (the RMS residual within
    ``pieces.REACHABLE_SLACK`` times the tolerance): **Gauss-Newton on measured directions**
    (``psdbake.solver.subspace``), one call a direction: global ones (the blocks' inverse on
@@ -56,7 +63,8 @@ Jacobian, for a smoothing deformer the skinning's own blocks) and its linearised
    trial** first: one round (``MEASURED_TRIAL_ROUNDS``), going on only where it keeps a step.
    Stage 4 colours a piece by the chain's reach, and a piece that lies within reach of itself
    (the character fixture's 168-vertex arm) takes nearly a colour a vertex; the Krylov space
-   learns it for less (that 135 degree elbow: 131 calls, against 319). Where
+   learns it for less (that 135 degree elbow on the per-vertex solver's blocks: 131 calls,
+   against 319). Where
    Newton-Krylov kept no step, the directions it measured at the start are the measured
    directions' first (``invert_coupled(measured=...)``): that elbow's 24 (171 calls without).
 3. Where that misses: the **slower stages** (``_escalate``: the blocks' smooth start over the
@@ -173,6 +181,24 @@ POLISH_VERTICES = 128
 #: calls (430 / 468 -> 438 / 475 with the 3-4 calls ``inverse.Counted``'s memo saves); run to the
 #: stall rule's 80 calls, 511 / 549.
 MEASURED_TRIAL_ROUNDS = 1
+#: Where the smooth start misses, the blocks are tried at its offsets (``_on_fine_blocks``: 1
+#: call, 3 where they are measured again) with a step this fraction of the diagonal, 100 times
+#: smaller than the per-vertex solver's ``tol.JACOBIAN_STEP_RTOL``. That step suits skinning
+#: (affine: exact at any step, and it keeps float32 noise out of the 5-call solve), but at a
+#: deep fold it crosses Delta Mush's non-linearity. Float32 outputs put about 3e-4 of noise on
+#: these; 1e-3 and 1e-5 gave the character fixture the same calls.
+FINE_BLOCKS_RTOL = 1e-4
+#: Where the response to that call is off the blocks' prediction (their row sums) by more than
+#: this (relative, in the Frobenius norm over the region), the fine blocks are measured and the
+#: stages after the smooth start use them; a smooth start that left the sculpt far (RMS residual
+#: above ``pieces.REACHABLE_SLACK`` times the tolerance) runs again on them from zero, kept where
+#: it ends nearer. Measured at the smooth start's offsets: the character fixture's 140 and 135
+#: degree elbows 0.141 and 0.168 (a few crease vertices' blocks off by 80-100%); the 1.3k bench
+#: rig's 80 degree elbow 0.112 (60 -> 62 calls), its other folds and the 3k rig's 0.069 at
+#: most, the 13k's 0.025, CesiumMan's 0.002.
+BLOCKS_DISAGREE = 0.1
+#: What a result from the stages on the fine blocks says after "from the smooth start".
+FINE_BLOCKS = " on fine blocks"
 #: What a result finished on measured directions (``_measured``) says after its regime.
 MEASURED = ", on measured directions"
 #: And one whose pieces were solved on their exact Jacobians (``_exact_pieces``).
@@ -326,6 +352,10 @@ def invert(blackbox: BlackBox, rest: Points, sculpt: Points, *, rtol: float = to
             if start is not None:
                 offsets, outputs = start
                 begun = _at(sculpt, idx, offsets, outputs, diagonal, floor, rtol, call.calls, started)
+                if len(begun.missed):  # the blocks again, finely, where it misses (3 calls)
+                    begun, offsets, outputs, blocks = _on_fine_blocks(call, rest, sculpt, base, idx, diagonal, floor,
+                                                                      blocks, adjacency, begun, offsets, outputs,
+                                                                      rtol=rtol, started=started)
                 if len(begun.missed) and begun.rms_residual <= pieces.REACHABLE_SLACK * begun.atol:
                     # 1a. nearly reproduced: finished on measured directions
                     candidates.extend(_measured(call, rest, sculpt, idx, max(diagonal, floor), begun, blocks,
@@ -340,7 +370,7 @@ def invert(blackbox: BlackBox, rest: Points, sculpt: Points, *, rtol: float = to
                                             max_evaluations=call.calls + FINISH_EVALUATIONS, start=offsets,
                                             start_outputs=outputs, blocks=blocks, weighted=True, measured=seeds)
                     handed = seeds[0] if seeds else None  # its directions, where it kept no step
-                    candidates.append(dataclasses.replace(smooth, regime="coupled, from the smooth start"))
+                    candidates.append(dataclasses.replace(smooth, regime=begun.regime))
                     if len(smooth.missed) and not smooth.at_optimum and len(smooth.missed) <= POLISH_VERTICES:
                         candidates.extend(_measured(call, rest, sculpt, idx, max(diagonal, floor), candidates[-1],
                                                     blocks, adjacency, started=started, seeded=handed))
@@ -393,6 +423,43 @@ def _at(sculpt: Points, idx: NDArray[np.int64], offsets: Points, outputs: Points
     return InverseResult(indices=idx, offsets=np.asarray(offsets, dtype=np.float64), residual=norms, status=status,
                          evaluations=calls, diagonal=diagonal, atol=atol, seconds=time.perf_counter() - started,
                          regime="coupled, from the smooth start")
+
+
+def _on_fine_blocks(call: Counted, rest: Points, sculpt: Points, base: Points, idx: NDArray[np.int64],
+                    diagonal: float, floor: float, blocks: NDArray[np.float64], adjacency: sp.csr_matrix,
+                    begun: InverseResult, offsets: Points, outputs: Points, *, rtol: float, started: float
+                    ) -> tuple[InverseResult, Points, Points, NDArray[np.float64]]:
+    """The smooth start's result, offsets, outputs and the blocks for the stages after it. One
+    call moves every sculpted vertex by ``FINE_BLOCKS_RTOL`` of the diagonal along x, y and z
+    at once from the smooth start's offsets; where the response differs from what ``blocks``
+    predict by more than ``BLOCKS_DISAGREE``, the per-vertex solver's step measured them across
+    a fold's non-linearity, and 2 calls more give the fine blocks (``blocks_at``; z's column is
+    the first call's response less x's and y's). They are kept, and where the smooth start left
+    the sculpt far, it runs again on them (the character fixture's 135 degree elbow: its model
+    on the coarse blocks stalled at 350 times the tolerance; on the fine ones the coarse span
+    alone came within 2.2 times it)."""
+    step = FINE_BLOCKS_RTOL * max(diagonal, floor)
+    at = rest.copy()
+    at[idx] += offsets
+    moved = at.copy()
+    moved[idx] += step
+    response = (call(moved)[idx] - outputs) / step
+    size = float(np.linalg.norm(response))
+    if not (np.isfinite(size) and float(np.linalg.norm(response - blocks.sum(axis=2))) > BLOCKS_DISAGREE * size):
+        return begun, offsets, outputs, blocks
+    fine = np.empty_like(blocks)
+    fine[:, :, :2] = blocks_at(call, rest, idx, offsets, outputs, step, axes=2)
+    fine[:, :, 2] = response - fine[:, :, 0] - fine[:, :, 1]
+    regime = begun.regime + FINE_BLOCKS
+    if begun.rms_residual <= pieces.REACHABLE_SLACK * begun.atol:
+        return dataclasses.replace(begun, regime=regime), offsets, outputs, fine
+    again = smooth_start(call, rest, sculpt, base, idx, diagonal, fine, adjacency, max(rtol * diagonal, floor))
+    if again is None:
+        return begun, offsets, outputs, blocks
+    redone = _at(sculpt, idx, again[0], again[1], diagonal, floor, rtol, call.calls, started)
+    if not redone.rms_residual < begun.rms_residual:
+        return begun, offsets, outputs, blocks
+    return dataclasses.replace(redone, regime=regime), again[0], again[1], fine
 
 
 def _small_pieces_first(call: Counted, blackbox: BlackBox, rest: Points, sculpt: Points, base: Points,
@@ -756,12 +823,22 @@ def chain_blocks(call: BlackBox, rest: Points, base: Points, idx: NDArray[np.int
     x, then y, then z (forward differences, ``JACOBIAN_STEP_RTOL`` of the diagonal): the
     per-vertex solver's Jacobian; for a coupled chain the row sums of its Jacobian, which for a
     smoothing deformer (weights summing to 1) are the skinning's own blocks."""
-    jstep = tol.JACOBIAN_STEP_RTOL * max(diagonal, floor)
-    blocks = np.empty((len(idx), 3, 3))
-    for axis in range(3):
-        moved = rest.copy()
-        moved[idx, axis] += jstep
-        blocks[:, :, axis] = (call(moved)[idx] - base[idx]) / jstep
+    return blocks_at(call, rest, idx, np.zeros((len(idx), 3)), base[idx],
+                     tol.JACOBIAN_STEP_RTOL * max(diagonal, floor))
+
+
+def blocks_at(call: BlackBox, rest: Points, idx: NDArray[np.int64], offsets: Points, outputs: Points,
+              step: float, axes: int = 3) -> NDArray[np.float64]:
+    """The per-vertex 3x3 blocks (len(idx), 3, axes) at ``rest + offsets`` on ``idx``, whose
+    outputs there are ``outputs``: a call a column, moving every sculpted vertex by ``step``
+    along x, then y, then z (forward differences; the first ``axes`` of them)."""
+    at = rest.copy()
+    at[idx] += offsets
+    blocks = np.empty((len(idx), 3, axes))
+    for axis in range(axes):
+        moved = at.copy()
+        moved[idx, axis] += step
+        blocks[:, :, axis] = (call(moved)[idx] - outputs) / step
     return blocks
 
 
