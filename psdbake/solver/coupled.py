@@ -352,7 +352,7 @@ def invert(blackbox: BlackBox, rest: Points, sculpt: Points, *, rtol: float = to
             if start is not None:
                 offsets, outputs = start
                 begun = _at(sculpt, idx, offsets, outputs, diagonal, floor, rtol, call.calls, started)
-                if len(begun.missed):  # the blocks again, finely, where it misses (3 calls)
+                if len(begun.missed):  # the blocks tried finely where it misses (1 call; 3 where they are off)
                     begun, offsets, outputs, blocks = _on_fine_blocks(call, rest, sculpt, base, idx, diagonal, floor,
                                                                       blocks, adjacency, begun, offsets, outputs,
                                                                       rtol=rtol, started=started)
@@ -450,6 +450,8 @@ def _on_fine_blocks(call: Counted, rest: Points, sculpt: Points, base: Points, i
     fine = np.empty_like(blocks)
     fine[:, :, :2] = blocks_at(call, rest, idx, offsets, outputs, step, axes=2)
     fine[:, :, 2] = response - fine[:, :, 0] - fine[:, :, 1]
+    if not np.all(np.isfinite(fine)):  # the chain gave non-finite values there: the blocks as they were
+        return begun, offsets, outputs, blocks
     regime = begun.regime + FINE_BLOCKS
     if begun.rms_residual <= pieces.REACHABLE_SLACK * begun.atol:
         return dataclasses.replace(begun, regime=regime), offsets, outputs, fine
