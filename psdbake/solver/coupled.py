@@ -371,16 +371,15 @@ def invert(blackbox: BlackBox, rest: Points, sculpt: Points, *, rtol: float = to
                                             start_outputs=outputs, blocks=blocks, weighted=True, measured=seeds)
                     handed = seeds[0] if seeds else None  # its directions, where it kept no step
                     candidates.append(dataclasses.replace(smooth, regime=begun.regime))
-                    if len(smooth.missed) and not smooth.at_optimum and len(smooth.missed) <= POLISH_VERTICES:
+                    missing = bool(len(smooth.missed)) and not smooth.at_optimum
+                    polish = missing and len(smooth.missed) <= POLISH_VERTICES
+                    # else on trial before the exact pieces: kept where its first round keeps a step
+                    trial = (missing and not polish and smooth.rms_residual <= pieces.TRUNCATE_WITHIN * smooth.atol
+                             and _exact_pieces_instead(smooth, adjacency, idx))
+                    if polish or trial:
                         candidates.extend(_measured(call, rest, sculpt, idx, max(diagonal, floor), candidates[-1],
-                                                    blocks, adjacency, started=started, seeded=handed))
-                    elif (len(smooth.missed) and not smooth.at_optimum
-                          and smooth.rms_residual <= pieces.TRUNCATE_WITHIN * smooth.atol
-                          and _exact_pieces_instead(smooth, adjacency, idx)):
-                        # on trial before the exact pieces: kept where its first round keeps a step
-                        candidates.extend(_measured(call, rest, sculpt, idx, max(diagonal, floor), candidates[-1],
-                                                    blocks, adjacency, started=started,
-                                                    trial_rounds=MEASURED_TRIAL_ROUNDS, seeded=handed))
+                                                    blocks, adjacency, started=started, seeded=handed,
+                                                    trial_rounds=MEASURED_TRIAL_ROUNDS if trial else None))
                     if len(candidates[-1].missed) and not candidates[-1].at_optimum and not _exact_pieces_instead(
                             candidates[-1], adjacency, idx):
                         candidates.extend(_escalate(call, blackbox, rest, sculpt, base, idx, diagonal, floor, first,
@@ -439,9 +438,8 @@ def _on_fine_blocks(call: Counted, rest: Points, sculpt: Points, base: Points, i
     on the coarse blocks stalled at 350 times the tolerance; on the fine ones the coarse span
     alone came within 2.2 times it)."""
     step = FINE_BLOCKS_RTOL * max(diagonal, floor)
-    at = rest.copy()
-    at[idx] += offsets
-    moved = at.copy()
+    moved = rest.copy()
+    moved[idx] += offsets
     moved[idx] += step
     response = (call(moved)[idx] - outputs) / step
     size = float(np.linalg.norm(response))
