@@ -74,7 +74,14 @@ Jacobian, for a smoothing deformer the skinning's own blocks) and its linearised
    best of every result is kept, so an example never ends worse than the fast path left it.
    Where more vertices miss than that and all of them are on pieces that stage 4
    measures, the slower stages are left out for it (``_exact_pieces_instead``).
-4. Where vertices still miss on pieces of the mesh of at most ``pieces.EXACT_PIECE`` vertices:
+4. Where vertices still miss on pieces of the mesh of at most ``pieces.EXACT_PIECE`` vertices
+   and the RMS residual is within ``pieces.TRUNCATE_WITHIN`` times the tolerance: first
+   **each piece on its own Krylov space** (``_krylov_pieces``, ``psdbake.solver.pieces_krylov``):
+   Newton-GMRES whose every call carries one product of every piece, each piece's step the
+   least-squares one on its own products. The chain's Jacobian is block-diagonal by piece, so
+   after m calls each piece holds m directions where one space shared by all holds m in all
+   (CesiumMan: 121 calls an example, against about 280 for the exact Jacobians below and 400
+   or more for one shared space). Then, where vertices still miss,
    **those pieces' exact Jacobians** (``_exact_pieces``, ``pieces.solve_exactly``), measured
    where the stages above left them, on the vertices still above the tolerance and their
    1-ring (3 calls a colour of the largest piece, its vertices coloured by the chain's measured
@@ -83,9 +90,9 @@ Jacobian, for a smoothing deformer the skinning's own blocks) and its linearised
    Gauss-Newton steps per piece. A piece still far
    above the tolerance at its optimum holds what the chain cannot produce, and is solved on the
    stronger ``UNREACHABLE_RIDGE``, every vertex an unknown, so that its offsets stay bounded.
-   About 280 calls on CesiumMan (its large pieces need ~2,500 directions the chain passes at
-   1e-3 of its gain; 750 coloured by the whole reach), none where the stages above reach the
-   tolerance.
+   About 280 calls on CesiumMan where the Krylov spaces are left out (its large pieces need
+   ~2,500 directions the chain passes at 1e-3 of its gain; 750 coloured by the whole reach),
+   none where the stages above reach the tolerance.
 5. Where the sculpt is still out of the chain's reach, no stage settled it at an optimum (a
    piece larger than stage 4 takes) and the offsets kept exceed what ``UNREACHABLE_RIDGE``
    lets through: **Newton-Krylov from zero on that ridge's objective** (``_regularised``),
@@ -124,7 +131,7 @@ from threadpoolctl import threadpool_limits
 
 from .. import tolerances as tol
 from ..arrays import Points, is_singular
-from . import pieces, powell, smoothstart, subspace
+from . import pieces, pieces_krylov, powell, smoothstart, subspace
 from .inverse import COUPLING_SEEN, BlackBox, Counted, InverseResult, invert_example_with, sculpted_vertices
 from .smoothbasis import basis_sizes, smooth_bases, smooth_basis
 
@@ -203,6 +210,11 @@ FINE_BLOCKS = " on fine blocks"
 MEASURED = ", on measured directions"
 #: And one whose pieces were solved on their exact Jacobians (``_exact_pieces``).
 EXACT = "; pieces by their exact Jacobians"
+#: And one whose pieces were solved on their own Krylov spaces (``_krylov_pieces``).
+KRYLOV_PIECES = "; pieces on their own Krylov spaces"
+#: That stage's calls at most: the coloured Jacobians it runs before cost more (CesiumMan's
+#: 251-vertex piece, 270 calls), and it took 121 there.
+KRYLOV_PIECES_CALLS = 200
 #: A piece of the mesh that ``pieces.solve_exactly`` finds the chain cannot reproduce (still
 #: ``pieces.REACHABLE_SLACK`` times the tolerance away at the objective's optimum) is solved on
 #: ``|r|^2 + rho |D|^2`` with rho ``smoothstart.ridge(blocks, UNREACHABLE_RIDGE)``: along any
@@ -401,9 +413,11 @@ def invert(blackbox: BlackBox, rest: Points, sculpt: Points, *, rtol: float = to
     best = min(candidates, key=_rank)
     if small is not None:
         best = _keep_better_pieces(call, rest, sculpt, idx, best, *small)
-    if len(best.missed) and adjacency is not None:  # 4. the pieces still missing, by their exact Jacobians
-        with threadpool_limits(limits=1, user_api="blas"):
-            best = _exact_pieces(call, rest, sculpt, idx, best, adjacency, blocks)
+    if len(best.missed) and adjacency is not None:  # 4. the pieces still missing: near the answer on their
+        with threadpool_limits(limits=1, user_api="blas"):  # own Krylov spaces, then by their exact Jacobians
+            best = _krylov_pieces(call, rest, sculpt, idx, best, adjacency, blocks)
+            if len(best.missed):
+                best = _exact_pieces(call, rest, sculpt, idx, best, adjacency, blocks)
     if len(best.missed) and not best.at_optimum and _out_of_bounds(best, sculpt, base, blocks):  # 5. bounded
         with threadpool_limits(limits=1, user_api="blas"):
             best = _regularised(call, rest, sculpt, base, idx, diagonal, floor, best, blocks, rtol=rtol,
@@ -537,6 +551,40 @@ def _keep_better_pieces(call: Counted, rest: Points, sculpt: Points, idx: NDArra
     status = _checked(best.status, residual, best.atol)
     return dataclasses.replace(best, offsets=offsets, residual=residual, status=status,
                                regime=best.regime + "; small pieces by their Jacobians")
+
+
+def _krylov_pieces(call: Counted, rest: Points, sculpt: Points, idx: NDArray[np.int64], best: InverseResult,
+                   adjacency: sp.csr_matrix, blocks: NDArray[np.float64]) -> InverseResult:
+    """``best`` with the pieces of the mesh where it leaves vertices above the tolerance solved
+    by Newton-GMRES, each piece on its own Krylov space and all of them in the same calls
+    (``pieces_krylov.solve``), where ``best`` is near the answer (RMS within
+    ``pieces.TRUNCATE_WITHIN`` times the tolerance, as the rough colourings' gate: a sculpt
+    the chain cannot reproduce goes to the exact Jacobians, which bound its offsets). Kept
+    where it ranks better (``_rank``). On CesiumMan the fast path leaves six large pieces up
+    to 15 times the tolerance away: this reaches every vertex in 121 calls an example, where
+    their coloured Jacobians took about 280 (docs/decisions/coupled-inverse-cesiumman.md)."""
+    if (KRYLOV_PIECES_CALLS <= 0 or not np.array_equal(best.indices, idx) or not np.all(np.isfinite(best.offsets))
+            or not best.rms_residual <= pieces.TRUNCATE_WITHIN * best.atol):
+        return best
+    missing = best.status != powell.CONVERGED
+    chosen = [p for p in pieces.small_pieces(adjacency, idx, pieces.EXACT_PIECE) if missing[p.positions].any()]
+    if not chosen:
+        return best
+    moved = rest.copy()
+    moved[idx] += best.offsets
+    outputs = call(moved)
+    if not np.all(np.isfinite(outputs)):
+        return best
+    solved = pieces_krylov.solve(call, rest, sculpt, idx, chosen, best.offsets, outputs, blocks, best.diagonal,
+                                 best.atol, KRYLOV_PIECES_CALLS)
+    if solved is None:
+        return best
+    offsets = best.offsets.copy()
+    offsets[solved.members] = solved.offsets
+    residual = np.linalg.norm(sculpt[idx] - solved.outputs[idx], axis=1)
+    found = dataclasses.replace(best, offsets=offsets, residual=residual,
+                                status=_checked(best.status, residual, best.atol), regime=best.regime + KRYLOV_PIECES)
+    return found if _rank(found) < _rank(best) else best
 
 
 def _exact_pieces(call: Counted, rest: Points, sculpt: Points, idx: NDArray[np.int64], best: InverseResult,
