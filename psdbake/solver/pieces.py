@@ -35,7 +35,9 @@ up (``solve_small_pieces`` returns None).
 
 from __future__ import annotations
 
+from collections.abc import Generator
 from dataclasses import dataclass
+from typing import TypeVar, cast
 
 import numpy as np
 import scipy.sparse as sp
@@ -45,6 +47,8 @@ from scipy.sparse.csgraph import connected_components, shortest_path
 
 from ..arrays import Points
 from .inverse import BlackBox
+
+T = TypeVar("T")
 
 #: An output outside the moved pieces that changes by more than this fraction of the moved
 #: pieces' largest change means the pieces are not independent (as ``coupled.COUPLING_RTOL``).
@@ -181,6 +185,22 @@ def small_pieces(adjacency: sp.csr_matrix, idx: NDArray[np.int64], limit: int = 
     return pieces
 
 
+#: A stage's calls as a generator: it yields the points it asks the chain's outputs at, is sent
+#: those outputs, and returns its result. A stage written so can run on its own (``drive``) or
+#: ride on another stage's calls, the pieces being independent.
+Calls = Generator[Points, Points, T]
+
+
+def drive(calls: Calls[T], call: BlackBox) -> T:
+    """Run a stage's calls (``Calls``) through ``call`` to its result."""
+    try:
+        points = next(calls)
+        while True:
+            points = calls.send(call(points))
+    except StopIteration as stop:
+        return cast(T, stop.value)
+
+
 @dataclass(frozen=True)
 class Colouring:
     """Which of a piece's sculpted vertices move together in one Jacobian call: ``classes[k]``
@@ -281,6 +301,13 @@ def measure_reach(call: BlackBox, at: Points, out: Points, adjacency: sp.csr_mat
 def jacobians(call: BlackBox, at: Points, out: Points, pieces: list[Piece], vertex: list[NDArray[np.int64]],
               h: float, colours: list[Colouring] | None = None,
               unknowns: list[NDArray[np.int64]] | None = None) -> tuple[list[NDArray[np.float64]], int] | None:
+    """``jacobian_steps`` through ``call``."""
+    return drive(jacobian_steps(at, out, pieces, vertex, h, colours, unknowns), call)
+
+
+def jacobian_steps(at: Points, out: Points, pieces: list[Piece], vertex: list[NDArray[np.int64]], h: float,
+                      colours: list[Colouring] | None = None, unknowns: list[NDArray[np.int64]] | None = None
+                      ) -> Calls[tuple[list[NDArray[np.float64]], int] | None]:
     """Each piece's exact Jacobian at the points ``at`` (whose outputs are ``out``): forward
     differences of step ``h``, one call moving one vertex of every piece along one axis
     (``vertex[q]``: piece q's sculpted vertices in the mesh, its outputs; ``unknowns[q]``, the
@@ -288,7 +315,9 @@ def jacobians(call: BlackBox, at: Points, out: Points, pieces: list[Piece], vert
     ``colours`` (``colouring``), one call moves a whole colour of every piece, so 3 calls a
     colour. With the calls made; None where an output outside the moved pieces changed (the
     pieces are not independent), an output farther from the moved vertices than the
-    colouring's reach did (it does not hold), or the chain returned non-finite values."""
+    colouring's reach did (it does not hold), or the chain returned non-finite values. A
+    generator of the points to call the chain at (``Calls``), so that these calls can ride on
+    another stage's (``coupled._small_pieces_first``)."""
     moves = vertex if unknowns is None else unknowns
     jac = [np.zeros((3 * len(v), 3 * len(u))) for v, u in zip(vertex, moves, strict=True)]
     plan = colours or [Colouring.plain(len(u), len(v)) for v, u in zip(vertex, moves, strict=True)]
@@ -302,7 +331,7 @@ def jacobians(call: BlackBox, at: Points, out: Points, pieces: list[Piece], vert
             moved = at.copy()
             for q in moving:
                 moved[moves[q][plan[q].classes[k]], axis] += h
-            change = call(moved)
+            change = yield moved
             calls += 1
             if not np.all(np.isfinite(change)):
                 return None
@@ -328,8 +357,15 @@ def solve_small_pieces(call: BlackBox, rest: Points, sculpt: Points, base: Point
     """Offsets for the small pieces (module docstring), from zero (``base``: the chain at rest).
     None where the calls show that the pieces are not independent, or the chain returns
     non-finite values."""
+    return drive(small_pieces_steps(rest, sculpt, base, idx, pieces, diagonal, atol), call)
+
+
+def small_pieces_steps(rest: Points, sculpt: Points, base: Points, idx: NDArray[np.int64], pieces: list[Piece],
+                       diagonal: float, atol: float) -> Calls[PiecesResult | None]:
+    """``solve_small_pieces`` as a generator of the points to call the chain at (``Calls``): the
+    chain's outputs there are sent back, and the result is the generator's return value."""
     vertex = [idx[p.positions] for p in pieces]
-    measured = jacobians(call, rest, base, pieces, vertex, STEP_RTOL * diagonal)
+    measured = yield from jacobian_steps(rest, base, pieces, vertex, STEP_RTOL * diagonal)
     if measured is None:
         return None
     jac = measured[0]
@@ -357,7 +393,7 @@ def solve_small_pieces(call: BlackBox, rest: Points, sculpt: Points, base: Point
             s = np.linalg.solve(a.T @ a + damping * np.eye(len(a)), a.T @ residual[q].ravel())
             steps[q] = scale[q] * s
             moved[vertex[q]] += steps[q].reshape(-1, 3)
-        out = call(moved)
+        out = yield moved
         if not np.all(np.isfinite(out)):
             return None
         improved = False
@@ -376,7 +412,7 @@ def solve_small_pieces(call: BlackBox, rest: Points, sculpt: Points, base: Point
         stalled = 0 if improved else stalled + 1
         if stalled >= STALL_STEPS:
             break
-    outputs = call(accepted())  # every piece at its accepted offsets, in one call
+    outputs = yield accepted()  # every piece at its accepted offsets, in one call
     if not np.all(np.isfinite(outputs)):
         return None
     members = np.concatenate([p.positions for p in pieces])
