@@ -185,6 +185,21 @@ def small_pieces(adjacency: sp.csr_matrix, idx: NDArray[np.int64], limit: int = 
     return pieces
 
 
+def outside(n: int, moving: list[Piece]) -> NDArray[np.bool_]:
+    """Which of the mesh's ``n`` points lie outside the ``moving`` pieces."""
+    others = np.ones(n, dtype=bool)
+    for piece in moving:
+        others[piece.vertices] = False
+    return others
+
+
+def moved_another(change: Points, others: NDArray[np.bool_]) -> bool:
+    """Whether an output outside the moved pieces (``others``, from ``outside``) changed by more
+    than ``COUPLING_RTOL`` of their largest change: then the pieces are not independent."""
+    size = np.abs(change)
+    return float(size[others].max(initial=0.0)) > COUPLING_RTOL * float(size[~others].max(initial=0.0))
+
+
 #: A stage's calls as a generator: it yields the points it asks the chain's outputs at, is sent
 #: those outputs, and returns its result. A stage written so can run on its own (``drive``) or
 #: ride on another stage's calls, the pieces being independent.
@@ -306,8 +321,8 @@ def jacobians(call: BlackBox, at: Points, out: Points, pieces: list[Piece], vert
 
 
 def jacobian_steps(at: Points, out: Points, pieces: list[Piece], vertex: list[NDArray[np.int64]], h: float,
-                      colours: list[Colouring] | None = None, unknowns: list[NDArray[np.int64]] | None = None
-                      ) -> Calls[tuple[list[NDArray[np.float64]], int] | None]:
+                   colours: list[Colouring] | None = None, unknowns: list[NDArray[np.int64]] | None = None
+                   ) -> Calls[tuple[list[NDArray[np.float64]], int] | None]:
     """Each piece's exact Jacobian at the points ``at`` (whose outputs are ``out``): forward
     differences of step ``h``, one call moving one vertex of every piece along one axis
     (``vertex[q]``: piece q's sculpted vertices in the mesh, its outputs; ``unknowns[q]``, the
@@ -324,9 +339,7 @@ def jacobian_steps(at: Points, out: Points, pieces: list[Piece], vertex: list[ND
     calls = 0
     for k in range(max(len(c.classes) for c in plan)):  # 3 calls per colour: its columns of every piece at once
         moving = [q for q, c in enumerate(plan) if k < len(c.classes)]
-        others = np.ones(len(at), dtype=bool)
-        for q in moving:
-            others[pieces[q].vertices] = False
+        others = outside(len(at), [pieces[q] for q in moving])
         for axis in range(3):
             moved = at.copy()
             for q in moving:
@@ -336,8 +349,7 @@ def jacobian_steps(at: Points, out: Points, pieces: list[Piece], vertex: list[ND
             if not np.all(np.isfinite(change)):
                 return None
             change -= out
-            size = np.abs(change)
-            if float(size[others].max(initial=0.0)) > COUPLING_RTOL * float(size[~others].max(initial=0.0)):
+            if moved_another(change, others):
                 return None  # a piece moved another: not independent
             for q in moving:
                 rows = change[vertex[q]] / h  # (m, 3)

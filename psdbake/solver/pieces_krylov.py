@@ -17,7 +17,7 @@ pieces (up to 10 times the tolerance), one Newton step of this stage brings ever
 the tolerance in 121 calls, where their coloured Jacobians (``pieces.solve_exactly``) took 276.
 
 Only the chain is called; whether the pieces really are independent shows in every call (an
-output outside the moved pieces that changes ends the stage, as in ``pieces.jacobians``).
+output outside the moved pieces that changes ends the stage: ``pieces.moved_another``).
 """
 
 from __future__ import annotations
@@ -30,7 +30,7 @@ from numpy.typing import NDArray
 
 from ..arrays import Points
 from .inverse import BlackBox
-from .pieces import COUPLING_RTOL, Piece
+from .pieces import Piece, moved_another, outside
 
 #: Each product's secant is the largest residual left on the pieces (``SECANT_RESIDUAL`` times
 #: it), within these fractions of the diagonal. Float32 outputs (~6e-8 of the diagonal) make a
@@ -77,6 +77,12 @@ class _Arnoldi:
     images: list[NDArray[np.float64]] = field(default_factory=list)  # J M^-1 v_j
     hessenberg: list[NDArray[np.float64]] = field(default_factory=list)  # its columns
     done: bool = False
+
+    @staticmethod
+    def on(piece: Piece, b: NDArray[np.float64]) -> _Arnoldi:
+        """The process for ``piece`` whose residual is ``b``, its first basis vector ``b``'s direction."""
+        beta = float(np.linalg.norm(b))
+        return _Arnoldi(piece, b, beta, [b / beta])
 
     def take(self, image: NDArray[np.float64], atol: float) -> None:
         """The chain's image of the latest direction: orthogonalised (modified Gram-Schmidt)
@@ -133,14 +139,8 @@ def solve(call: BlackBox, rest: Points, sculpt: Points, idx: NDArray[np.int64], 
         points[idx] += trial
         change = call(points)
         calls += 1
-        if not np.all(np.isfinite(change)):
-            return None
-        size = np.abs(change - outputs)
-        others = np.ones(len(points), dtype=bool)
-        for p in moving:
-            others[p.vertices] = False
-        if float(size[others].max(initial=0.0)) > COUPLING_RTOL * float(size[~others].max(initial=0.0)):
-            return None  # a piece moved another: not independent
+        if not np.all(np.isfinite(change)) or moved_another(change - outputs, outside(len(points), moving)):
+            return None  # non-finite, or a piece moved another: not independent
         return change
 
     while calls < max_calls:
@@ -149,8 +149,7 @@ def solve(call: BlackBox, rest: Points, sculpt: Points, idx: NDArray[np.int64], 
         if not active:
             break
         secant = float(np.clip(SECANT_RESIDUAL * norms.max(), SECANT_MIN_RTOL * diagonal, SECANT_MAX_RTOL * diagonal))
-        processes = [_Arnoldi(p, r[p.positions].ravel(), float(np.linalg.norm(r[p.positions])),
-                              [r[p.positions].ravel() / float(np.linalg.norm(r[p.positions]))]) for p in active]
+        processes = [_Arnoldi.on(p, r[p.positions].ravel()) for p in active]
         while calls < max_calls - 1 and not all(a.done for a in processes):  # one product of every piece a call
             live = [a for a in processes if not a.done]
             moves = [np.einsum("kab,kb->ka", inverse[a.piece.positions], a.basis[-1].reshape(-1, 3)) for a in live]
