@@ -131,7 +131,6 @@ from collections.abc import Callable
 import numpy as np
 import scipy.sparse as sp
 from numpy.typing import NDArray
-from scipy.sparse.csgraph import connected_components
 from threadpoolctl import threadpool_limits
 
 from .. import tolerances as tol
@@ -399,7 +398,7 @@ def invert(blackbox: BlackBox, rest: Points, sculpt: Points, *, rtol: float = to
                     # else on trial before the exact pieces: kept where its first round keeps a step
                     trial = (missing and not polish and smooth.rms_residual <= pieces.TRUNCATE_WITHIN * smooth.atol
                              and _exact_pieces_instead(smooth, adjacency, idx)
-                             and _pieces_missing(smooth, adjacency, idx) <= MEASURED_TRIAL_PIECES)
+                             and len(_missing_pieces(smooth, adjacency, idx)) <= MEASURED_TRIAL_PIECES)
                     if polish or trial:
                         candidates.extend(_measured(call, rest, sculpt, idx, max(diagonal, floor), candidates[-1],
                                                     blocks, adjacency, started=started, seeded=handed,
@@ -568,9 +567,7 @@ def _small_pieces_first(call: Counted, blackbox: BlackBox, rest: Points, sculpt:
     if not found:
         return None, None
     atol = max(rtol * diagonal, floor)
-    small = np.zeros(len(rest), dtype=bool)
-    for piece in found:
-        small[piece.vertices] = True
+    small = ~pieces.outside(len(rest), found)
     others = np.setdiff1d(np.arange(len(idx)), np.concatenate([p.positions for p in found]))
 
     def reached(solved: pieces.PiecesResult) -> bool:
@@ -658,8 +655,7 @@ def _krylov_pieces(call: Counted, rest: Points, sculpt: Points, idx: NDArray[np.
     if (KRYLOV_PIECES_CALLS <= 0 or not np.array_equal(best.indices, idx) or not np.all(np.isfinite(best.offsets))
             or not best.rms_residual <= pieces.TRUNCATE_WITHIN * best.atol):
         return best
-    missing = best.status != powell.CONVERGED
-    chosen = [p for p in pieces.small_pieces(adjacency, idx, pieces.EXACT_PIECE) if missing[p.positions].any()]
+    chosen = _missing_pieces(best, adjacency, idx)
     if not chosen:
         return best
     moved = rest.copy()
@@ -691,8 +687,7 @@ def _exact_pieces(call: Counted, rest: Points, sculpt: Points, idx: NDArray[np.i
     objective's optimum (up to ``OPTIMUM_SHARE`` of the residual), the result is ``at_optimum``."""
     if not np.array_equal(best.indices, idx) or not np.all(np.isfinite(best.offsets)):
         return best
-    missing = best.status != powell.CONVERGED
-    chosen = [p for p in pieces.small_pieces(adjacency, idx, pieces.EXACT_PIECE) if missing[p.positions].any()]
+    chosen = _missing_pieces(best, adjacency, idx)
     if not chosen:
         return best
     offsets = best.offsets.copy()
@@ -780,15 +775,16 @@ def _exact_pieces_instead(result: InverseResult, adjacency: sp.csr_matrix, idx: 
     if np.count_nonzero(missing) <= POLISH_VERTICES:
         return False
     covered = np.zeros(len(idx), dtype=bool)
-    for p in pieces.small_pieces(adjacency, idx, pieces.EXACT_PIECE):
+    for p in _missing_pieces(result, adjacency, idx):
         covered[p.positions] = True
     return bool(np.all(covered[missing]))
 
 
-def _pieces_missing(result: InverseResult, adjacency: sp.csr_matrix, idx: NDArray[np.int64]) -> int:
-    """How many pieces of the mesh (connected components) hold a vertex above the tolerance."""
-    _, label = connected_components(adjacency, directed=False)
-    return len(np.unique(label[idx[result.status != powell.CONVERGED]]))
+def _missing_pieces(result: InverseResult, adjacency: sp.csr_matrix, idx: NDArray[np.int64]) -> list[pieces.Piece]:
+    """The pieces of the mesh that stage 4 measures (at most ``pieces.EXACT_PIECE`` vertices)
+    holding a vertex ``result`` leaves above the tolerance."""
+    missing = result.status != powell.CONVERGED
+    return [p for p in pieces.small_pieces(adjacency, idx, pieces.EXACT_PIECE) if missing[p.positions].any()]
 
 
 def _rank(result: InverseResult) -> tuple[int, int, float]:
