@@ -57,6 +57,29 @@ def test_a_linear_coupling_chain_is_inverted_to_the_tolerance_within_the_budget(
     assert start_residual.max() > 10 * atol and residual.max() <= atol, (start_residual.max(), residual.max(), atol)
 
 
+def test_a_round_measures_no_more_directions_once_its_model_clears_every_vertex():
+    """A chain that does not couple (the twist alone): the blocks' inverse on the residual is
+    the exact step, so the round's first direction already clears the few vertices that miss.
+    The solve then takes that step instead of measuring their own directions: 1 direction and
+    1 step (with the round's own directions of the 5 vertices first, 7 calls)."""
+    rest, adjacency = _tube()
+    chain = smoothing_chain(rest, adjacency, 0, twist=0.8)
+    region = np.arange(12 * 8, 12 * 16)
+    diagonal = float(np.linalg.norm(rest.max(axis=0) - rest.min(axis=0)))
+    atol = 1e-6 * diagonal
+    truth = np.zeros((len(region), 3))
+    sculpt = chain(rest)
+    start = truth.copy()
+    start[[3, 17, 40, 61, 80]] = 50 * atol * np.array([0.6, 0.0, 0.8])  # 5 vertices, 50 tolerances off
+    moved = rest.copy()
+    moved[region] += start
+    outputs = chain(moved)[region]
+    blocks = coupled.chain_blocks(chain, rest, sculpt, region, diagonal, 0.0)
+    box = Counted(chain)
+    found = subspace.solve(box, rest, sculpt[region], region, start, outputs, blocks, atol, diagonal, adjacency)
+    assert found.residual.max() <= atol and box.calls == 2, (found.residual.max() / atol, box.calls)
+
+
 def test_the_budget_holds_where_the_tolerance_cannot_be_met():
     """A chain that annihilates what is left (a constant output): every call the solve makes
     counts against its budget, and it ends with the start's residual, not a worse one."""
