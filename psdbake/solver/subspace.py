@@ -163,14 +163,16 @@ def solve(call: BlackBox, rest: Points, target: Points, idx: NDArray[np.int64], 
         if not fresh:
             break
         measured: list[NDArray[np.float64]] = []
+        planned = None  # the round's first step, where its model cleared every vertex before the round's end
         for move in fresh:
             measured.append(((evaluate(offsets + h * move) - out) / h).ravel())
             calls += 1
-            if (few and len(measured) < len(fresh) and np.all(np.isfinite(measured[-1]))
-                    and clears(np.vstack([responses, measured]), r, norms, atol)):
-                _forget(own, fresh[len(measured):])
-                fresh = fresh[: len(measured)]
-                break
+            if few and len(measured) < len(fresh) and np.all(np.isfinite(measured[-1])):
+                planned = clears(np.vstack([responses, measured]), r, norms, atol)
+                if planned is not None:
+                    _forget(own, fresh[len(measured):])
+                    fresh = fresh[: len(measured)]
+                    break
         if not np.all(np.isfinite(measured)):
             break  # the chain gave non-finite values: the directions so far
         moves = np.vstack([moves, np.array(fresh).reshape(len(fresh), -1)])
@@ -182,11 +184,11 @@ def solve(call: BlackBox, rest: Points, target: Points, idx: NDArray[np.int64], 
         for _ in range(STEPS):
             if calls >= max_calls or not np.any(norms > atol):
                 break
-            y = _step(responses, r, norms, atol)
+            y, linear = planned if planned is not None else _step(responses, r, norms, atol)
+            planned = None  # the responses change with this step's Broyden update
             yy = float(y @ y)
             if yy == 0.0:
                 break
-            linear = (r.ravel() - y @ responses).reshape(r.shape)
             trial = offsets + (y @ moves).reshape(r.shape)
             out_trial = evaluate(trial)
             calls += 1
@@ -253,11 +255,12 @@ def _forget(own: dict[int, NDArray[np.float64]], moves: list[Points]) -> None:
                 del own[v]
 
 
-def clears(responses: NDArray[np.float64], r: Points, norms: NDArray[np.float64], atol: float) -> bool:
-    """Whether the least-squares step on these directions' responses (``_step``) is predicted by
-    their linear model to leave every vertex within ``atol``."""
-    y = _step(responses, r, norms, atol)
-    return bool(np.all(np.linalg.norm((r.ravel() - y @ responses).reshape(r.shape), axis=1) <= atol))
+def clears(responses: NDArray[np.float64], r: Points, norms: NDArray[np.float64], atol: float
+           ) -> tuple[NDArray[np.float64], Points] | None:
+    """The least-squares step on these directions' responses (``_step``) where their linear
+    model predicts it leaves every vertex within ``atol``; else None."""
+    y, left = _step(responses, r, norms, atol)
+    return (y, left) if bool(np.all(np.linalg.norm(left, axis=1) <= atol)) else None
 
 
 def _krylov(evaluate: Callable[[Points], Points], inverse: NDArray[np.float64], moves: NDArray[np.float64],
@@ -287,10 +290,12 @@ def _krylov(evaluate: Callable[[Points], Points], inverse: NDArray[np.float64], 
     return moves, responses, calls
 
 
-def _step(responses: NDArray[np.float64], r: Points, norms: NDArray[np.float64], atol: float) -> NDArray[np.float64]:
-    """The directions' coefficients of a least-squares step: the residual weighted
-    (``weights``), then reweighted where the linear model leaves vertices above
-    ``REWEIGHT_TARGET`` of the tolerance, by how far above (``REWEIGHTS`` times at most)."""
+def _step(responses: NDArray[np.float64], r: Points, norms: NDArray[np.float64], atol: float
+          ) -> tuple[NDArray[np.float64], Points]:
+    """The directions' coefficients of a least-squares step, and the residual their linear model
+    predicts it leaves (k, 3): the residual weighted (``weights``), then reweighted where the
+    linear model leaves vertices above ``REWEIGHT_TARGET`` of the tolerance, by how far above
+    (``REWEIGHTS`` times at most)."""
     weight = np.repeat(weights(norms, atol)[:, 0], 3)
     b = r.ravel()
     y = np.asarray(np.linalg.lstsq(responses.T * weight[:, None], b * weight, rcond=RCOND)[0], dtype=np.float64)
@@ -304,4 +309,4 @@ def _step(responses: NDArray[np.float64], r: Points, norms: NDArray[np.float64],
         grow[over] = predicted[over] / aim
         weight = weight * np.repeat(grow, 3)
         y = np.asarray(np.linalg.lstsq(responses.T * weight[:, None], b * weight, rcond=RCOND)[0], dtype=np.float64)
-    return y
+    return y, (b - y @ responses).reshape(r.shape)
