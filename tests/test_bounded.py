@@ -314,6 +314,42 @@ def test_signal_ends_fit_jobs_at_once(sig, tmp_path):
     assert digest(before) == before
 
 
+_INTERRUPTED_FIT = """
+import os, signal, sys, threading, time
+import concurrent.futures.process as cfp
+import psdbake
+
+def workers():
+    found = set()
+    for task in os.listdir(f"/proc/{os.getpid()}/task"):
+        with open(f"/proc/{os.getpid()}/task/{task}/children") as fh:
+            found |= set(fh.read().split())
+    return found
+
+def interrupt():
+    while len(workers()) < 3:  # two workers and multiprocessing's tracker
+        time.sleep(0.05)
+    time.sleep(1.0)  # inside the deformer now
+    os.kill(os.getpid(), signal.SIGINT)
+
+threading.Thread(target=interrupt, daemon=True).start()
+try:
+    psdbake.fit(sys.argv[1], sys.argv[2], psdbake.FitSettings(deformers=(sys.argv[3],)), jobs=2)
+except KeyboardInterrupt:
+    print(sum(isinstance(t, cfp._ExecutorManagerThread) and t.is_alive() for t in threading.enumerate()))
+"""
+
+
+def test_interrupted_fit_leaves_no_pool_thread_to_race_the_exit():
+    """Python 3.11's exit hook writes to the process pool's wake-up pipe while the pool's own
+    thread may be closing it: CI once saw ``OSError: Bad file descriptor`` after ``psdbake:
+    interrupted``. That race is rare; what prevents it is not: when the interrupt leaves fit,
+    the pool's thread has already ended (it was alive in every run before the fix)."""
+    proc = subprocess.run([sys.executable, "-c", _INTERRUPTED_FIT, ASSET, EXAMPLES, _deformer("sleeps.py")],
+                          capture_output=True, text=True, timeout=60)
+    assert (proc.stdout, proc.returncode) == ("0\n", 0), proc.stderr
+
+
 @pytest.mark.parametrize("name, how", [("kills_worker.py", "killed by SIGKILL"), ("exits_worker.py", "exit 3")])
 def test_worker_crash_names_deformer_and_example(name, how, cli, tmp_path):
     out = tmp_path / "corr.usda"

@@ -171,8 +171,10 @@ def solve_all(tasks: Sequence[InverseTask], jobs: int | None, progress: Progress
             # Ctrl-C, SIGTERM (KeyboardInterrupt, see cli.main) or a failure: stop now, not after every
             # queued example (a stuck deformer would never finish): cancel the queue, end the workers.
             workers |= dict(getattr(pool, "_processes", None) or {})
+            manager = getattr(pool, "_executor_manager_thread", None)  # shutdown forgets it
             pool.shutdown(wait=False, cancel_futures=True)
             _end_workers(workers.values())
+            _join_manager(manager)
             raise
         pool.shutdown(wait=True)
     return [r for r in results if r is not None]
@@ -233,6 +235,16 @@ def _end_workers(processes) -> None:
             if p.is_alive():
                 p.kill()
                 p.join(1.0)
+
+
+def _join_manager(thread, timeout: float = 2.0) -> None:
+    """Wait (bounded) for the pool's manager thread to close its wake-up pipe. Python 3.11's
+    exit hook writes to that pipe without the lock the thread closes it under (fixed in 3.12):
+    left running, the thread can close it mid-write and the interrupted run ends with an
+    ``OSError: Bad file descriptor`` traceback after ``psdbake: interrupted``. Once the
+    workers are gone the thread exits at once; the bound keeps Ctrl-C prompt whatever happens."""
+    if thread is not None:
+        thread.join(timeout)
 
 
 def _worker_died(tasks: Sequence[InverseTask], running, workers: dict) -> Exception:
