@@ -87,6 +87,7 @@ bench: $(STAMP)
 	$(BIN)/python -m benchmarks.conditioning
 	$(BIN)/python -m benchmarks.coupled
 	$(BIN)/python -m benchmarks.krylovfloor
+	$(BIN)/python -m benchmarks.coupledtime
 	$(BIN)/python -m benchmarks.evalspeed
 	$(BIN)/python -m benchmarks.fitspeed
 	$(BIN)/python -m benchmarks.sculptspeed

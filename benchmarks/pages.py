@@ -31,6 +31,7 @@ PAGES: dict[str, tuple[str, str, list[tuple[str, str]]]] = {
         "taken within one run. How these figures shaped the code: [decisions](decisions/index.md).",
         [("run", "The inverse against its references"), ("run_solver", "The solver"),
          ("coupled", "A chain that couples vertices"), ("krylovfloor", "The coupled inverse's floor on real characters"),
+         ("coupledtime", "The coupled inverse at 100k against the tree issue 27 measured"),
          ("conditioning", "Many examples"),
          ("jobs", "`fit --jobs`"), ("batch", "`batch --workers`"), ("startup", "Start-up"),
          ("evalspeed", "Eval and the points cache at film scale"), ("fitspeed", "Fit at film scale"),
