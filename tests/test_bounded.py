@@ -327,7 +327,8 @@ def workers():
     return found
 
 def interrupt():
-    while len(workers()) < 3:  # two workers and multiprocessing's tracker
+    deadline = time.monotonic() + 30  # never leave the workers sleeping in the deformer
+    while len(workers()) < 3 and time.monotonic() < deadline:  # two workers and multiprocessing's tracker
         time.sleep(0.05)
     time.sleep(1.0)  # inside the deformer now
     os.kill(os.getpid(), signal.SIGINT)

@@ -239,7 +239,7 @@ def _end_workers(processes) -> None:
 
 def _join_manager(thread, timeout: float = 2.0) -> None:
     """Wait (bounded) for the pool's manager thread to close its wake-up pipe. Python 3.11's
-    exit hook writes to that pipe without the lock the thread closes it under (fixed in 3.12):
+    exit hook writes to that pipe unlocked (CPython gh-125451 gave it a lock in later 3.12 and 3.13):
     left running, the thread can close it mid-write and the interrupted run ends with an
     ``OSError: Bad file descriptor`` traceback after ``psdbake: interrupted``. Once the
     workers are gone the thread exits at once; the bound keeps Ctrl-C prompt whatever happens."""
