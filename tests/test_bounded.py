@@ -333,6 +333,9 @@ def interrupt():
     time.sleep(1.0)  # inside the deformer now
     os.kill(os.getpid(), signal.SIGINT)
 
+# make test's full run handed this child SIGINT ignored (an inherited disposition): Python's default
+signal.signal(signal.SIGINT, signal.default_int_handler)
+signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
 threading.Thread(target=interrupt, daemon=True).start()
 try:
     psdbake.fit(sys.argv[1], sys.argv[2], psdbake.FitSettings(deformers=(sys.argv[3],)), jobs=2)
