@@ -333,7 +333,8 @@ def interrupt():
     time.sleep(1.0)  # inside the deformer now
     os.kill(os.getpid(), signal.SIGINT)
 
-# make test's full run handed this child SIGINT ignored (an inherited disposition): Python's default
+# a suite started as a background job (``make test &``, nohup, some CI runners) has SIGINT ignored,
+# as POSIX shells do for asynchronous commands, and this child inherits it: Python's default here
 signal.signal(signal.SIGINT, signal.default_int_handler)
 signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
 threading.Thread(target=interrupt, daemon=True).start()
