@@ -50,9 +50,15 @@ def _standard_streams() -> None:
 
 def main() -> None:
     _standard_streams()
-    signal.signal(signal.SIGINT, _quit)
+    # SIGINT inherited ignored stays ignored, as Python itself leaves it: a script's background
+    # job (``psdbake fit ... &``) has it ignored so that Ctrl-C at the terminal spares it, the
+    # POSIX shells' rule for asynchronous commands. SIGTERM still interrupts such a run.
+    catch_sigint = signal.getsignal(signal.SIGINT) != signal.SIG_IGN
+    if catch_sigint:
+        signal.signal(signal.SIGINT, _quit)
     signal.signal(signal.SIGTERM, _quit)
     from .cli import main as cli_main
 
-    signal.signal(signal.SIGINT, signal.default_int_handler)
+    if catch_sigint:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
     cli_main()

@@ -190,7 +190,8 @@ def _signals_held() -> Iterator[None]:
     whichever thread the signal reaches (USD's threads do not block it), so the handlers
     are swapped for one that only records, and a recorded signal is raised again after."""
     received: list[int] = []
-    held = (signal.SIGINT, signal.SIGTERM)
+    # an ignored signal stays ignored (a background job's SIGINT): nothing to hold back
+    held = tuple(s for s in (signal.SIGINT, signal.SIGTERM) if signal.getsignal(s) != signal.SIG_IGN)
     try:
         previous = {s: signal.signal(s, lambda signum, frame: received.append(signum)) for s in held}
     except ValueError:  # not the main thread: its signals are someone else's business

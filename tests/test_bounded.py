@@ -5,7 +5,8 @@ Jobs files must be regular files of at most ``farm.MAX_JOBS_FILE_BYTES`` and no 
 write the jobs file or a ``--deformer`` source; ``--frames`` ranges are counted by arithmetic
 (``tolerances.MAX_FRAMES``, ``farm.MAX_CHUNKS``) and chunk plans made lazily; a scheduler
 that never answers is refused after ``PSDBAKE_SCHEDULER_TIMEOUT`` seconds; SIGTERM/SIGINT of
-``fit --jobs 2`` ends its workers at once (130); a worker killed under a deformer is exit 5
+``fit --jobs 2`` ends its workers at once (130), and a SIGINT ignored by the parent (a background
+job) stays ignored; a worker killed under a deformer is exit 5
 naming the deformer and the example; a signal during start-up is 130 with the one line.
 """
 
@@ -310,6 +311,45 @@ def test_signal_ends_fit_jobs_at_once(sig, tmp_path):
     while not all(_gone(w) for w in workers) and time.monotonic() < deadline:
         time.sleep(0.05)
     assert all(_gone(w) for w in workers), "a worker outlived the interrupted fit"
+    assert os.listdir(tmp_path) == []
+    assert digest(before) == before
+
+
+_IGNORING_SIGINT = "import os, signal, sys; signal.signal(signal.SIGINT, signal.SIG_IGN); os.execv(sys.argv[1], sys.argv[1:])"
+
+
+def test_a_background_fit_keeps_sigint_ignored_and_ends_on_sigterm(tmp_path):
+    """A script's background job (``psdbake fit ... &``) starts with SIGINT ignored, so that
+    Ctrl-C at the terminal spares it: psdbake keeps it ignored, as Python does, and SIGTERM
+    still ends the run (130, the one line, workers gone, nothing written)."""
+    out = tmp_path / "corr.usda"
+    before = digest([ASSET, EXAMPLES])
+    proc = subprocess.Popen([sys.executable, "-c", _IGNORING_SIGINT, PSDBAKE, "fit", ASSET, EXAMPLES, "-o", str(out),
+                             "--jobs", "2", "--deformer", _deformer("sleeps.py")], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, start_new_session=True)
+    try:
+        deadline = time.monotonic() + 30
+        workers: set[int] = set()
+        while len(workers) < 3 and time.monotonic() < deadline:
+            time.sleep(0.1)
+            workers = _children(proc.pid)
+        assert len(workers) >= 2, "the fit never started its workers"
+        time.sleep(1.0)
+        os.killpg(proc.pid, signal.SIGINT)  # Ctrl-C at the terminal: the whole group
+        time.sleep(2.0)
+        assert proc.poll() is None, "an ignored SIGINT ended the background fit"
+        assert all(not _gone(w) for w in workers), "an ignored SIGINT ended a worker"
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=10)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+    assert (proc.returncode, err.lstrip("\n")) == (EXIT_INTERRUPTED, "psdbake: interrupted\n")
+    deadline = time.monotonic() + 3
+    while not all(_gone(w) for w in workers) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert all(_gone(w) for w in workers), "a worker outlived the fit"
     assert os.listdir(tmp_path) == []
     assert digest(before) == before
 
