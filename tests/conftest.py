@@ -4,11 +4,13 @@ and ``run``), Pixar's bake of a stack (``bake``, read with ``points``)."""
 from __future__ import annotations
 
 import atexit
+import contextlib
 import hashlib
 import io
 import os
 import re
 import shutil
+import signal
 import sys
 import tempfile
 from collections.abc import Callable, Iterable
@@ -26,6 +28,13 @@ sys.path[:0] = [ROOT, FIXTURES]
 # and never inherit verdicts from other runs. Tests of the cache itself monkeypatch it.
 os.environ["PSDBAKE_CACHE_DIR"] = tempfile.mkdtemp(prefix="psdbake-test-cache-")
 atexit.register(shutil.rmtree, os.environ["PSDBAKE_CACHE_DIR"], ignore_errors=True)
+# The signal tests play a user at a terminal: the commands they start must see Ctrl-C. A suite
+# started as a background job (``make test &``, some CI runners) has SIGINT ignored, which every
+# child would inherit and psdbake, like Python, keeps (tests/test_bounded.py); Python's own
+# handler here makes the children's SIGINT the default again (a caught signal resets on exec).
+if signal.getsignal(signal.SIGINT) == signal.SIG_IGN:
+    with contextlib.suppress(ValueError):  # only the main thread may set handlers
+        signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
 import generate  # noqa: E402  (fixtures/generate.py, re-exported for the tests)
