@@ -278,33 +278,34 @@ def _gone(pid: int) -> bool:
         return True
 
 
-@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
-def test_signal_ends_fit_jobs_at_once(sig, tmp_path):
-    """Every example's deformer sleeps an hour: the run must end now, workers and all."""
-    out = tmp_path / "corr.usda"
-    before = digest([ASSET, EXAMPLES])
-    proc = subprocess.Popen([PSDBAKE, "fit", ASSET, EXAMPLES, "-o", str(out), "--jobs", "2",
+def _sleeping_fit(out, *prefix: str) -> subprocess.Popen:
+    """``fit --jobs 2`` in a session of its own, every example's deformer asleep for an hour;
+    prefix: what runs it (an exec shim)."""
+    return subprocess.Popen([*prefix, PSDBAKE, "fit", ASSET, EXAMPLES, "-o", str(out), "--jobs", "2",
                              "--deformer", _deformer("sleeps.py")], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                             text=True, start_new_session=True)
-    try:
-        deadline = time.monotonic() + 30
-        workers: set[int] = set()
-        while len(workers) < 3 and time.monotonic() < deadline:  # two workers and multiprocessing's tracker
-            time.sleep(0.1)
-            workers = _children(proc.pid)
-        assert len(workers) >= 2, "the fit never started its workers"
-        time.sleep(1.0)  # the workers are inside the deformer now
-        started = time.monotonic()
-        if sig == signal.SIGINT:
-            os.killpg(proc.pid, sig)  # Ctrl-C reaches the whole foreground group
-        else:
-            proc.send_signal(sig)
-        _, err = proc.communicate(timeout=10)
-        assert time.monotonic() - started < 5
-    finally:
-        if proc.poll() is None:
-            os.killpg(proc.pid, signal.SIGKILL)
-            proc.wait()
+
+
+def _workers_in_deformer(proc: subprocess.Popen) -> set[int]:
+    """The fit's worker processes, once they are inside the deformer."""
+    deadline = time.monotonic() + 30
+    workers: set[int] = set()
+    while len(workers) < 3 and time.monotonic() < deadline:  # two workers and multiprocessing's tracker
+        time.sleep(0.1)
+        workers = _children(proc.pid)
+    assert len(workers) >= 2, "the fit never started its workers"
+    time.sleep(1.0)  # the workers are inside the deformer now
+    return workers
+
+
+def _kill_group(proc: subprocess.Popen) -> None:
+    if proc.poll() is None:
+        os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait()
+
+
+def _ended_whole(proc: subprocess.Popen, err: str, workers: set[int], tmp_path, before) -> None:
+    """130 and the one line, no worker left, nothing written, inputs unchanged."""
     # click writes a blank line first (closing a terminal's ^C echo), as for any interrupted command
     assert (proc.returncode, err.lstrip("\n")) == (EXIT_INTERRUPTED, "psdbake: interrupted\n")
     deadline = time.monotonic() + 3
@@ -315,6 +316,25 @@ def test_signal_ends_fit_jobs_at_once(sig, tmp_path):
     assert digest(before) == before
 
 
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
+def test_signal_ends_fit_jobs_at_once(sig, tmp_path):
+    """Every example's deformer sleeps an hour: the run must end now, workers and all."""
+    before = digest([ASSET, EXAMPLES])
+    proc = _sleeping_fit(tmp_path / "corr.usda")
+    try:
+        workers = _workers_in_deformer(proc)
+        started = time.monotonic()
+        if sig == signal.SIGINT:
+            os.killpg(proc.pid, sig)  # Ctrl-C reaches the whole foreground group
+        else:
+            proc.send_signal(sig)
+        _, err = proc.communicate(timeout=10)
+        assert time.monotonic() - started < 5
+    finally:
+        _kill_group(proc)
+    _ended_whole(proc, err, workers, tmp_path, before)
+
+
 _IGNORING_SIGINT = "import os, signal, sys; signal.signal(signal.SIGINT, signal.SIG_IGN); os.execv(sys.argv[1], sys.argv[1:])"
 
 
@@ -322,19 +342,10 @@ def test_a_background_fit_keeps_sigint_ignored_and_ends_on_sigterm(tmp_path):
     """A script's background job (``psdbake fit ... &``) starts with SIGINT ignored, so that
     Ctrl-C at the terminal spares it: psdbake keeps it ignored, as Python does, and SIGTERM
     still ends the run (130, the one line, workers gone, nothing written)."""
-    out = tmp_path / "corr.usda"
     before = digest([ASSET, EXAMPLES])
-    proc = subprocess.Popen([sys.executable, "-c", _IGNORING_SIGINT, PSDBAKE, "fit", ASSET, EXAMPLES, "-o", str(out),
-                             "--jobs", "2", "--deformer", _deformer("sleeps.py")], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True, start_new_session=True)
+    proc = _sleeping_fit(tmp_path / "corr.usda", sys.executable, "-c", _IGNORING_SIGINT)
     try:
-        deadline = time.monotonic() + 30
-        workers: set[int] = set()
-        while len(workers) < 3 and time.monotonic() < deadline:
-            time.sleep(0.1)
-            workers = _children(proc.pid)
-        assert len(workers) >= 2, "the fit never started its workers"
-        time.sleep(1.0)
+        workers = _workers_in_deformer(proc)
         os.killpg(proc.pid, signal.SIGINT)  # Ctrl-C at the terminal: the whole group
         time.sleep(2.0)
         assert proc.poll() is None, "an ignored SIGINT ended the background fit"
@@ -342,16 +353,8 @@ def test_a_background_fit_keeps_sigint_ignored_and_ends_on_sigterm(tmp_path):
         proc.send_signal(signal.SIGTERM)
         _, err = proc.communicate(timeout=10)
     finally:
-        if proc.poll() is None:
-            os.killpg(proc.pid, signal.SIGKILL)
-            proc.wait()
-    assert (proc.returncode, err.lstrip("\n")) == (EXIT_INTERRUPTED, "psdbake: interrupted\n")
-    deadline = time.monotonic() + 3
-    while not all(_gone(w) for w in workers) and time.monotonic() < deadline:
-        time.sleep(0.05)
-    assert all(_gone(w) for w in workers), "a worker outlived the fit"
-    assert os.listdir(tmp_path) == []
-    assert digest(before) == before
+        _kill_group(proc)
+    _ended_whole(proc, err, workers, tmp_path, before)
 
 
 _INTERRUPTED_FIT = """
