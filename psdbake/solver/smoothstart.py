@@ -283,8 +283,9 @@ def span_solve(call: BlackBox, rest: Points, sculpt: Points, idx: NDArray[np.int
         rhs = model.apply(r) - floor_damping * x
         y = np.asarray(np.linalg.solve(gram + damping * eye, rhs), dtype=np.float64)
         predicted_r = r - model.respond(y)
-        near = float(r @ r) <= k * (BELIEVE_NEAR * atol) ** 2
-        if (believe or near) and trusted and float(predicted_r @ predicted_r) >= (1.0 - SPAN_MIN_GAIN) ** 2 * float(r @ r):
+        rr = float(r @ r)
+        near = rr <= k * (BELIEVE_NEAR * atol) ** 2
+        if (believe or near) and trusted and float(predicted_r @ predicted_r) >= (1.0 - SPAN_MIN_GAIN) ** 2 * rr:
             stalled = True  # a model that has just predicted well sees nothing left in the span
             break
         trial = x + y
