@@ -39,6 +39,9 @@ _SHOWN_ON = 1e-3
 _GROUP_WIDTH = 48
 _DRIVERS_SHOWN = 4
 _NAMES_SHOWN = 8
+#: The summary's reason for the vertices of an example solved to its least-squares optimum: not
+#: a solver's status (``stalled``, ``max_cycles``), since no nearby offset does better.
+AT_OPTIMUM = "out of the chain's reach"
 
 
 class Ui:
@@ -301,7 +304,9 @@ def say_fit(ui: Ui, result: FitResult, output: str, changes: GroupChanges | None
     if result.missed:
         why: dict[str, int] = {}
         for inv in result.solves.values():
-            for name, count in inv.missed_statuses.items():
+            # a solve at its least-squares optimum did not stall: what it misses is out of the chain's reach
+            statuses = {AT_OPTIMUM: len(inv.missed)} if inv.at_optimum else inv.missed_statuses
+            for name, count in statuses.items():
                 why[name] = why.get(name, 0) + count
         detail = ", ".join(f"{name} {count}" for name, count in sorted(why.items()))
         ui.warn(f"{output}: {result.missed} vertices missed the fit tolerance ({detail}; see --report; --strict makes "
