@@ -60,7 +60,7 @@ from .usd.clips import remove_unstitched, stitched_files
 from .usd.compose import compose, open_layer, reread
 from .usd.describe import describe as describe_file
 from .usd.gltf_source import read_gltf_source
-from .usd.read import Scene, animation_components, hidden_from_usdskel, open_layers, why_hidden
+from .usd.read import Scene, animation_components, hidden_from_usdskel, holds_skel_root, open_layers, why_hidden
 from .usd.schema import psd_prims
 from .usd.validate import require_finite_time_samples, require_psd_prims_skinned, validate_animation, validate_skinning
 from .usd.valuetypes import Checked
@@ -123,10 +123,21 @@ def check_fitted_on(asset: str, asset_scene: Scene, correctives: str, *, strict:
 
 # --- fit: read USD -> pose space -> black-box inverse (Powell) -> RBF -> CORRECTIVES -----------
 
-def open_asset(asset: str, notes: list[str] | None = None) -> Scene:
-    """The asset on its own, with every skinned mesh's influences and skeleton validated."""
+def open_asset(asset: str, notes: list[str] | None = None, others: Sequence[str] = ()) -> Scene:
+    """The asset on its own, with every skinned mesh's influences and skeleton validated.
+    ``others``: the command's other input files; where the asset has no SkelRoot and one of
+    them does, the refusal says the two were given in the other order (a first-day mistake)."""
     scene = Scene([asset])
-    scene.require_skinned()
+    try:
+        scene.require_skinned()
+    except InputError as error:
+        if scene.has_skel_root():
+            raise
+        holder = next((other for other in others if other != asset and holds_skel_root(other)), None)
+        if holder is None:
+            raise
+        raise InputError(f"{error}; {holder} has one: the two look given in the other order (ASSET comes "
+                         "first)") from None
     hidden = [f"{where(asset, mesh)}: left out: {why_hidden(scene.stage, blocker)}"
               for mesh, blocker in hidden_from_usdskel(scene.stage)]
     for info in scene.skinned_meshes():
@@ -194,7 +205,7 @@ def fit(
         raise InputError("fit needs at least one EXAMPLES file")
     notes: list[str] = []
     load_deformers(settings.deformers)  # fail fast on a bad spec; each solve loads its own chain
-    asset_scene = open_asset(asset, notes)
+    asset_scene = open_asset(asset, notes, others=example_files)
     infos = asset_scene.skinned_meshes()
     meshes = _meshes_to_fit(asset, infos, settings, notes)
     skipped: list[str] = []
@@ -485,7 +496,7 @@ def evaluate(
     asset, correctives, anim = as_path(asset, "asset"), as_path(correctives, "correctives"), as_path(anim, "anim")
     if frames is not None and not (isinstance(frames, tuple | list) and len(frames) == 2):
         raise SettingError("frames", frames, "must be (first, last), e.g. psdbake.parse_frames('1:10')")
-    asset_scene = open_asset(asset)
+    asset_scene = open_asset(asset, others=(correctives, anim))
     check_fitted_on(asset, asset_scene, correctives, strict=strict)
     scene = Scene([anim, correctives, asset], label=correctives, checked=Checked.NO_SHAPE_VALUES)  # weights read no offsets
     scene.require_skinned()
@@ -638,7 +649,7 @@ def export_blender(asset: str, correctives: str, output: str, *, anim: str | Non
     from .export.blender.export import export_blender as build  # the compiler loads only for this command
 
     inputs = files_read([asset, correctives, *([anim] if anim else [])])
-    check_fitted_on(asset, open_asset(asset), correctives, strict=strict)
+    check_fitted_on(asset, open_asset(asset, others=(correctives, *([anim] if anim else []))), correctives, strict=strict)
     if anim is not None:  # what eval refuses, Blender would import as a rig that never moves, or a mesh cache
         if provenance.authors_point_samples(anim):
             raise InputError(f"{anim}: authors time-sampled points (an EXAMPLES layer or a points cache): Blender would "
@@ -659,7 +670,7 @@ def pose(asset: str, poses: str, deformers: Sequence[str] = (), *, progress: Pro
     frames: whole frames A..B of POSES instead of its time codes (the frames of a shot to fix),
     within its authored samples unless ``hold``; meshes: only these (full paths or leaf names)."""
     chain = load_deformers(deformers)
-    asset_scene = open_asset(asset)
+    asset_scene = open_asset(asset, others=(poses,))
     scene = Scene([poses, asset], label=poses)
     wanted = set(resolve_meshes(asset, [m.path for m in scene.skinned_meshes()], meshes))
     posed = [m for m in scene.skinned_meshes() if m.path in wanted]
@@ -759,7 +770,7 @@ def mirror(asset: str, correctives: str, settings: MirrorSettings, *, strict: bo
     from .mirroring.groups import mirror_groups
 
     started = _time.perf_counter()
-    scene = open_asset(asset)
+    scene = open_asset(asset, others=(correctives,))
     check_fitted_on(asset, scene, correctives, strict=strict)
     groups = read_correctives(asset, correctives)
     if meshes:

@@ -74,7 +74,10 @@ def test_a_first_day(character, tmp_path, monkeypatch):
     out = _ok(run_cli("sculpts", asset, "to_sculpt.usda", "--obj-dir", "sculpt/", "-o", "sculpted.usda"))
     assert f"{len(manifest['files'])} OBJ file(s), {len(LEFT_AND_NECK)} with sculpted vertices" in out
 
-    # 4. fit: the right side's groups have no edited example: left out, each named
+    # 4. fit, first with the files in the other order (nothing written), then as README types it;
+    # the right side's groups have no edited example: left out, each named
+    refused(run_cli("fit", "sculpted.usda", asset, "-o", "correctives.usda"), 3, names=("sculpted.usda", asset),
+            says=r"look given in the other order \(ASSET comes first\)", outputs=("correctives.usda",))
     code, out, err = run_cli("fit", asset, "sculpted.usda", "-o", "correctives.usda", "--report", "fit.json")
     assert code == 0, err
     for group in ("R_Elbow", "R_Knee", "R_Shoulder", "combo_R_Shoulder_R_Elbow"):
@@ -90,7 +93,10 @@ def test_a_first_day(character, tmp_path, monkeypatch):
     assert sorted(names) == ["L_Elbow", "L_Knee", "L_Shoulder", "Neck", "R_Elbow", "R_Knee", "R_Shoulder",
                              "combo_L_Shoulder_L_Elbow", "combo_R_Shoulder_R_Elbow"]
 
-    # 6. eval over the poses, first past their end (the 1001 trap), then as authored
+    # 6. eval over the poses, first with ASSET and CORRECTIVES swapped, then past their end (the 1001
+    # trap), then as authored
+    refused(run_cli("eval", "correctives.usda", asset, "--anim", poses, "-o", "weights.usda"), 3,
+            names=("correctives.usda", asset), says="look given in the other order", outputs=("weights.usda",))
     refused(run_cli("eval", asset, "correctives.usda", "--anim", poses, "-o", "weights.usda", "--frames", "1001:1013"),
             3, says="authored over 1..13")
     _ok(run_cli("eval", asset, "correctives.usda", "--anim", poses, "-o", "weights.usda", "-q"))

@@ -208,6 +208,10 @@ class Scene:
                 f"asset itself, or set instanceable = false on <{inside[0]}>"
             )
 
+    def has_skel_root(self) -> bool:
+        """Whether the composed stage holds a SkelRoot (``require_skinned`` refuses one without)."""
+        return any(p.IsA(UsdSkel.Root) for p in self.stage.Traverse(Usd.TraverseInstanceProxies()))
+
     def require_skinned(self) -> None:
         """Raise InputError when the stage has no SkelRoot or no skinned mesh."""
         roots = [p for p in self.stage.Traverse(Usd.TraverseInstanceProxies()) if p.IsA(UsdSkel.Root)]
@@ -392,6 +396,16 @@ def corrective_targets(scene: Scene, mesh: str, channels: Sequence[str]) -> list
             raise InputError(f"{where(scene.label, mesh, 'skel:blendShapeTargets')}: no BlendShape for channel {channel!r}")
         out.append(prim)
     return out
+
+
+def holds_skel_root(path: str) -> bool:
+    """Whether the file on its own defines a SkelRoot: for a refusal's hint only (an unreadable
+    file holds none; the command's own checks say what is wrong with it)."""
+    try:
+        stage = Usd.Stage.Open(path, Usd.Stage.LoadAll)
+    except Exception:  # USD raises Tf errors of its own types for unreadable files
+        return False
+    return bool(stage) and any(p.IsA(UsdSkel.Root) for p in stage.Traverse(Usd.TraverseInstanceProxies()))
 
 
 def open_layers(paths: Sequence[str]) -> tuple[Sdf.Layer, ...]:
