@@ -72,7 +72,7 @@ def run_method(method: str, box: Box, rest: NDArray[np.float64], sculpt: NDArray
         idx, offsets, calls = one_shot(box, rest, sculpt)
     else:
         res = (invert_example(box, rest, sculpt) if method == "per-vertex" else
-               coupled.invert(box, rest, sculpt, neighbours=lambda: adjacency))
+               coupled.invert(box, rest, sculpt, neighbours=lambda: adjacency, skinning=box.skin))
         idx, offsets, calls = res.indices, res.offsets, res.evaluations
     return idx, offsets, calls, time.perf_counter() - started
 
@@ -245,7 +245,8 @@ def bench_shipped(iterations: int, raw: list[dict]) -> list[list[str]]:
     rows = []
     for case in characters.cesium(shipped=True):
         started = time.perf_counter()
-        res = coupled.invert(case.box, case.rest, case.sculpt, neighbours=lambda case=case: case.adjacency)
+        res = coupled.invert(case.box, case.rest, case.sculpt, neighbours=lambda case=case: case.adjacency,
+                             skinning=case.box.skin)
         seconds = time.perf_counter() - started
         residual, atol, diagonal = residuals(case.box, case.rest, case.sculpt, res.indices, res.offsets)
         rms = float(np.sqrt(np.mean(residual**2))) / diagonal
@@ -292,7 +293,8 @@ def bench_plain(folder: str, poses: dict, poses_layer: str, sizes: Sequence[str]
             box, sculpt = chain.blackbox(scene, t), plain.sculpts[t]
             move = float(np.linalg.norm(sculpt - plain.blackbox(plain_scene, t)(plain.rest), axis=1).max())
             started = time.perf_counter()
-            res = coupled.invert(box, chain.rest, sculpt, neighbours=lambda adjacency=adjacency: adjacency)
+            res = coupled.invert(box, chain.rest, sculpt, neighbours=lambda adjacency=adjacency: adjacency,
+                                 skinning=box.skin)
             seconds = time.perf_counter() - started
             residual, _, diagonal = residuals(box, chain.rest, sculpt, res.indices, res.offsets)
             found.append({"rig": size, "elbow": poses[t]["Elbow"][1], "calls": res.evaluations, "seconds": seconds,
@@ -349,8 +351,9 @@ def bench_random(folder: str, sizes: Sequence[str], count: int, raw: list[dict])
         for t in rig.times:
             pose = f"elbow {poses[t]['Elbow'][1]:g}, wrist {poses[t]['Wrist'][1]:g}"
             started = time.perf_counter()
-            res = coupled.invert(rig.blackbox(scene, t), rig.rest, rig.sculpts[t],
-                                 neighbours=lambda adjacency=adjacency: adjacency)
+            box = rig.blackbox(scene, t)
+            res = coupled.invert(box, rig.rest, rig.sculpts[t], neighbours=lambda adjacency=adjacency: adjacency,
+                                 skinning=box.skin)
             seconds = time.perf_counter() - started
             residual, atol, diagonal = residuals(rig.blackbox(scene, t), rig.rest, rig.sculpts[t], res.indices,
                                                  res.offsets)

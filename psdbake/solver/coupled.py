@@ -43,6 +43,15 @@ Jacobian, for a smoothing deformer the skinning's own blocks) and its linearised
    them there, the stages below use them, and a smooth start that left the sculpt far runs
    again on them from zero (the character fixture's 135 degree elbow: 131 -> 63 calls; its
    140, finished on measured directions on them: 103 -> 49).
+   Where it misses on a region of several pieces of the mesh and ``invert`` was given the
+   chain's skinning alone (``fit`` gives ``SkinningBlackBox.skin``): **a structured Jacobian**
+   (``psdbake.solver.structured``): the model ``J = A S^s M``, the skinning's blocks ``M``
+   (4 calls of the skinning), the mesh's umbrella smoothing ``S^s`` and a 1-ring local operator
+   ``A`` fitted from 25 products of the chain, and filtered Gauss-Newton steps on each piece
+   (CesiumMan: the stage takes 33 and 34 calls, 4 of the skinning's; 93 and 120 calls an
+   example in all, 36 and 61 of them the small pieces' own once the rest is done, against
+   187 and 189 on the pieces' Krylov spaces below). Where it leaves vertices above the tolerance, the
+   stages below go on from it.
 2. Where the smooth start leaves the sculpt nearly reproduced (the RMS residual within
    ``pieces.REACHABLE_SLACK`` times the tolerance): **Gauss-Newton on measured directions**
    (``psdbake.solver.subspace``), one call a direction: global ones (the blocks' inverse on
@@ -135,7 +144,7 @@ from threadpoolctl import threadpool_limits
 
 from .. import tolerances as tol
 from ..arrays import Points, is_singular
-from . import pieces, pieces_krylov, powell, smoothstart, subspace
+from . import pieces, pieces_krylov, powell, smoothstart, structured, subspace
 from .inverse import COUPLING_SEEN, BlackBox, Counted, InverseResult, invert_example_with, sculpted_vertices
 from .smoothbasis import basis_sizes, smooth_bases, smooth_basis
 
@@ -222,6 +231,8 @@ MEASURED = ", on measured directions"
 EXACT = "; pieces by their exact Jacobians"
 #: And one whose pieces were solved on their own Krylov spaces (``_krylov_pieces``).
 KRYLOV_PIECES = "; pieces on their own Krylov spaces"
+#: The regime's note where the structured model of the chain's Jacobian finished the smooth start.
+STRUCTURED = "; on a structured Jacobian"
 #: That stage's calls at most: the coloured Jacobians it runs before cost more (CesiumMan's
 #: 251-vertex piece, 270 calls), and it took 121 there.
 KRYLOV_PIECES_CALLS = 200
@@ -310,7 +321,8 @@ def is_coupled(call: BlackBox, rest: Points, base: Points, probed: NDArray[np.in
 
 
 def invert(blackbox: BlackBox, rest: Points, sculpt: Points, *, rtol: float = tol.INVERSE_RTOL,
-           neighbours: Callable[[], sp.csr_matrix | None] | None = None) -> InverseResult:
+           neighbours: Callable[[], sp.csr_matrix | None] | None = None,
+           skinning: BlackBox | None = None) -> InverseResult:
     """Solve the example per vertex, or jointly when the chain couples vertices, keeping the
     better solution (``InverseResult.regime`` says which ran and which was kept).
 
@@ -322,7 +334,10 @@ def invert(blackbox: BlackBox, rest: Points, sculpt: Points, *, rtol: float = to
     mesh's edge adjacency), then measured directions or Newton-Krylov; where that misses short
     of an optimum, the slower stages (module docstring). Without edges, Newton-Krylov from zero, then
     the per-vertex solve and a restart from it; the kept result has the fewest vertices above
-    the tolerance, then the smallest worst residual, both measured by running the chain. A
+    the tolerance, then the smallest worst residual, both measured by running the chain.
+    ``skinning``, where given, is the chain's skinning alone (``SkinningBlackBox.skin``): on a
+    region of several pieces the smooth start is finished on a structured model of the chain's
+    Jacobian (``psdbake.solver.structured``), its calls counted with the chain's. A
     sculpt that leaves no unsculpted neighbour is probed (1 call) once the linearised start
     misses; a chain that couples only vertices the per-vertex calls could not show otherwise
     is probed (2 calls) once the per-vertex solve misses."""
@@ -362,7 +377,7 @@ def invert(blackbox: BlackBox, rest: Points, sculpt: Points, *, rtol: float = to
         small: tuple[list[pieces.Piece], pieces.PiecesResult] | None = None
         if adjacency is not None:  # 0. the mesh's small pieces by their own Jacobians, the rest as below
             split, small = _small_pieces_first(call, blackbox, rest, sculpt, base, idx, diagonal, floor, adjacency,
-                                               first, rtol=rtol, started=started)
+                                               first, rtol=rtol, started=started, skinning=skinning)
             if split is not None:
                 return split
         # the per-vertex 3x3 blocks, shared by every stage: the per-vertex solver's own, else 3 calls
@@ -378,7 +393,21 @@ def invert(blackbox: BlackBox, rest: Points, sculpt: Points, *, rtol: float = to
                     begun, offsets, outputs, blocks = _on_fine_blocks(call, rest, sculpt, base, idx, diagonal, floor,
                                                                       blocks, adjacency, begun, offsets, outputs,
                                                                       rtol=rtol, started=started)
-                if len(begun.missed) and begun.rms_residual <= pieces.REACHABLE_SLACK * begun.atol:
+                if len(begun.missed) and skinning is not None and len(structured.region_pieces(adjacency, idx)) > 1:
+                    # 1s. several pieces: the structured model of the chain's Jacobian
+                    found = structured.solve(call, skinning, rest, sculpt, idx, offsets, outputs, adjacency, diagonal,
+                                             begun.atol)
+                    if found is not None:
+                        there = _outputs(call, rest, idx, found.offsets)
+                        tried = _at(sculpt, idx, found.offsets, there, diagonal, floor, rtol, call.calls, started)
+                        if _rank(tried) < _rank(begun):
+                            begun = dataclasses.replace(tried, regime=begun.regime + STRUCTURED)
+                            offsets, outputs = found.offsets, there
+                            if not len(begun.missed):
+                                candidates.append(begun)
+                if candidates:
+                    pass  # reached on the structured model
+                elif len(begun.missed) and begun.rms_residual <= pieces.REACHABLE_SLACK * begun.atol:
                     # 1a. nearly reproduced: finished on measured directions
                     candidates.extend(_measured(call, rest, sculpt, idx, max(diagonal, floor), begun, blocks,
                                                 adjacency, started=started, outputs=outputs))
@@ -545,7 +574,7 @@ class _Riding:
 
 def _small_pieces_first(call: Counted, blackbox: BlackBox, rest: Points, sculpt: Points, base: Points,
                         idx: NDArray[np.int64], diagonal: float, floor: float, adjacency: sp.csr_matrix,
-                        first: InverseResult, *, rtol: float, started: float
+                        first: InverseResult, *, rtol: float, started: float, skinning: BlackBox | None = None
                         ) -> tuple[InverseResult | None, tuple[list[pieces.Piece], pieces.PiecesResult] | None]:
     """The sculpted region's small pieces of the mesh (``pieces.SMALL_PIECE`` vertices or fewer)
     solved with their exact Jacobians (``pieces.solve_small_pieces``). On CesiumMan the smooth
@@ -582,7 +611,7 @@ def _small_pieces_first(call: Counted, blackbox: BlackBox, rest: Points, sculpt:
         held = sculpt.copy()
         held[small] = base[small]  # as the rider shows them: not sculpted
         try:
-            inner = invert(riding, rest, held, rtol=rtol, neighbours=lambda: adjacency)
+            inner = invert(riding, rest, held, rtol=rtol, neighbours=lambda: adjacency, skinning=skinning)
         except _SmallPiecesMissedError:
             inner = None
         call.calls += riding.calls
@@ -602,7 +631,8 @@ def _small_pieces_first(call: Counted, blackbox: BlackBox, rest: Points, sculpt:
         held = sculpt.copy()
         for piece in found:
             held[piece.vertices] = solved.outputs[piece.vertices]
-        inner = invert(lambda points: blackbox(points + shift), rest, held, rtol=rtol, neighbours=lambda: adjacency)
+        inner = invert(lambda points: blackbox(points + shift), rest, held, rtol=rtol, neighbours=lambda: adjacency,
+                       skinning=None if skinning is None else lambda points: skinning(points + shift))
         call.calls += inner.evaluations
     if inner is not None:
         where = np.searchsorted(idx, inner.indices)

@@ -107,7 +107,7 @@ def _invert(task: InverseTask) -> tuple[InverseResult, CorrectiveNormals | None]
     try:
         # probes the chain: per-vertex (Powell in lockstep) or coupled (Newton-Krylov), see InverseResult.regime
         inverse = coupled.invert(box, rest, sculpt, rtol=task.rtol,
-                                 neighbours=functools.partial(cached_adjacency, task.asset, task.mesh))
+                                 neighbours=functools.partial(cached_adjacency, task.asset, task.mesh), skinning=box.skin)
     except SculptOutOfRangeError as exc:
         raise InputError(f"{where(task.source, task.mesh, 'points')}: example at time {task.time:g}: {exc}") from None
     return inverse, _normal_offsets(task, scene, box, rest, sculpt, inverse)

@@ -1,0 +1,234 @@
+"""Gauss-Newton on a structured model of a smoothing chain's Jacobian, fitted from a few calls.
+
+A chain of skinning, then a deformer that smooths and adds back local detail (Delta Mush),
+has the Jacobian ``J = A S^s M`` with respect to the rest offsets: ``M`` the skinning's own
+3x3 block per vertex (skinning is per vertex and linear in the rest point), ``S^s`` the
+mesh's umbrella smoothing (``s`` steps of weight 1/2, from its edges), and ``A`` a local
+operator, each output reading its own and its edge neighbours' smoothed points (the frames in
+which the detail is added back). ``A`` has 9 numbers per neighbour of each output, so a few
+dozen products of the whole chain determine all of it, at any mesh size and however many
+pieces the mesh has, where measuring ``J`` itself costs a call per vertex inside the chain's
+reach (docs/decisions/coupled-inverse-cesiumman.md, "A structured Jacobian").
+
+Only the chain and the skinning are called, both counted: ``M`` takes 4 calls of the skinning
+(the stage that psdbake itself composes before the deformers), ``A`` ``PRODUCTS`` calls of the
+chain. The model is a model: how well it explains its own products (``misfit``) decides
+whether its steps are tried, and each step is kept where the chain says it lowers the piece's
+residual. Measured on CesiumMan through LBS + Delta Mush, from where the smooth start leaves
+it: its 1-ring fit explains the products to 5e-3 (float32's noise on a 1e-5 difference), and
+every vertex comes within the tolerance in 3 or 4 steps.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+from numpy.typing import NDArray
+from scipy.linalg import cho_factor, cho_solve
+from scipy.sparse.csgraph import connected_components
+
+from ..arrays import Points
+from .inverse import Counted
+
+#: Products of the chain that fit ``A``: 3 unknowns per neighbour and axis of an output, 21 for
+#: a vertex of valence 6. On CesiumMan 25 took every vertex within the tolerance in 30 and 31
+#: calls from the smooth start, 30 in 34 and 35 (the model 2.7e-3 and 3.5e-4 off the exact
+#: Jacobian on its 251-vertex piece at 25 and 30 products, 1.6e-2 at 21, 7.2e-2 at 15).
+PRODUCTS = 25
+#: The products' difference step, of the diagonal: float32 outputs make 1e-5 about 0.6% noisy;
+#: at 1e-4 the chain's curvature left the fit 4.3e-2 off its products against 5.4e-3.
+STEP_RTOL = 1e-5
+#: The fit must explain its own products this well for its steps to be tried.
+MAX_MISFIT = 3e-2
+#: Tikhonov filter of each piece's step, of its model's largest singular value: 3e-3 kept the
+#: steps within what the model knows (at 1e-4 the first step from zero went 2.5 times farther
+#: than the residual allowed; at 1e-2 it gave up most of the gain).
+FILTER = 3e-3
+#: Steps, one call each for every piece at once.
+MAX_STEPS = 8
+#: Largest piece (vertices of the region) whose model is formed: its dense model is (3p)^2.
+MAX_PIECE = 1000
+
+
+@dataclass(frozen=True)
+class StructuredResult:
+    """The region's offsets (k, 3) after the stage, and the model's misfit on its products."""
+
+    offsets: NDArray[np.float64]
+    misfit: float
+
+
+def umbrella(adjacency: sp.csr_matrix) -> sp.csr_matrix:
+    """One umbrella step of weight 1/2 over the mesh's edges (identity rows for lone points)."""
+    degree = np.asarray(adjacency.sum(axis=1)).ravel()
+    lonely = degree == 0
+    inverse = np.divide(0.5, degree, out=np.zeros_like(degree, dtype=np.float64), where=~lonely)
+    return (sp.diags(np.where(lonely, 1.0, 0.5)) + sp.diags(inverse) @ adjacency).tocsr()
+
+
+def region_pieces(adjacency: sp.csr_matrix, idx: NDArray[np.int64]) -> list[NDArray[np.int64]]:
+    """The region's positions (in ``idx``) grouped by the mesh's connected pieces."""
+    _, label = connected_components(adjacency, directed=False)
+    of = label[idx]
+    return [np.nonzero(of == p)[0] for p in np.unique(of)]
+
+
+def skinning_blocks(skinning: Callable[[Points], Points], rest: Points, idx: NDArray[np.int64],
+                    diagonal: float) -> NDArray[np.float64]:
+    """The skinning's 3x3 block per region vertex (k, 3, 3), from 4 calls of the skinning alone."""
+    at = skinning(rest)[idx]
+    step = 1e-3 * diagonal
+    blocks = np.empty((len(idx), 3, 3))
+    for axis in range(3):
+        moved = rest.copy()
+        moved[idx, axis] += step
+        blocks[:, :, axis] = (skinning(moved)[idx] - at) / step
+    return blocks
+
+
+#: Smoothing steps the model tries; the one that explains the products best is kept (the
+#: reference Delta Mush, 10 iterations of weight 1/2: 10).
+SMOOTHING_STEPS = (4, 6, 8, 10, 12, 14, 16)
+
+
+def solve(call: Counted, skinning: Callable[[Points], Points], rest: Points, sculpt: Points,
+          idx: NDArray[np.int64], offsets: Points, outputs: Points, adjacency: sp.csr_matrix,
+          diagonal: float, atol: float) -> StructuredResult | None:
+    """From ``offsets`` ((k, 3), the chain's ``outputs`` there, (k, 3)): fit the model,
+    then filtered Gauss-Newton (chord) steps on each piece of the region, one call for all of
+    them, each kept where it lowers its piece's residual. None where a piece is larger than
+    ``MAX_PIECE`` or the model does not explain its products (``MAX_MISFIT``; its calls are
+    spent). ``call.calls`` counts the skinning's calls too."""
+    groups = region_pieces(adjacency, idx)
+    if not groups or max(len(g) for g in groups) > MAX_PIECE:
+        return None
+    posed = skinning_blocks(skinning, rest, idx, diagonal)
+    call.calls += 4
+    directions, images = _products(call, rest, idx, offsets, outputs, diagonal)
+    ring = (adjacency + sp.identity(len(rest), format="csr")).tocsr()
+    best: tuple[float, NDArray[np.float64]] | None = None
+    smoothed, done, umbrella_step = _smoothed(adjacency, idx, 0), 0, umbrella(adjacency)
+    for steps in SMOOTHING_STEPS:  # ascending: each from the one before
+        for _ in range(steps - done):
+            smoothed = np.asarray(umbrella_step @ smoothed)
+        done = steps
+        fitted = _fit(rest, idx, posed, smoothed, ring, groups, directions, images, build=False)[1]
+        if best is None or fitted < best[0]:
+            best = (fitted, smoothed)
+    assert best is not None
+    models, misfit = _fit(rest, idx, posed, best[1], ring, groups, directions, images, build=True)
+    if not misfit <= MAX_MISFIT:
+        return None
+    factored = [_Filtered(model) for model in models]
+    x = np.array(offsets, dtype=np.float64)
+    r = sculpt[idx] - outputs
+    for _ in range(MAX_STEPS):
+        norms = np.linalg.norm(r, axis=1)
+        live = [g for g, pos in enumerate(groups) if norms[pos].max() > atol]
+        if not live:
+            break
+        trial = x.copy()
+        tried = {g: factored[g].step(r[groups[g]].ravel()) for g in live}
+        for g, step in tried.items():
+            trial[groups[g]] += step.reshape(-1, 3)
+        moved = rest.copy()
+        moved[idx] += trial
+        left = sculpt[idx] - call(moved)[idx]
+        kept = False
+        for g in tried:
+            pos = groups[g]
+            if float(np.sum(left[pos] ** 2)) < float(np.sum(r[pos] ** 2)):
+                x[pos], r[pos], kept = trial[pos], left[pos], True
+        if not kept:
+            break
+    return StructuredResult(x, misfit)
+
+
+def _smoothed(adjacency: sp.csr_matrix, idx: NDArray[np.int64], steps: int) -> NDArray[np.float64]:
+    """(n, k): each region vertex's unit move after ``steps`` umbrella steps."""
+    n, k = adjacency.shape[0], len(idx)
+    moved = sp.csr_matrix((np.ones(k), (idx, np.arange(k))), shape=(n, k)).toarray()
+    step = umbrella(adjacency)
+    for _ in range(steps):
+        moved = step @ moved
+    return np.asarray(moved)
+
+
+def _products(call: Counted, rest: Points, idx: NDArray[np.int64], offsets: Points, outputs: Points,
+              diagonal: float) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """``PRODUCTS`` calls along fixed pseudo-random moves of every region vertex: the moves
+    (k, 3, m) and the region's responses (k, 3, m), forward differences."""
+    generator = np.random.default_rng(20001)  # fixed: the same inputs give the same model
+    directions = generator.standard_normal((len(idx), 3, PRODUCTS))
+    directions /= np.sqrt(np.mean(np.sum(directions**2, axis=1), axis=0))[None, None, :]
+    at = rest.copy()
+    at[idx] += offsets
+    h = STEP_RTOL * diagonal
+    images = np.empty((len(idx), 3, PRODUCTS))
+    for j in range(PRODUCTS):
+        moved = at.copy()
+        moved[idx] += h * directions[:, :, j]
+        images[:, :, j] = (call(moved)[idx] - outputs) / h
+    return directions, images
+
+
+def _fit(rest: Points, idx: NDArray[np.int64], posed: NDArray[np.float64], smoothed: NDArray[np.float64],
+         ring: sp.csr_matrix, groups: list[NDArray[np.int64]], directions: NDArray[np.float64],
+         images: NDArray[np.float64], build: bool) -> tuple[list[NDArray[np.float64]], float]:
+    """Each piece's model (3p, 3p; with ``build``), its outputs' local operators fitted by least
+    squares to the products (minimum-norm where an output has more neighbours than products
+    explain), and the fit's relative misfit on them."""
+    m = directions.shape[2]
+    seen = np.einsum("nk,kam->nam", smoothed, np.einsum("kab,kbm->kam", posed, directions))
+    near = [ring[v].indices for v in idx]
+    local: list[NDArray[np.float64]] = [np.empty(0)] * len(idx)
+    wrong = 0.0
+    sizes = np.array([len(a) for a in near])
+    for size in np.unique(sizes):  # the outputs with as many neighbours, solved as one stack
+        which = np.nonzero(sizes == size)[0]
+        inputs = seen[np.stack([near[q] for q in which])].reshape(len(which), -1, m)  # (B, 3 size, m)
+        measured = images[which]  # (B, 3, m)
+        coef = np.linalg.pinv(np.swapaxes(inputs, 1, 2)) @ np.swapaxes(measured, 1, 2)  # (B, 3 size, 3)
+        wrong += float(np.sum((np.swapaxes(coef, 1, 2) @ inputs - measured) ** 2))
+        for b, q in enumerate(which):
+            local[q] = coef[b].T
+    total = float(np.sum(images**2))
+    models = []
+    if build:
+        for pos in groups:
+            responses = np.einsum("nk,kab->nakb", smoothed[:, pos], posed[pos]).reshape(len(rest), 3, 3 * len(pos))
+            model = np.empty((3 * len(pos), 3 * len(pos)))
+            for t, q in enumerate(pos):
+                model[3 * t:3 * t + 3] = local[q] @ responses[near[q]].reshape(-1, 3 * len(pos))
+            models.append(model)
+    return models, float(np.sqrt(wrong / total)) if total > 0 else float("inf")
+
+
+class _Filtered:
+    """One piece's model, factored once, for Tikhonov-filtered least-squares steps
+    ``(J^T J + (FILTER sigma_1)^2)^-1 J^T r`` (Cholesky of the regularised Gram matrix, whose
+    condition number the filter bounds by 1/FILTER^2; an SVD of CesiumMan's 731-vertex piece
+    took several times as long). Chord steps: with Broyden's update on CesiumMan the calls were
+    the same (93 and 120) and each update needs the factor again."""
+
+    def __init__(self, model: NDArray[np.float64]) -> None:
+        self.model = model
+        gram = model.T @ model
+        v = np.ones(len(gram)) / np.sqrt(len(gram))  # power iteration from a fixed start: deterministic
+        largest = 0.0
+        for _ in range(30):
+            w = gram @ v
+            largest = float(np.linalg.norm(w))
+            if not largest > 0:
+                break
+            v = w / largest
+        gram[np.diag_indices_from(gram)] += (FILTER**2) * largest
+        self.factor = cho_factor(gram) if largest > 0 else None
+
+    def step(self, r: NDArray[np.float64]) -> NDArray[np.float64]:
+        if self.factor is None:
+            return np.zeros(self.model.shape[1])
+        return np.asarray(cho_solve(self.factor, self.model.T @ r), dtype=np.float64)
