@@ -16,7 +16,8 @@ chain. The model is a model: how well it explains its own products (``misfit``) 
 whether its steps are tried, and each step is kept where the chain says it lowers the piece's
 residual. Measured on CesiumMan through LBS + Delta Mush, from where the smooth start leaves
 it: its 1-ring fit explains the products to 5e-3 (float32's noise on a 1e-5 difference), and
-every vertex comes within the tolerance in 3 or 4 steps.
+its large pieces come within the tolerance in 33 and 34 calls of the stage (4 of the skinning's,
+25 products, the rest steps).
 """
 
 from __future__ import annotations
@@ -34,23 +35,30 @@ from ..arrays import Points
 from .inverse import Counted
 
 #: Products of the chain that fit ``A``: 3 unknowns per neighbour and axis of an output, 21 for
-#: a vertex of valence 6. On CesiumMan 25 took every vertex within the tolerance in 30 and 31
-#: calls from the smooth start, 30 in 34 and 35 (the model 2.7e-3 and 3.5e-4 off the exact
-#: Jacobian on its 251-vertex piece at 25 and 30 products, 1.6e-2 at 21, 7.2e-2 at 15).
+#: a vertex of valence 6. On CesiumMan (offline, its small pieces held at their answers) 25
+#: took every vertex within the tolerance in 30 and 31 calls from the smooth start, 30 in 34 and
+#: 35 (the model 2.7e-3 and 3.5e-4 off the exact Jacobian on its 251-vertex piece at 25 and 30
+#: products, 1.6e-2 at 21, 7.2e-2 at 15).
 PRODUCTS = 25
 #: The products' difference step, of the diagonal: float32 outputs make 1e-5 about 0.6% noisy;
 #: at 1e-4 the chain's curvature left the fit 4.3e-2 off its products against 5.4e-3.
 STEP_RTOL = 1e-5
-#: The fit must explain its own products this well for its steps to be tried.
+#: The fit must explain its own products this well for its steps to be tried (CesiumMan through
+#: Delta Mush: 5.5e-3 at its 10 smoothing steps; 4.0e-2 and 4.2e-2 at 12 and 8, a model off by a
+#: fifth of the smoothing).
 MAX_MISFIT = 3e-2
-#: Tikhonov filter of each piece's step, of its model's largest singular value: 3e-3 kept the
-#: steps within what the model knows (at 1e-4 the first step from zero went 2.5 times farther
-#: than the residual allowed; at 1e-2 it gave up most of the gain).
+#: Tikhonov filter of each piece's step, of its model's largest singular value. On CesiumMan's
+#: first step from zero (its worst vertex 5,506 times the tolerance away): at 1e-4 the worst
+#: vertex ended 2.5 times farther from the sculpt; at 3e-3 the RMS came to 19 times the
+#: tolerance, at 1e-2 and 3e-2 to 35 and 212.
 FILTER = 3e-3
 #: Steps, one call each for every piece at once.
 MAX_STEPS = 8
 #: Largest piece (vertices of the region) whose model is formed: its dense model is (3p)^2.
 MAX_PIECE = 1000
+#: Most entries of the smoothed unit moves (points x region vertices, float64: 160 MB): a
+#: larger mesh keeps the stages after this one (CesiumMan: 3,273 x 1,956).
+MAX_ENTRIES = 20_000_000
 
 
 @dataclass(frozen=True)
@@ -100,10 +108,11 @@ def solve(call: Counted, skinning: Callable[[Points], Points], rest: Points, scu
     """From ``offsets`` ((k, 3), the chain's ``outputs`` there, (k, 3)): fit the model,
     then filtered Gauss-Newton (chord) steps on each piece of the region, one call for all of
     them, each kept where it lowers its piece's residual. None where a piece is larger than
-    ``MAX_PIECE`` or the model does not explain its products (``MAX_MISFIT``; its calls are
-    spent). ``call.calls`` counts the skinning's calls too."""
+    ``MAX_PIECE``, the mesh and region together larger than ``MAX_ENTRIES``, or the model does
+    not explain its products (``MAX_MISFIT``; its calls are spent). ``call.calls`` counts the
+    skinning's calls too."""
     groups = region_pieces(adjacency, idx)
-    if not groups or max(len(g) for g in groups) > MAX_PIECE:
+    if not groups or max(len(g) for g in groups) > MAX_PIECE or len(rest) * len(idx) > MAX_ENTRIES:
         return None
     posed = skinning_blocks(skinning, rest, idx, diagonal)
     call.calls += 4
