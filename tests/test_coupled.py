@@ -546,11 +546,12 @@ def test_the_structured_model_explains_delta_mushs_products():
     offsets = np.zeros((len(idx), 3))
     directions, images = structured._products(call, case.rest, idx, offsets, base[idx], diagonal)
     assert call.calls == structured.PRODUCTS
-    posed = structured.skinning_blocks(case.box.skin, case.rest, idx, diagonal)
+    posed = coupled.blocks_at(case.box.skin, case.rest, idx, offsets, case.box.skin(case.rest)[idx],
+                              structured.SKINNING_STEP_RTOL * diagonal)
     ring = (case.adjacency + sp.identity(len(case.rest), format="csr")).tocsr()
     groups = structured.region_pieces(case.adjacency, idx)
-    misfit = {steps: structured._fit(case.rest, idx, posed, structured._smoothed(case.adjacency, idx, steps), ring,
-                                     groups, directions, images, build=False)[1] for steps in structured.SMOOTHING_STEPS}
+    misfit = {steps: structured._fit(case.rest, idx, posed, smoothed, ring, groups, directions, images, build=False)[1]
+              for steps, smoothed in structured.smoothings(case.adjacency, idx, structured.SMOOTHING_STEPS)}
     assert misfit[10] <= 1e-2, misfit  # float32 outputs over a 1e-5 difference: ~6e-3
     assert min(misfit, key=misfit.__getitem__) == 10 and min(v for s, v in misfit.items() if s != 10) > 5 * misfit[10]
 

@@ -393,20 +393,25 @@ def invert(blackbox: BlackBox, rest: Points, sculpt: Points, *, rtol: float = to
                     begun, offsets, outputs, blocks = _on_fine_blocks(call, rest, sculpt, base, idx, diagonal, floor,
                                                                       blocks, adjacency, begun, offsets, outputs,
                                                                       rtol=rtol, started=started)
-                if len(begun.missed) and skinning is not None and len(structured.region_pieces(adjacency, idx)) > 1:
-                    # 1s. several pieces: the structured model of the chain's Jacobian
-                    found = structured.solve(call, skinning, rest, sculpt, idx, offsets, outputs, adjacency, diagonal,
-                                             begun.atol)
+                reached = False
+                groups = structured.region_pieces(adjacency, idx) if skinning is not None else []
+                if len(begun.missed) and skinning is not None and structured.fits(groups, len(rest)):
+                    # 1s. several pieces: the structured model of the chain's Jacobian, on the
+                    # skinning's own blocks (4 calls of the skinning alone, counted)
+                    posed = blocks_at(skinning, rest, idx, np.zeros((len(idx), 3)), skinning(rest)[idx],
+                                      structured.SKINNING_STEP_RTOL * diagonal)
+                    call.calls += 4
+                    found = structured.solve(call, posed, rest, sculpt, idx, groups, offsets, outputs, adjacency,
+                                             diagonal, begun.atol)
                     if found is not None:
                         there = _outputs(call, rest, idx, found.offsets)
                         tried = _at(sculpt, idx, found.offsets, there, diagonal, floor, rtol, call.calls, started)
                         if _rank(tried) < _rank(begun):
                             begun = dataclasses.replace(tried, regime=begun.regime + STRUCTURED)
                             offsets, outputs = found.offsets, there
-                            if not len(begun.missed):
-                                candidates.append(begun)
-                if candidates:
-                    pass  # reached on the structured model
+                            reached = not len(begun.missed)
+                if reached:
+                    candidates.append(begun)
                 elif len(begun.missed) and begun.rms_residual <= pieces.REACHABLE_SLACK * begun.atol:
                     # 1a. nearly reproduced: finished on measured directions
                     candidates.extend(_measured(call, rest, sculpt, idx, max(diagonal, floor), begun, blocks,

@@ -11,8 +11,8 @@ pieces the mesh has, where measuring ``J`` itself costs a call per vertex inside
 reach (docs/decisions/coupled-inverse-cesiumman.md, "A structured Jacobian").
 
 Only the chain and the skinning are called, both counted: ``M`` takes 4 calls of the skinning
-(the stage that psdbake itself composes before the deformers), ``A`` ``PRODUCTS`` calls of the
-chain. The model is a model: how well it explains its own products (``misfit``) decides
+(the stage that psdbake itself composes before the deformers; ``coupled`` measures it), ``A``
+``PRODUCTS`` calls of the chain. The model is a model: how well it explains its own products (``misfit``) decides
 whether its steps are tried, and each step is kept where the chain says it lowers the piece's
 residual. Measured on CesiumMan through LBS + Delta Mush, from where the smooth start leaves
 it: its 1-ring fit explains the products to 5e-3 (float32's noise on a 1e-5 difference), and
@@ -22,7 +22,7 @@ its large pieces come within the tolerance in 33 and 34 calls of the stage (4 of
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 import numpy as np
@@ -56,6 +56,9 @@ FILTER = 3e-3
 MAX_STEPS = 8
 #: Largest piece (vertices of the region) whose model is formed: its dense model is (3p)^2.
 MAX_PIECE = 1000
+#: The skinning's difference step for ``M``, of the diagonal (skinning is linear in the rest
+#: point: any step gives its blocks, up to float32's rounding of the posed points).
+SKINNING_STEP_RTOL = 1e-3
 #: Most entries of the smoothed unit moves (points x region vertices, float64: 160 MB): a
 #: larger mesh keeps the stages after this one (CesiumMan: 3,273 x 1,956).
 MAX_ENTRIES = 20_000_000
@@ -84,46 +87,27 @@ def region_pieces(adjacency: sp.csr_matrix, idx: NDArray[np.int64]) -> list[NDAr
     return [np.nonzero(of == p)[0] for p in np.unique(of)]
 
 
-def skinning_blocks(skinning: Callable[[Points], Points], rest: Points, idx: NDArray[np.int64],
-                    diagonal: float) -> NDArray[np.float64]:
-    """The skinning's 3x3 block per region vertex (k, 3, 3), from 4 calls of the skinning alone."""
-    at = skinning(rest)[idx]
-    step = 1e-3 * diagonal
-    blocks = np.empty((len(idx), 3, 3))
-    for axis in range(3):
-        moved = rest.copy()
-        moved[idx, axis] += step
-        blocks[:, :, axis] = (skinning(moved)[idx] - at) / step
-    return blocks
-
-
 #: Smoothing steps the model tries; the one that explains the products best is kept (the
 #: reference Delta Mush, 10 iterations of weight 1/2: 10).
 SMOOTHING_STEPS = (4, 6, 8, 10, 12, 14, 16)
 
 
-def solve(call: Counted, skinning: Callable[[Points], Points], rest: Points, sculpt: Points,
-          idx: NDArray[np.int64], offsets: Points, outputs: Points, adjacency: sp.csr_matrix,
+def solve(call: Counted, posed: NDArray[np.float64], rest: Points, sculpt: Points, idx: NDArray[np.int64],
+          groups: list[NDArray[np.int64]], offsets: Points, outputs: Points, adjacency: sp.csr_matrix,
           diagonal: float, atol: float) -> StructuredResult | None:
     """From ``offsets`` ((k, 3), the chain's ``outputs`` there, (k, 3)): fit the model,
     then filtered Gauss-Newton (chord) steps on each piece of the region, one call for all of
     them, each kept where it lowers its piece's residual. None where a piece is larger than
     ``MAX_PIECE``, the mesh and region together larger than ``MAX_ENTRIES``, or the model does
-    not explain its products (``MAX_MISFIT``; its calls are spent). ``call.calls`` counts the
-    skinning's calls too."""
-    groups = region_pieces(adjacency, idx)
-    if not groups or max(len(g) for g in groups) > MAX_PIECE or len(rest) * len(idx) > MAX_ENTRIES:
+    not explain its products (``MAX_MISFIT``; its calls are spent). ``posed``: the skinning's
+    3x3 block per region vertex (k, 3, 3), from the skinning alone; ``groups``: the region's
+    pieces (``region_pieces``)."""
+    if not fits(groups, len(rest)):
         return None
-    posed = skinning_blocks(skinning, rest, idx, diagonal)
-    call.calls += 4
     directions, images = _products(call, rest, idx, offsets, outputs, diagonal)
     ring = (adjacency + sp.identity(len(rest), format="csr")).tocsr()
     best: tuple[float, NDArray[np.float64]] | None = None
-    smoothed, done, umbrella_step = _smoothed(adjacency, idx, 0), 0, umbrella(adjacency)
-    for steps in SMOOTHING_STEPS:  # ascending: each from the one before
-        for _ in range(steps - done):
-            smoothed = np.asarray(umbrella_step @ smoothed)
-        done = steps
+    for _, smoothed in smoothings(adjacency, idx, SMOOTHING_STEPS):
         fitted = _fit(rest, idx, posed, smoothed, ring, groups, directions, images, build=False)[1]
         if best is None or fitted < best[0]:
             best = (fitted, smoothed)
@@ -156,14 +140,25 @@ def solve(call: Counted, skinning: Callable[[Points], Points], rest: Points, scu
     return StructuredResult(x, misfit)
 
 
-def _smoothed(adjacency: sp.csr_matrix, idx: NDArray[np.int64], steps: int) -> NDArray[np.float64]:
-    """(n, k): each region vertex's unit move after ``steps`` umbrella steps."""
+def fits(groups: list[NDArray[np.int64]], points: int) -> bool:
+    """Whether the stage can run on a region of these pieces of a mesh of ``points`` points:
+    several pieces, none over ``MAX_PIECE``, and within ``MAX_ENTRIES``."""
+    k = sum(len(g) for g in groups)
+    return len(groups) > 1 and max(len(g) for g in groups) <= MAX_PIECE and points * k <= MAX_ENTRIES
+
+
+def smoothings(adjacency: sp.csr_matrix, idx: NDArray[np.int64], counts: tuple[int, ...]
+               ) -> Iterator[tuple[int, NDArray[np.float64]]]:
+    """(s, (n, k)) for each s of ``counts`` (ascending): each region vertex's unit move after
+    s umbrella steps, each from the one before."""
     n, k = adjacency.shape[0], len(idx)
     moved = sp.csr_matrix((np.ones(k), (idx, np.arange(k))), shape=(n, k)).toarray()
-    step = umbrella(adjacency)
-    for _ in range(steps):
-        moved = step @ moved
-    return np.asarray(moved)
+    step, done = umbrella(adjacency), 0
+    for steps in counts:
+        for _ in range(steps - done):
+            moved = np.asarray(step @ moved)
+        done = steps
+        yield steps, moved
 
 
 def _products(call: Counted, rest: Points, idx: NDArray[np.int64], offsets: Points, outputs: Points,

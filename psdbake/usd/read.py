@@ -47,6 +47,11 @@ def hidden_from_usdskel(stage: Usd.Stage) -> list[tuple[str, str]]:
     return out
 
 
+def skel_roots(stage: Usd.Stage) -> list[Usd.Prim]:
+    """The stage's SkelRoot prims, instance proxies included."""
+    return [p for p in stage.Traverse(Usd.TraverseInstanceProxies()) if p.IsA(UsdSkel.Root)]
+
+
 def why_hidden(stage: Usd.Stage, blocker: str) -> str:
     """Why UsdSkel does not skin a mesh below ``blocker`` (``hidden_from_usdskel``), and the fix."""
     kind = stage.GetPrimAtPath(blocker).GetTypeName()
@@ -101,7 +106,7 @@ class Scene:
         # mesh -> (skinning query, skeleton query, owning SkelRoot, bound Skeleton's path)
         self._targets: dict[str, tuple[UsdSkel.SkinningQuery, UsdSkel.SkeletonQuery, str, str]] = {}
         predicate = Usd.TraverseInstanceProxies()
-        roots = [p for p in self.stage.Traverse(predicate) if p.IsA(UsdSkel.Root)]
+        self._roots = roots = skel_roots(self.stage)
         # Nested SkelRoots: sorted paths put a SkelRoot before the ones inside it, and the
         # cache keeps the first binding it populates for a prim. So, as in UsdSkel's own
         # BakeSkinning of a stage and UsdSkelImaging, the outermost SkelRoot owns everything
@@ -210,11 +215,11 @@ class Scene:
 
     def has_skel_root(self) -> bool:
         """Whether the composed stage holds a SkelRoot (``require_skinned`` refuses one without)."""
-        return any(p.IsA(UsdSkel.Root) for p in self.stage.Traverse(Usd.TraverseInstanceProxies()))
+        return bool(self._roots)
 
     def require_skinned(self) -> None:
         """Raise InputError when the stage has no SkelRoot or no skinned mesh."""
-        roots = [p for p in self.stage.Traverse(Usd.TraverseInstanceProxies()) if p.IsA(UsdSkel.Root)]
+        roots = self._roots
         if not roots:
             raise InputError(f"{self.label}: no SkelRoot prim found (UsdSkel needs one above the skinned meshes)")
         if not self._targets:
@@ -405,7 +410,7 @@ def holds_skel_root(path: str) -> bool:
         stage = Usd.Stage.Open(path, Usd.Stage.LoadAll)
     except Exception:  # USD raises Tf errors of its own types for unreadable files
         return False
-    return bool(stage) and any(p.IsA(UsdSkel.Root) for p in stage.Traverse(Usd.TraverseInstanceProxies()))
+    return bool(stage) and bool(skel_roots(stage))
 
 
 def open_layers(paths: Sequence[str]) -> tuple[Sdf.Layer, ...]:
