@@ -20,6 +20,14 @@ per-vertex solver measured is reused: the chain at rest, the per-vertex 3x3 bloc
 moving *every* sculpted vertex along x, then y, then z: the row sums of the coupled chain's
 Jacobian, for a smoothing deformer the skinning's own blocks) and its linearised start.
 
+0s. **Many small pieces, on a structured Jacobian** (``_whole_structured``): where the region
+   holds small pieces whose exact Jacobians would cost more calls than the structured model
+   below (CesiumMan's 25-vertex shells: 76) and ``invert`` was given the chain's skinning, the
+   whole region, small pieces and large, is solved on that model from the linearised start:
+   damped Gauss-Newton with Broyden's update, the model refitted once where it stalls, a
+   piece or two left finished on their exact Jacobians (CesiumMan: 66 and 88 calls, against
+   97 and 124 through stage 0 and the smooth start). Where it misses more, its calls are spent
+   and stage 0 starts afresh.
 0. **Small pieces of the mesh** (``_small_pieces_first``, ``psdbake.solver.pieces``): where the
    region holds pieces of at most ``pieces.SMALL_PIECE`` vertices (a character's small UV
    shells, which Delta Mush rotates rather than smooths), their exact Jacobians (3 calls a
@@ -48,9 +56,9 @@ Jacobian, for a smoothing deformer the skinning's own blocks) and its linearised
    (``psdbake.solver.structured``): the model ``J = A S^s M``, the skinning's blocks ``M``
    (4 calls of the skinning), the mesh's umbrella smoothing ``S^s`` and a 1-ring local operator
    ``A`` fitted from 25 products of the chain, and filtered Gauss-Newton steps on each piece
-   (CesiumMan: the stage takes 33 and 34 calls, 4 of the skinning's; 93 and 120 calls an
-   example in all, 36 and 61 of them the small pieces' own once the rest is done, against
-   187 and 189 on the pieces' Krylov spaces below). Where it leaves vertices above the tolerance, the
+   (CesiumMan before stage 0s: the stage took 33 and 34 calls, 4 of the skinning's; 97 and
+   124 calls an example in all, 36 and 61 of them the small pieces' own once the rest was
+   done, against 187 and 189 on the pieces' Krylov spaces below). Where it leaves vertices above the tolerance, the
    stages below go on from it.
 2. Where the smooth start leaves the sculpt nearly reproduced (the RMS residual within
    ``pieces.REACHABLE_SLACK`` times the tolerance): **Gauss-Newton on measured directions**
@@ -145,7 +153,7 @@ from threadpoolctl import threadpool_limits
 from .. import tolerances as tol
 from ..arrays import Points, is_singular
 from . import pieces, pieces_krylov, powell, smoothstart, structured, subspace
-from .inverse import COUPLING_SEEN, BlackBox, Counted, InverseResult, invert_example_with, sculpted_vertices
+from .inverse import COUPLING_SEEN, BlackBox, Counted, InverseResult, LinearisedStart, invert_example_with, sculpted_vertices
 from .smoothbasis import basis_sizes, smooth_bases, smooth_basis
 
 #: Vertices moved by the coupling probe (a farthest-point sample of the sculpted vertices).
@@ -374,6 +382,19 @@ def invert(blackbox: BlackBox, rest: Points, sculpt: Points, *, rtol: float = to
     with threadpool_limits(limits=1, user_api="blas"):
         if not read:
             adjacency = neighbours() if neighbours is not None else None
+        if adjacency is not None and skinning is not None and measured is not None:
+            # 0s. many small pieces: the whole region on the structured model; where it misses,
+            # its calls are spent and the stages below start afresh (on CesiumMan's shipped
+            # sculpts, which no offset reproduces, its result ranked better but stopped short
+            # of the optimum the exact pieces settle at)
+            whole = _whole_structured(call, skinning, rest, sculpt, idx, diagonal, floor, adjacency, measured,
+                                      rtol=rtol, started=started)
+            if whole is not None and len(whole.missed) and len(whole.missed) <= POLISH_VERTICES:
+                # a few vertices left: their pieces on their exact Jacobians, as stage 4 below
+                whole = _exact_pieces(call, rest, sculpt, idx, whole, adjacency, measured.blocks)
+            if whole is not None and not len(whole.missed):
+                return dataclasses.replace(whole, evaluations=call.calls, seconds=time.perf_counter() - started,
+                                           sculpt_rms=first.sculpt_rms)
         small: tuple[list[pieces.Piece], pieces.PiecesResult] | None = None
         if adjacency is not None:  # 0. the mesh's small pieces by their own Jacobians, the rest as below
             split, small = _small_pieces_first(call, blackbox, rest, sculpt, base, idx, diagonal, floor, adjacency,
@@ -469,6 +490,34 @@ def invert(blackbox: BlackBox, rest: Points, sculpt: Points, *, rtol: float = to
                                 started=started)
     return dataclasses.replace(best, evaluations=call.calls, seconds=time.perf_counter() - started,
                                sculpt_rms=first.sculpt_rms)
+
+
+def _whole_structured(call: Counted, skinning: BlackBox, rest: Points, sculpt: Points, idx: NDArray[np.int64],
+                      diagonal: float, floor: float, adjacency: sp.csr_matrix, measured: LinearisedStart, *,
+                      rtol: float, started: float) -> InverseResult | None:
+    """The whole region, small pieces included, on the structured model from the linearised
+    start (``structured.solve_whole``), checked by one call: where the region holds small
+    pieces whose exact Jacobians (``pieces.jacobian_calls``) cost more calls than the model's
+    products and the skinning's blocks. On CesiumMan the exact Jacobians of its 25-vertex
+    pieces cost 76 calls, and the small pieces' stage ended after the rest's at 97 and 124
+    calls; from the linearised start the model took every vertex within the tolerance in 66
+    calls, and all but one 7-vertex piece's in 84, which its exact Jacobian finished in 88
+    (docs/decisions/coupled-inverse-cesiumman.md). None where it does not apply."""
+    found = pieces.small_pieces(adjacency, idx)
+    groups = structured.region_pieces(adjacency, idx)
+    if not found or pieces.jacobian_calls(found) <= structured.PRODUCTS + 4 or not structured.fits(groups, len(rest)):
+        return None
+    posed = blocks_at(skinning, rest, idx, np.zeros((len(idx), 3)), skinning(rest)[idx],
+                      structured.SKINNING_STEP_RTOL * diagonal)
+    call.calls += 4
+    atol = max(rtol * diagonal, floor)
+    solved = structured.solve_whole(call, posed, rest, sculpt, idx, groups, measured.start, measured.start_outputs,
+                                    adjacency, diagonal, atol)
+    if solved is None:
+        return None
+    there = _outputs(call, rest, idx, solved.offsets)
+    return dataclasses.replace(_at(sculpt, idx, solved.offsets, there, diagonal, floor, rtol, call.calls, started),
+                               regime="coupled, from the linearised start" + STRUCTURED)
 
 
 def _at(sculpt: Points, idx: NDArray[np.int64], offsets: Points, outputs: Points, diagonal: float, floor: float,
@@ -615,11 +664,12 @@ def _small_pieces_first(call: Counted, blackbox: BlackBox, rest: Points, sculpt:
     if len(others) and SMALL_PIECES_RIDE and not riding.done:
         held = sculpt.copy()
         held[small] = base[small]  # as the rider shows them: not sculpted
+        skinned = Counted(skinning) if skinning is not None else None  # its calls count with the rider's
         try:
-            inner = invert(riding, rest, held, rtol=rtol, neighbours=lambda: adjacency, skinning=skinning)
+            inner = invert(riding, rest, held, rtol=rtol, neighbours=lambda: adjacency, skinning=skinned)
         except _SmallPiecesMissedError:
             inner = None
-        call.calls += riding.calls
+        call.calls += riding.calls + (skinned.calls if skinned is not None else 0)
     while not riding.done:  # what the rest's calls did not carry
         riding.alone(call)
     solved = riding.result
