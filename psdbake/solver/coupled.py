@@ -501,8 +501,8 @@ def _whole_structured(call: Counted, skinning: BlackBox, rest: Points, sculpt: P
     products and the skinning's blocks. On CesiumMan the exact Jacobians of its 25-vertex
     pieces cost 76 calls, and the small pieces' stage ended after the rest's at 97 and 124
     calls; from the linearised start the model took every vertex within the tolerance in 66
-    calls, and all but one 7-vertex piece's in 84, which its exact Jacobian finished in 88
-    (docs/decisions/coupled-inverse-cesiumman.md). None where it does not apply."""
+    calls, and at the second all but one 7-vertex piece's, which its exact Jacobian finished:
+    88 in all (docs/decisions/coupled-inverse-cesiumman.md). None where it does not apply."""
     found = pieces.small_pieces(adjacency, idx)
     groups = structured.region_pieces(adjacency, idx)
     if not found or pieces.jacobian_calls(found) <= structured.PRODUCTS + 4 or not structured.fits(groups, len(rest)):

@@ -18,6 +18,12 @@ residual. Measured on CesiumMan through LBS + Delta Mush, from where the smooth 
 it: its 1-ring fit explains the products to 5e-3 (float32's noise on a 1e-5 difference), and
 its large pieces come within the tolerance in 33 and 34 calls of the stage (4 of the skinning's,
 25 products, the rest steps).
+
+``solve_whole`` takes a region whose small pieces (UV shells a Delta Mush rotates) would cost
+more calls measured exactly than the model does, small and large pieces together, from the
+linearised start: damped steps with Broyden's update, and the model refitted once where the
+small pieces' Jacobians have changed under its steps (CesiumMan: 66 and 88 calls an example,
+from 97 and 124; docs/decisions/coupled-inverse-cesiumman.md, "The whole region").
 """
 
 from __future__ import annotations
@@ -227,6 +233,20 @@ def _fit(rest: Points, idx: NDArray[np.int64], posed: NDArray[np.float64], smoot
     return models, float(np.sqrt(wrong / total)) if total > 0 else float("inf")
 
 
+def _largest(gram: NDArray[np.float64]) -> float:
+    """The Gram matrix's largest eigenvalue, by 30 power iterations from a fixed start
+    (deterministic; its scale is all the damping needs)."""
+    v = np.ones(len(gram)) / np.sqrt(len(gram))
+    largest = 0.0
+    for _ in range(30):
+        w = gram @ v
+        largest = float(np.linalg.norm(w))
+        if not largest > 0:
+            break
+        v = w / largest
+    return largest
+
+
 class _Filtered:
     """One piece's model, factored once, for Tikhonov-filtered least-squares steps
     ``(J^T J + (FILTER sigma_1)^2)^-1 J^T r`` (Cholesky of the regularised Gram matrix, whose
@@ -237,14 +257,7 @@ class _Filtered:
     def __init__(self, model: NDArray[np.float64]) -> None:
         self.model = model
         gram = model.T @ model
-        v = np.ones(len(gram)) / np.sqrt(len(gram))  # power iteration from a fixed start: deterministic
-        largest = 0.0
-        for _ in range(30):
-            w = gram @ v
-            largest = float(np.linalg.norm(w))
-            if not largest > 0:
-                break
-            v = w / largest
+        largest = _largest(gram)
         gram[np.diag_indices_from(gram)] += (FILTER**2) * largest
         self.factor = cho_factor(gram) if largest > 0 else None
 
@@ -289,14 +302,7 @@ class _Damped:
     def __init__(self, model: NDArray[np.float64], damping: float) -> None:
         self.model = model
         self.gram = model.T @ model
-        v = np.ones(len(self.gram)) / np.sqrt(len(self.gram))  # power iteration, fixed start: deterministic
-        self.largest = 0.0
-        for _ in range(30):
-            w = self.gram @ v
-            self.largest = float(np.linalg.norm(w))
-            if not self.largest > 0:
-                break
-            v = w / self.largest
+        self.largest = _largest(self.gram)
         self.damping = damping
 
     def step(self, r: NDArray[np.float64]) -> NDArray[np.float64]:
