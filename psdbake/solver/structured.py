@@ -208,8 +208,9 @@ def _fit(rest: Points, idx: NDArray[np.int64], posed: NDArray[np.float64], smoot
     squares to the products (minimum-norm where an output has more neighbours than products
     explain), and the fit's relative misfit on them."""
     m = directions.shape[2]
-    seen = np.einsum("nk,kam->nam", smoothed, np.einsum("kab,kbm->kam", posed, directions))
-    near = [ring[v].indices for v in idx]
+    k = len(idx)
+    seen = (smoothed @ np.einsum("kab,kbm->kam", posed, directions).reshape(k, 3 * m)).reshape(-1, 3, m)
+    near = [ring.indices[ring.indptr[v]:ring.indptr[v + 1]] for v in idx]  # CSR rows, unsliced
     local: list[NDArray[np.float64]] = [np.empty(0)] * len(idx)
     wrong = 0.0
     sizes = np.array([len(a) for a in near])
@@ -224,11 +225,13 @@ def _fit(rest: Points, idx: NDArray[np.int64], posed: NDArray[np.float64], smoot
     total = float(np.sum(images**2))
     models = []
     if build:
-        for pos in groups:
-            responses = np.einsum("nk,kab->nakb", smoothed[:, pos], posed[pos]).reshape(len(rest), 3, 3 * len(pos))
+        for pos in groups:  # the smoothed responses only at the points the piece's outputs read
+            rows = np.unique(np.concatenate([near[q] for q in pos]))
+            responses = np.einsum("nk,kab->nakb", smoothed[np.ix_(rows, pos)], posed[pos], order="C")
+            responses = responses.reshape(len(rows), 3, 3 * len(pos))
             model = np.empty((3 * len(pos), 3 * len(pos)))
             for t, q in enumerate(pos):
-                model[3 * t:3 * t + 3] = local[q] @ responses[near[q]].reshape(-1, 3 * len(pos))
+                model[3 * t:3 * t + 3] = local[q] @ responses[np.searchsorted(rows, near[q])].reshape(-1, 3 * len(pos))
             models.append(model)
     return models, float(np.sqrt(wrong / total)) if total > 0 else float("inf")
 
