@@ -22,8 +22,9 @@ its large pieces come within the tolerance in 33 and 34 calls of the stage (4 of
 ``solve_whole`` takes a region whose small pieces (UV shells a Delta Mush rotates) would cost
 more calls measured exactly than the model does, small and large pieces together, from the
 linearised start: damped steps with Broyden's update, and the model refitted once where the
-small pieces' Jacobians have changed under its steps (CesiumMan: 66 and 88 calls an example,
-from 97 and 124; docs/decisions/coupled-inverse-cesiumman.md, "The whole region").
+small pieces' Jacobians have changed under its steps, for the change of its local operators
+from fewer products (CesiumMan: 56 and 57 calls an example, from 97 and 124;
+docs/decisions/coupled-inverse-cesiumman.md, "The whole region", "The refit as a change").
 """
 
 from __future__ import annotations
@@ -113,7 +114,7 @@ def solve(call: Counted, posed: NDArray[np.float64], rest: Points, sculpt: Point
     fitted = _model(call, posed, rest, idx, groups, offsets, outputs, adjacency, diagonal)
     if fitted is None:
         return None
-    models, misfit, _ = fitted
+    models, misfit = fitted[0], fitted[1]
     factored = [_Filtered(model) for model in models]
     x = np.array(offsets, dtype=np.float64)
     r = sculpt[idx] - outputs
@@ -141,25 +142,28 @@ def solve(call: Counted, posed: NDArray[np.float64], rest: Points, sculpt: Point
 
 def _model(call: Counted, posed: NDArray[np.float64], rest: Points, idx: NDArray[np.int64],
            groups: list[NDArray[np.int64]], offsets: Points, outputs: Points, adjacency: sp.csr_matrix,
-           diagonal: float, smoothed: NDArray[np.float64] | None = None
-           ) -> tuple[list[NDArray[np.float64]], float, NDArray[np.float64]] | None:
-    """Each piece's model at ``offsets`` from ``PRODUCTS`` calls, its misfit and the smoothing it
-    chose (the one of ``SMOOTHING_STEPS`` that explains the products best, unless given); None
-    where the misfit exceeds ``MAX_MISFIT`` (its calls are spent)."""
-    directions, images = _products(call, rest, idx, offsets, outputs, diagonal)
+           diagonal: float, smoothed: NDArray[np.float64] | None = None, products: int = PRODUCTS,
+           prior: list[NDArray[np.float64]] | None = None
+           ) -> tuple[list[NDArray[np.float64]], float, NDArray[np.float64], list[NDArray[np.float64]]] | None:
+    """Each piece's model at ``offsets`` from ``products`` calls, its misfit, the smoothing it
+    chose (the one of ``SMOOTHING_STEPS`` that explains the products best, unless given) and its
+    outputs' local operators (``_fit``; ``prior``: an earlier model's, refitted for their change);
+    None where the misfit exceeds ``MAX_MISFIT`` (its calls are spent)."""
+    directions, images = _products(call, rest, idx, offsets, outputs, diagonal, products)
     ring = (adjacency + sp.identity(len(rest), format="csr")).tocsr()
     if smoothed is None:
         best: tuple[float, NDArray[np.float64]] | None = None
         for _, moved in smoothings(adjacency, idx, SMOOTHING_STEPS):
-            fitted = _fit(rest, idx, posed, moved, ring, groups, directions, images, build=False)[1]
+            fitted = _fit(rest, idx, posed, moved, ring, groups, directions, images, build=False, prior=prior)[1]
             if best is None or fitted < best[0]:
                 best = (fitted, moved)
         assert best is not None
         smoothed = best[1]
-    models, misfit = _fit(rest, idx, posed, smoothed, ring, groups, directions, images, build=True)
+    models, misfit, local = _fit(rest, idx, posed, smoothed, ring, groups, directions, images, build=True,
+                                 prior=prior)
     if not misfit <= MAX_MISFIT:
         return None
-    return models, misfit, smoothed
+    return models, misfit, smoothed, local
 
 
 def fits(groups: list[NDArray[np.int64]], points: int) -> bool:
@@ -184,17 +188,17 @@ def smoothings(adjacency: sp.csr_matrix, idx: NDArray[np.int64], counts: tuple[i
 
 
 def _products(call: Counted, rest: Points, idx: NDArray[np.int64], offsets: Points, outputs: Points,
-              diagonal: float) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+              diagonal: float, count: int) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """``PRODUCTS`` calls along fixed pseudo-random moves of every region vertex: the moves
     (k, 3, m) and the region's responses (k, 3, m), forward differences."""
     generator = np.random.default_rng(20001)  # fixed: the same inputs give the same model
-    directions = generator.standard_normal((len(idx), 3, PRODUCTS))
+    directions = generator.standard_normal((len(idx), 3, count))
     directions /= np.sqrt(np.mean(np.sum(directions**2, axis=1), axis=0))[None, None, :]
     at = rest.copy()
     at[idx] += offsets
     h = STEP_RTOL * diagonal
-    images = np.empty((len(idx), 3, PRODUCTS))
-    for j in range(PRODUCTS):
+    images = np.empty((len(idx), 3, count))
+    for j in range(count):
         moved = at.copy()
         moved[idx] += h * directions[:, :, j]
         images[:, :, j] = (call(moved)[idx] - outputs) / h
@@ -203,10 +207,12 @@ def _products(call: Counted, rest: Points, idx: NDArray[np.int64], offsets: Poin
 
 def _fit(rest: Points, idx: NDArray[np.int64], posed: NDArray[np.float64], smoothed: NDArray[np.float64],
          ring: sp.csr_matrix, groups: list[NDArray[np.int64]], directions: NDArray[np.float64],
-         images: NDArray[np.float64], build: bool) -> tuple[list[NDArray[np.float64]], float]:
-    """Each piece's model (3p, 3p; with ``build``), its outputs' local operators fitted by least
-    squares to the products (minimum-norm where an output has more neighbours than products
-    explain), and the fit's relative misfit on them."""
+         images: NDArray[np.float64], build: bool, prior: list[NDArray[np.float64]] | None = None
+         ) -> tuple[list[NDArray[np.float64]], float, list[NDArray[np.float64]]]:
+    """Each piece's model (3p, 3p; with ``build``), the fit's relative misfit on the products, and
+    its outputs' local operators (3, 3 neighbours), fitted by least squares to the products
+    (minimum-norm where an output has more neighbours than products explain; with ``prior``,
+    the operators' least change from those that explains the products)."""
     m = directions.shape[2]
     k = len(idx)
     seen = (smoothed @ np.einsum("kab,kbm->kam", posed, directions).reshape(k, 3 * m)).reshape(-1, 3, m)
@@ -218,7 +224,12 @@ def _fit(rest: Points, idx: NDArray[np.int64], posed: NDArray[np.float64], smoot
         which = np.nonzero(sizes == size)[0]
         inputs = seen[np.stack([near[q] for q in which])].reshape(len(which), -1, m)  # (B, 3 size, m)
         measured = images[which]  # (B, 3, m)
-        coef = np.linalg.pinv(np.swapaxes(inputs, 1, 2)) @ np.swapaxes(measured, 1, 2)  # (B, 3 size, 3)
+        if prior is None:
+            coef = np.linalg.pinv(np.swapaxes(inputs, 1, 2)) @ np.swapaxes(measured, 1, 2)  # (B, 3 size, 3)
+        else:
+            before = np.stack([prior[q] for q in which])  # (B, 3, 3 size)
+            coef = np.swapaxes(before, 1, 2) + np.linalg.pinv(np.swapaxes(inputs, 1, 2)) @ np.swapaxes(
+                measured - before @ inputs, 1, 2)
         wrong += float(np.sum((np.swapaxes(coef, 1, 2) @ inputs - measured) ** 2))
         for b, q in enumerate(which):
             local[q] = coef[b].T
@@ -233,7 +244,7 @@ def _fit(rest: Points, idx: NDArray[np.int64], posed: NDArray[np.float64], smoot
             for t, q in enumerate(pos):
                 model[3 * t:3 * t + 3] = local[q] @ responses[np.searchsorted(rows, near[q])].reshape(-1, 3 * len(pos))
             models.append(model)
-    return models, float(np.sqrt(wrong / total)) if total > 0 else float("inf")
+    return models, float(np.sqrt(wrong / total)) if total > 0 else float("inf"), local
 
 
 def _largest(gram: NDArray[np.float64]) -> float:
@@ -281,10 +292,17 @@ DAMPING_DOWN = 2.0
 #: Steps on the first model and on the one refitted where it leaves vertices above the tolerance.
 #: On CesiumMan the small pieces' Jacobians change by 20-90% between the linearised start and
 #: the answer, so the first model's steps stall 2-5 times the tolerance away, and refitted there
-#: 1-3 steps finish most of them. Calls of its two examples: 66 and 88 at 5 and 4 steps
-#: (68 and 89 at 4 and 8; 66 and 90 at 5 and 8; 68 and 91 at 6 and 8; 70 and 93 at 8 and 8).
+#: 1-3 steps finish most of them. Calls an example over CesiumMan's two examples and four more
+#: frames (the refit below): 56.5 at 5 and 4 steps, 56.5 at 5 and 6, 57.5 at 6 and 4; 75.2 at
+#: 4 and 4, and at 3 and 4 one example took 1,013 (the first model's steps stop too far away).
 WHOLE_STEPS = 5
 REFIT_STEPS = 4
+#: Products of the refit, which fits only the change of each output's local operator from the
+#: first model's (minimum-norm), so fewer calls than ``PRODUCTS`` determine it. CesiumMan's two
+#: examples and four more frames of it (6, 18, 24, 40), every vertex within the tolerance: 56.5
+#: calls an example (56-57) at 15; 62 (54-89) at 12, 64.2 (61-75) at 20; the whole operator
+#: refitted from 25 products, 79 (66-88); at 6 the two examples took 164 and 103.
+REFIT_PRODUCTS = 15
 
 
 @dataclass(frozen=True)
@@ -334,7 +352,8 @@ def solve_whole(call: Counted, posed: NDArray[np.float64], rest: Points, sculpt:
     ``offsets`` (the linearised start; the chain's ``outputs`` there): damped Gauss-Newton
     steps on every piece at once (``_Damped``, one call a step), each piece's kept where it
     lowers that piece's residual; where vertices are still above the tolerance, the model
-    refitted there (``PRODUCTS`` calls, the same smoothing) and as many steps again. None as
+    refitted there for the change of its local operators (``REFIT_PRODUCTS`` calls, the same
+    smoothing) and ``REFIT_STEPS`` steps on it. None as
     ``solve``. The pieces must be independent (connected components of a smoothing chain):
     the caller checks the result with one call of the whole region."""
     if not fits(groups, len(rest)):
@@ -342,7 +361,7 @@ def solve_whole(call: Counted, posed: NDArray[np.float64], rest: Points, sculpt:
     fitted = _model(call, posed, rest, idx, groups, offsets, outputs, adjacency, diagonal)
     if fitted is None:
         return None
-    models, misfit, smoothed = fitted
+    models, misfit, smoothed, local = fitted
     x = np.array(offsets, dtype=np.float64)
     out = np.array(outputs, dtype=np.float64)
     damped = dict(enumerate(_Damped(model, FILTER) for model in models))
@@ -373,7 +392,7 @@ def solve_whole(call: Counted, posed: NDArray[np.float64], rest: Points, sculpt:
             norms = np.linalg.norm(sculpt[idx] - out, axis=1)
             live = [g for g, pos in enumerate(groups) if norms[pos].max() > atol]
             again = _model(call, posed, rest, idx, [groups[g] for g in live], x, out, adjacency, diagonal,
-                           smoothed=smoothed)
+                           smoothed=smoothed, products=REFIT_PRODUCTS, prior=local)
             if again is None:
                 break
             damped = {g: _Damped(model, LEAST_DAMPING) for g, model in zip(live, again[0], strict=True)}
