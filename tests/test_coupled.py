@@ -568,7 +568,8 @@ def test_the_structured_model_explains_delta_mushs_products():
     diagonal, _, idx = sculpted_vertices(case.rest, base, case.sculpt)
     call = Counted(case.box)
     offsets = np.zeros((len(idx), 3))
-    directions, images = structured._products(call, case.rest, idx, offsets, base[idx], diagonal)
+    directions, images = structured._products(call, case.rest, idx, offsets, base[idx], diagonal,
+                                                     structured.PRODUCTS)
     assert call.calls == structured.PRODUCTS
     posed = coupled.blocks_at(case.box.skin, case.rest, idx, offsets, case.box.skin(case.rest)[idx],
                               structured.SKINNING_STEP_RTOL * diagonal)

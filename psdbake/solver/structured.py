@@ -189,7 +189,7 @@ def smoothings(adjacency: sp.csr_matrix, idx: NDArray[np.int64], counts: tuple[i
 
 def _products(call: Counted, rest: Points, idx: NDArray[np.int64], offsets: Points, outputs: Points,
               diagonal: float, count: int) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """``PRODUCTS`` calls along fixed pseudo-random moves of every region vertex: the moves
+    """``count`` calls along fixed pseudo-random moves of every region vertex: the moves
     (k, 3, m) and the region's responses (k, 3, m), forward differences."""
     generator = np.random.default_rng(20001)  # fixed: the same inputs give the same model
     directions = generator.standard_normal((len(idx), 3, count))
