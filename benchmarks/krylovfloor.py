@@ -12,8 +12,9 @@ the exact Jacobian: no nonlinearity, no noise. The answer's smooth fields are co
 fewest of the region's smoothest fields (``psdbake.solver.smoothbasis``) in whose span the
 least-squares fit on the exact Jacobian is within the tolerance, 3 unknowns a field.
 
-Beside them, psdbake's own calls on the same example (``coupled.invert``), which include the
-per-vertex solver's first 5 calls and the smooth start.
+Beside them, psdbake's own calls on the same example (``coupled.invert``, given the chain's
+skinning as ``fit`` gives it), which include the per-vertex solver's first 5 calls and the
+skinning's blocks (4 calls of the skinning alone).
 
 Run: ``python -m benchmarks.krylovfloor [--no-cesium]`` (``make bench``; CesiumMan's two
 Jacobians take about 16k calls each).
@@ -125,7 +126,8 @@ def measure(case: characters.Case) -> dict:
     """The floor and psdbake's calls for one example."""
     assert case.offsets is not None
     started = time.perf_counter()
-    res = coupled.invert(case.box, case.rest, case.sculpt, neighbours=lambda: case.adjacency)
+    res = coupled.invert(case.box, case.rest, case.sculpt, neighbours=lambda: case.adjacency,
+                         skinning=case.box.skin)  # as ``fit`` calls it
     base = case.box(case.rest)
     diagonal, floor, idx = sculpted_vertices(case.rest, base, case.sculpt)
     atol = max(tol.INVERSE_RTOL * diagonal, floor)
@@ -173,8 +175,8 @@ def main(argv: list[str] | None = None) -> int:
               "the linear problem is within the fit's tolerance (1e-6 of the diagonal); on one piece alone: the most any "
               "connected piece of the mesh needs with its own rows and columns of the Jacobian (Delta Mush couples "
               "no piece to another, and psdbake's last Krylov stage measures one product of every piece a call). "
-              "psdbake's calls include "
-              "its 5 first calls and the smooth start; its smooth start is not given the exact Jacobian.")
+              "psdbake's calls (given the chain's skinning, as fit gives it) include its 5 first calls and, where "
+              "it fits the structured model, 4 calls of the skinning alone; it is not given the exact Jacobian.")
     results.write("krylovfloor", argv, ABOUT, [table], raw=rows, path=args.json)
     return 0
 
