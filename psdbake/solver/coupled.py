@@ -24,9 +24,9 @@ Jacobian, for a smoothing deformer the skinning's own blocks) and its linearised
    holds small pieces whose exact Jacobians would cost more calls than the structured model
    below (CesiumMan's 25-vertex shells: 76) and ``invert`` was given the chain's skinning, the
    whole region, small pieces and large, is solved on that model from the linearised start:
-   damped Gauss-Newton with Broyden's update, the model refitted once (for its change) where
-   it stalls, a piece or two left finished on their exact Jacobians (CesiumMan: 56 and 57
-   calls, against 97 and 124 through stage 0 and the smooth start). Where it misses more,
+   damped Gauss-Newton with Broyden's update, the model turned with its smoothed 1-rings where
+   it stalls (no call), a piece or two left finished on their exact Jacobians (CesiumMan: 45
+   and 46 calls, against 97 and 124 through stage 0 and the smooth start). Where it misses more,
    its calls are spent and stage 0 starts afresh.
 0. **Small pieces of the mesh** (``_small_pieces_first``, ``psdbake.solver.pieces``): where the
    region holds pieces of at most ``pieces.SMALL_PIECE`` vertices (a character's small UV
@@ -500,18 +500,19 @@ def _whole_structured(call: Counted, skinning: BlackBox, rest: Points, sculpt: P
     pieces whose exact Jacobians (``pieces.jacobian_calls``) cost more calls than the model's
     products and the skinning's blocks. On CesiumMan the exact Jacobians of its 25-vertex
     pieces cost 76 calls, and the small pieces' stage ended after the rest's at 97 and 124
-    calls; from the linearised start the model took every vertex within the tolerance in 56
-    and 57 (docs/decisions/coupled-inverse-cesiumman.md). None where it does not apply."""
+    calls; from the linearised start the model took every vertex within the tolerance in 45
+    and 46 (docs/decisions/coupled-inverse-cesiumman.md). None where it does not apply."""
     found = pieces.small_pieces(adjacency, idx)
     groups = structured.region_pieces(adjacency, idx)
     if not found or pieces.jacobian_calls(found) <= structured.PRODUCTS + 4 or not structured.fits(groups, len(rest)):
         return None
-    posed = blocks_at(skinning, rest, idx, np.zeros((len(idx), 3)), skinning(rest)[idx],
+    skinned = np.asarray(skinning(rest), dtype=np.float64)
+    posed = blocks_at(skinning, rest, idx, np.zeros((len(idx), 3)), skinned[idx],
                       structured.SKINNING_STEP_RTOL * diagonal)
     call.calls += 4
     atol = max(rtol * diagonal, floor)
     solved = structured.solve_whole(call, posed, rest, sculpt, idx, groups, measured.start, measured.start_outputs,
-                                    adjacency, diagonal, atol)
+                                    adjacency, diagonal, atol, skinned)
     if solved is None:
         return None
     there = _outputs(call, rest, idx, solved.offsets)

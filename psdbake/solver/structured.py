@@ -21,10 +21,13 @@ its large pieces come within the tolerance in 33 and 34 calls of the stage (4 of
 
 ``solve_whole`` takes a region whose small pieces (UV shells a Delta Mush rotates) would cost
 more calls measured exactly than the model does, small and large pieces together, from the
-linearised start: damped steps with Broyden's update, and the model refitted once where the
-small pieces' Jacobians have changed under its steps, for the change of its local operators
-from fewer products (CesiumMan: 56 and 57 calls an example, from 97 and 124;
-docs/decisions/coupled-inverse-cesiumman.md, "The whole region", "The refit as a change").
+linearised start: damped steps with Broyden's update, and where they stall (the small pieces'
+Jacobians have turned under its steps) each output's local operator turned with its smoothed
+1-ring, for no call, since a deformer that adds detail back in frames carried by the surface
+turns its Jacobian as the surface turns (CesiumMan: 45 and 46 calls an example, from 97 and 124
+through the exact small pieces, and 56 and 57 with the operator refitted there from 15 products;
+docs/decisions/coupled-inverse-cesiumman.md, "The whole region", "The model turned with the
+offsets").
 """
 
 from __future__ import annotations
@@ -114,8 +117,8 @@ def solve(call: Counted, posed: NDArray[np.float64], rest: Points, sculpt: Point
     fitted = _model(call, posed, rest, idx, groups, offsets, outputs, adjacency, diagonal)
     if fitted is None:
         return None
-    models, misfit = fitted[0], fitted[1]
-    factored = [_Filtered(model) for model in models]
+    misfit = fitted.misfit
+    factored = [_Filtered(model) for model in fitted.models]
     x = np.array(offsets, dtype=np.float64)
     r = sculpt[idx] - outputs
     for _ in range(MAX_STEPS):
@@ -140,30 +143,38 @@ def solve(call: Counted, posed: NDArray[np.float64], rest: Points, sculpt: Point
     return StructuredResult(x, misfit)
 
 
+@dataclass(frozen=True)
+class _Fitted:
+    """The model fitted at some offsets: each piece's (3p, 3p) model, its misfit on its
+    products, the smoothing steps it chose with their (n, k) unit moves, and each output's
+    local operator (3, 3 neighbours)."""
+
+    models: list[NDArray[np.float64]]
+    misfit: float
+    steps: int
+    smoothed: NDArray[np.float64]
+    local: list[NDArray[np.float64]]
+
+
 def _model(call: Counted, posed: NDArray[np.float64], rest: Points, idx: NDArray[np.int64],
            groups: list[NDArray[np.int64]], offsets: Points, outputs: Points, adjacency: sp.csr_matrix,
-           diagonal: float, smoothed: NDArray[np.float64] | None = None, products: int = PRODUCTS,
-           prior: list[NDArray[np.float64]] | None = None
-           ) -> tuple[list[NDArray[np.float64]], float, NDArray[np.float64], list[NDArray[np.float64]]] | None:
-    """Each piece's model at ``offsets`` from ``products`` calls, its misfit, the smoothing it
-    chose (the one of ``SMOOTHING_STEPS`` that explains the products best, unless given) and its
-    outputs' local operators (``_fit``; ``prior``: an earlier model's, refitted for their change);
-    None where the misfit exceeds ``MAX_MISFIT`` (its calls are spent)."""
-    directions, images = _products(call, rest, idx, offsets, outputs, diagonal, products)
+           diagonal: float) -> _Fitted | None:
+    """Each piece's model at ``offsets`` from ``PRODUCTS`` calls, with the smoothing that
+    explains the products best (of ``SMOOTHING_STEPS``); None where the misfit exceeds
+    ``MAX_MISFIT`` (its calls are spent)."""
+    directions, images = _products(call, rest, idx, offsets, outputs, diagonal, PRODUCTS)
     ring = (adjacency + sp.identity(len(rest), format="csr")).tocsr()
-    if smoothed is None:
-        best: tuple[float, NDArray[np.float64]] | None = None
-        for _, moved in smoothings(adjacency, idx, SMOOTHING_STEPS):
-            fitted = _fit(rest, idx, posed, moved, ring, groups, directions, images, build=False, prior=prior)[1]
-            if best is None or fitted < best[0]:
-                best = (fitted, moved)
-        assert best is not None
-        smoothed = best[1]
-    models, misfit, local = _fit(rest, idx, posed, smoothed, ring, groups, directions, images, build=True,
-                                 prior=prior)
+    best: tuple[float, int, NDArray[np.float64]] | None = None
+    for steps, moved in smoothings(adjacency, idx, SMOOTHING_STEPS):
+        fitted = _fit(rest, idx, posed, moved, ring, groups, directions, images, build=False)[1]
+        if best is None or fitted < best[0]:
+            best = (fitted, steps, moved)
+    assert best is not None
+    _, steps, smoothed = best
+    models, misfit, local = _fit(rest, idx, posed, smoothed, ring, groups, directions, images, build=True)
     if not misfit <= MAX_MISFIT:
         return None
-    return models, misfit, smoothed, local
+    return _Fitted(models, misfit, steps, smoothed, local)
 
 
 def fits(groups: list[NDArray[np.int64]], points: int) -> bool:
@@ -207,12 +218,11 @@ def _products(call: Counted, rest: Points, idx: NDArray[np.int64], offsets: Poin
 
 def _fit(rest: Points, idx: NDArray[np.int64], posed: NDArray[np.float64], smoothed: NDArray[np.float64],
          ring: sp.csr_matrix, groups: list[NDArray[np.int64]], directions: NDArray[np.float64],
-         images: NDArray[np.float64], build: bool, prior: list[NDArray[np.float64]] | None = None
+         images: NDArray[np.float64], build: bool
          ) -> tuple[list[NDArray[np.float64]], float, list[NDArray[np.float64]]]:
     """Each piece's model (3p, 3p; with ``build``), the fit's relative misfit on the products, and
     its outputs' local operators (3, 3 neighbours), fitted by least squares to the products
-    (minimum-norm where an output has more neighbours than products explain; with ``prior``,
-    the operators' least change from those that explains the products)."""
+    (minimum-norm where an output has more neighbours than products explain)."""
     m = directions.shape[2]
     k = len(idx)
     seen = (smoothed @ np.einsum("kab,kbm->kam", posed, directions).reshape(k, 3 * m)).reshape(-1, 3, m)
@@ -224,27 +234,56 @@ def _fit(rest: Points, idx: NDArray[np.int64], posed: NDArray[np.float64], smoot
         which = np.nonzero(sizes == size)[0]
         inputs = seen[np.stack([near[q] for q in which])].reshape(len(which), -1, m)  # (B, 3 size, m)
         measured = images[which]  # (B, 3, m)
-        if prior is None:
-            coef = np.linalg.pinv(np.swapaxes(inputs, 1, 2)) @ np.swapaxes(measured, 1, 2)  # (B, 3 size, 3)
-        else:
-            before = np.stack([prior[q] for q in which])  # (B, 3, 3 size)
-            coef = np.swapaxes(before, 1, 2) + np.linalg.pinv(np.swapaxes(inputs, 1, 2)) @ np.swapaxes(
-                measured - before @ inputs, 1, 2)
+        coef = np.linalg.pinv(np.swapaxes(inputs, 1, 2)) @ np.swapaxes(measured, 1, 2)  # (B, 3 size, 3)
         wrong += float(np.sum((np.swapaxes(coef, 1, 2) @ inputs - measured) ** 2))
         for b, q in enumerate(which):
             local[q] = coef[b].T
     total = float(np.sum(images**2))
-    models = []
-    if build:
-        for pos in groups:  # the smoothed responses only at the points the piece's outputs read
-            rows = np.unique(np.concatenate([near[q] for q in pos]))
-            responses = np.einsum("nk,kab->nakb", smoothed[np.ix_(rows, pos)], posed[pos], order="C")
-            responses = responses.reshape(len(rows), 3, 3 * len(pos))
-            model = np.empty((3 * len(pos), 3 * len(pos)))
-            for t, q in enumerate(pos):
-                model[3 * t:3 * t + 3] = local[q] @ responses[np.searchsorted(rows, near[q])].reshape(-1, 3 * len(pos))
-            models.append(model)
+    models = _build(idx, posed, smoothed, ring, groups, local) if build else []
     return models, float(np.sqrt(wrong / total)) if total > 0 else float("inf"), local
+
+
+def _build(idx: NDArray[np.int64], posed: NDArray[np.float64], smoothed: NDArray[np.float64], ring: sp.csr_matrix,
+           groups: list[NDArray[np.int64]], local: list[NDArray[np.float64]]) -> list[NDArray[np.float64]]:
+    """Each piece's model (3p, 3p) from its outputs' local operators: ``A S^s M``, the smoothed
+    responses formed only at the points the piece's outputs read."""
+    near = [ring.indices[ring.indptr[v]:ring.indptr[v + 1]] for v in idx]
+    models = []
+    for pos in groups:
+        rows = np.unique(np.concatenate([near[q] for q in pos]))
+        responses = np.einsum("nk,kab->nakb", smoothed[np.ix_(rows, pos)], posed[pos], order="C")
+        responses = responses.reshape(len(rows), 3, 3 * len(pos))
+        model = np.empty((3 * len(pos), 3 * len(pos)))
+        for t, q in enumerate(pos):
+            model[3 * t:3 * t + 3] = local[q] @ responses[np.searchsorted(rows, near[q])].reshape(-1, 3 * len(pos))
+        models.append(model)
+    return models
+
+
+def _turned(local: list[NDArray[np.float64]], idx: NDArray[np.int64], ring: sp.csr_matrix,
+            fitted_at: NDArray[np.float64], now: NDArray[np.float64]) -> list[NDArray[np.float64]]:
+    """Each output's local operator turned with its 1-ring: ``R A_j R^T`` for every neighbour's
+    block, ``R`` the rotation that best takes the ring's smoothed points (relative to the
+    output's own, (n, 3) ``fitted_at`` where the operator was fitted) onto the same ring ``now``
+    (Kabsch, by SVD). A deformer that adds detail back in frames carried by the smoothed surface
+    is rotation-equivariant: where a small shell turns under the offsets, its Jacobian turns
+    with it, and this follows that for no call."""
+    near = [ring.indices[ring.indptr[v]:ring.indptr[v + 1]] for v in idx]
+    turned: list[NDArray[np.float64]] = [np.empty(0)] * len(idx)
+    sizes = np.array([len(a) for a in near])
+    for size in np.unique(sizes):  # the outputs with as many neighbours, as one stack
+        which = np.nonzero(sizes == size)[0]
+        rings = np.stack([near[q] for q in which])  # (B, size)
+        before = fitted_at[rings] - fitted_at[idx[which]][:, None]  # (B, size, 3)
+        after = now[rings] - now[idx[which]][:, None]
+        u, _, vt = np.linalg.svd(np.swapaxes(before, 1, 2) @ after)  # H = before^T after
+        flip = np.sign(np.linalg.det(np.swapaxes(vt, 1, 2) @ np.swapaxes(u, 1, 2)))
+        vt[:, 2, :] *= flip[:, None]  # a rotation, not a reflection
+        rotation = np.swapaxes(vt, 1, 2) @ np.swapaxes(u, 1, 2)  # (B, 3, 3)
+        for b, q in enumerate(which):
+            blocks = local[q].reshape(3, size, 3)
+            turned[q] = np.einsum("ab,btc,dc->atd", rotation[b], blocks, rotation[b]).reshape(3, -1)
+    return turned
 
 
 def _largest(gram: NDArray[np.float64]) -> float:
@@ -289,20 +328,17 @@ class _Filtered:
 LEAST_DAMPING = 1e-4
 DAMPING_UP = 4.0
 DAMPING_DOWN = 2.0
-#: Steps on the first model and on the one refitted where it leaves vertices above the tolerance.
-#: On CesiumMan the small pieces' Jacobians change by 20-90% between the linearised start and
-#: the answer, so the first model's steps stall 2-5 times the tolerance away, and refitted there
-#: 1-3 steps finish most of them. Calls an example over CesiumMan's two examples and four more
-#: frames (the refit below): 56.5 at 5 and 4 steps, 56.5 at 5 and 6, 57.5 at 6 and 4; 75.2 at
-#: 4 and 4, and at 3 and 4 one example took 1,013 (the first model's steps stop too far away).
+#: Steps on the first model, and on it turned with the offsets where it leaves vertices above
+#: the tolerance (``_turned``). On CesiumMan the small pieces' Jacobians change by 20-90% between
+#: the linearised start and the answer, so the first model's steps stall 2-5 times the tolerance
+#: away; turned there, its steps finish them. Calls an example over CesiumMan's two examples and
+#: four more frames (6, 18, 24, 40), every vertex within the tolerance: 47.0 (43-51) at 5 and 14
+#: steps, the same at 5 and 20; 53.3 at 5 and 8 (three examples finished by later stages), 49.5
+#: at 6 and 20, 54.7 at 4 and 20. Refitted there for the change instead (15 products, the
+#: previous method): 56.5 (56-57). Turned at every step (the Broyden updates lost each time):
+#: 120.5 and 114.0 at the two examples.
 WHOLE_STEPS = 5
-REFIT_STEPS = 4
-#: Products of the refit, which fits only the change of each output's local operator from the
-#: first model's (minimum-norm), so fewer calls than ``PRODUCTS`` determine it. CesiumMan's two
-#: examples and four more frames of it (6, 18, 24, 40), every vertex within the tolerance: 56.5
-#: calls an example (56-57) at 15; 62 (54-89) at 12, 64.2 (61-75) at 20; the whole operator
-#: refitted from 25 products, 79 (66-88); at 6 the two examples took 164 and 103.
-REFIT_PRODUCTS = 15
+TURNED_STEPS = 14
 
 
 @dataclass(frozen=True)
@@ -347,26 +383,26 @@ class _Damped:
 
 def solve_whole(call: Counted, posed: NDArray[np.float64], rest: Points, sculpt: Points, idx: NDArray[np.int64],
                 groups: list[NDArray[np.int64]], offsets: Points, outputs: Points, adjacency: sp.csr_matrix,
-                diagonal: float, atol: float) -> WholeResult | None:
+                diagonal: float, atol: float, skinned: Points) -> WholeResult | None:
     """The whole region, its small pieces with the rest, on the structured model from
     ``offsets`` (the linearised start; the chain's ``outputs`` there): damped Gauss-Newton
     steps on every piece at once (``_Damped``, one call a step), each piece's kept where it
-    lowers that piece's residual; where vertices are still above the tolerance, the model
-    refitted there for the change of its local operators (``REFIT_PRODUCTS`` calls, the same
-    smoothing) and ``REFIT_STEPS`` steps on it. None as
-    ``solve``. The pieces must be independent (connected components of a smoothing chain):
-    the caller checks the result with one call of the whole region."""
+    lowers that piece's residual; where vertices are still above the tolerance, each output's
+    local operator turned with its smoothed 1-ring from where the model was fitted to there
+    (``_turned``, no call) and ``TURNED_STEPS`` steps on the turned model. ``skinned``: the
+    skinning alone at rest, (n, 3), whose smoothing with the offsets' smoothed moves gives the
+    rings. None as ``solve``. The pieces must be independent (connected components of a
+    smoothing chain): the caller checks the result with one call of the whole region."""
     if not fits(groups, len(rest)):
         return None
     fitted = _model(call, posed, rest, idx, groups, offsets, outputs, adjacency, diagonal)
     if fitted is None:
         return None
-    models, misfit, smoothed, local = fitted
     x = np.array(offsets, dtype=np.float64)
     out = np.array(outputs, dtype=np.float64)
-    damped = dict(enumerate(_Damped(model, FILTER) for model in models))
+    damped = dict(enumerate(_Damped(model, FILTER) for model in fitted.models))
     for phase in range(2):
-        for _ in range(WHOLE_STEPS if phase == 0 else REFIT_STEPS):
+        for _ in range(WHOLE_STEPS if phase == 0 else TURNED_STEPS):
             r = sculpt[idx] - out
             norms = np.linalg.norm(r, axis=1)
             live = [g for g, pos in enumerate(groups) if norms[pos].max() > atol and g in damped]
@@ -391,9 +427,21 @@ def solve_whole(call: Counted, posed: NDArray[np.float64], rest: Points, sculpt:
                 break
             norms = np.linalg.norm(sculpt[idx] - out, axis=1)
             live = [g for g, pos in enumerate(groups) if norms[pos].max() > atol]
-            again = _model(call, posed, rest, idx, [groups[g] for g in live], x, out, adjacency, diagonal,
-                           smoothed=smoothed, products=REFIT_PRODUCTS, prior=local)
-            if again is None:
-                break
-            damped = {g: _Damped(model, LEAST_DAMPING) for g, model in zip(live, again[0], strict=True)}
-    return WholeResult(x, out, misfit)
+            ring = (adjacency + sp.identity(len(rest), format="csr")).tocsr()
+            smoothed_rest = np.asarray(skinned, dtype=np.float64)
+            step = umbrella(adjacency)
+            for _ in range(fitted.steps):
+                smoothed_rest = np.asarray(step @ smoothed_rest)
+            turned = _turned(fitted.local, idx, ring, _smoothed_points(smoothed_rest, fitted.smoothed, posed, offsets),
+                             _smoothed_points(smoothed_rest, fitted.smoothed, posed, x))
+            models = _build(idx, posed, fitted.smoothed, ring, [groups[g] for g in live], turned)
+            damped = {g: _Damped(model, LEAST_DAMPING) for g, model in zip(live, models, strict=True)}
+    return WholeResult(x, out, fitted.misfit)
+
+
+def _smoothed_points(smoothed_rest: NDArray[np.float64], smoothed: NDArray[np.float64], posed: NDArray[np.float64],
+                     offsets: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The mesh's smoothed skinned points (n, 3) at ``offsets`` (k, 3): skinning is linear in the
+    rest point (``posed``, its blocks), and so is the umbrella smoothing (``smoothed``, the
+    region's unit moves; ``smoothed_rest``, the skinning at rest smoothed)."""
+    return smoothed_rest + smoothed @ np.einsum("kab,kb->ka", posed, offsets)
