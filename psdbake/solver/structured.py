@@ -335,8 +335,8 @@ DAMPING_DOWN = 2.0
 #: four more frames (6, 18, 24, 40), every vertex within the tolerance: 47.0 (43-51) at 5 and 14
 #: steps, the same at 5 and 20; 53.3 at 5 and 8 (three examples finished by later stages), 49.5
 #: at 6 and 20, 54.7 at 4 and 20. Refitted there for the change instead (15 products, the
-#: previous method): 56.5 (56-57). Turned at every step (the Broyden updates lost each time):
-#: 120.5 and 114.0 at the two examples.
+#: previous method): 56.5 (56-57). Turned before every step (the Broyden updates lost each
+#: time): 127 and 114 at the two examples.
 WHOLE_STEPS = 5
 TURNED_STEPS = 14
 
