@@ -581,6 +581,46 @@ def test_the_structured_model_explains_delta_mushs_products():
     assert min(misfit, key=misfit.__getitem__) == 10 and min(v for s, v in misfit.items() if s != 10) > 5 * misfit[10]
 
 
+def _rotation(axis: np.ndarray, angle: float) -> np.ndarray:
+    axis = axis / np.linalg.norm(axis)
+    cross = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    return np.eye(3) + np.sin(angle) * cross + (1 - np.cos(angle)) * cross @ cross
+
+
+def test_the_turned_model_follows_a_rigid_turn_of_each_ring_and_never_spins_a_line():
+    """The turn the whole-region stage makes where its steps stall (``structured._turned``):
+    where an output's smoothed 1-ring turns rigidly by R, its local operator becomes R A R^T
+    block by block, which is what a rotation-equivariant deformer's Jacobian does; where the
+    ring lies on one line (a strip's vertex of valence 2), which shows no turn about itself, by
+    the least rotation that takes the line where it went, not spun about it at random (1e-12:
+    float64 round-off)."""
+    rng = np.random.default_rng(3)
+    fan = np.concatenate([[[0.0, 0.0, 0.0]], [[np.cos(t), np.sin(t), 0.1 * np.sin(3 * t)]
+                                              for t in np.linspace(0, 2 * np.pi, 6, endpoint=False)]])
+    line = np.array([[3.0, 0.0, 0.0], [4.0, 0.5, 0.0], [5.0, 1.0, 0.0]])
+    points = np.concatenate([fan, line])
+    edges = [(0, j) for j in range(1, 7)] + [(j, j % 6 + 1) for j in range(1, 7)] + [(7, 8), (8, 9)]
+    rows, cols = np.array(edges).T
+    adjacency = sp.csr_matrix((np.ones(2 * len(edges)), (np.r_[rows, cols], np.r_[cols, rows])), shape=(10, 10))
+    ring = (adjacency + sp.identity(10, format="csr")).tocsr()
+    idx = np.arange(10)
+    local = [rng.standard_normal((3, 3 * (ring.indptr[v + 1] - ring.indptr[v]))) for v in idx]
+    turn = _rotation(np.array([0.3, -0.5, 0.8]), 0.7)
+    moved = points @ turn.T + np.array([0.2, -1.0, 0.5])
+    turned = structured._turned(local, idx, ring, points, moved)
+    for q in range(7):  # the fan: every ring turned rigidly
+        blocks = local[q].reshape(3, -1, 3)
+        expected = np.einsum("ab,btc,dc->atd", turn, blocks, turn).reshape(3, -1)
+        assert np.allclose(turned[q], expected, rtol=0, atol=1e-12 * np.abs(expected).max())
+    before, after = line[2] - line[0], turn @ (line[2] - line[0])  # the line turned with the fan
+    before, after = before / np.linalg.norm(before), after / np.linalg.norm(after)
+    least = _rotation(np.cross(before, after), float(np.arccos(before @ after)))  # no turn about the line
+    for q in (7, 8, 9):
+        blocks = local[q].reshape(3, -1, 3)
+        expected = np.einsum("ab,btc,dc->atd", least, blocks, least).reshape(3, -1)
+        assert np.allclose(turned[q], expected, rtol=0, atol=1e-12 * np.abs(expected).max())
+
+
 @pytest.mark.parametrize("example", [0, 1])
 def test_cesiumman_through_delta_mush_reaches_every_vertex_on_its_pieces_exact_jacobians(example, monkeypatch):
     """The same sculpts with the Krylov stage left out: the pieces' exact Jacobians bring every

@@ -276,10 +276,15 @@ def _turned(local: list[NDArray[np.float64]], idx: NDArray[np.int64], ring: sp.c
         rings = np.stack([near[q] for q in which])  # (B, size)
         before = fitted_at[rings] - fitted_at[idx[which]][:, None]  # (B, size, 3)
         after = now[rings] - now[idx[which]][:, None]
-        u, _, vt = np.linalg.svd(np.swapaxes(before, 1, 2) @ after)  # H = before^T after
+        u, sigma, vt = np.linalg.svd(np.swapaxes(before, 1, 2) @ after)  # H = before^T after
         flip = np.sign(np.linalg.det(np.swapaxes(vt, 1, 2) @ np.swapaxes(u, 1, 2)))
         vt[:, 2, :] *= flip[:, None]  # a rotation, not a reflection
         rotation = np.swapaxes(vt, 1, 2) @ np.swapaxes(u, 1, 2)  # (B, 3, 3)
+        # a ring on one line fixes no turn about that line: the least rotation that takes the
+        # line where it went (Rodrigues), where Kabsch would spin it about the line at random
+        line = ~(sigma[:, 1] > 1e-9 * sigma[:, 0])
+        if np.any(line):
+            rotation[line] = _least_rotations(u[line, :, 0], vt[line, 0, :])
         for b, q in enumerate(which):
             blocks = local[q].reshape(3, size, 3)
             turned[q] = np.einsum("ab,btc,dc->atd", rotation[b], blocks, rotation[b]).reshape(3, -1)
@@ -437,6 +442,20 @@ def solve_whole(call: Counted, posed: NDArray[np.float64], rest: Points, sculpt:
             models = _build(idx, posed, fitted.smoothed, ring, [groups[g] for g in live], turned)
             damped = {g: _Damped(model, LEAST_DAMPING) for g, model in zip(live, models, strict=True)}
     return WholeResult(x, out, fitted.misfit)
+
+
+def _least_rotations(a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64]:
+    """(B, 3, 3): the least rotation taking each unit ``a`` (B, 3) onto ``b`` (Rodrigues); the
+    identity where the two are opposite or not defined (a lone point)."""
+    axis = np.cross(a, b)
+    cosine = np.einsum("ij,ij->i", a, b)
+    cross = np.zeros((len(a), 3, 3))
+    cross[:, 0, 1], cross[:, 0, 2], cross[:, 1, 2] = -axis[:, 2], axis[:, 1], -axis[:, 0]
+    cross -= np.swapaxes(cross, 1, 2)
+    scale = np.divide(1.0, 1.0 + cosine, out=np.zeros_like(cosine), where=1.0 + cosine > 1e-12)
+    rotations = np.eye(3)[None] + cross + (cross @ cross) * scale[:, None, None]
+    rotations[~(1.0 + cosine > 1e-12)] = np.eye(3)
+    return rotations
 
 
 def _smoothed_points(smoothed_rest: NDArray[np.float64], smoothed: NDArray[np.float64], posed: NDArray[np.float64],
