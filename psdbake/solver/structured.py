@@ -202,7 +202,10 @@ def _products(call: Counted, rest: Points, idx: NDArray[np.int64], offsets: Poin
               diagonal: float, count: int) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """``count`` calls along fixed pseudo-random moves of every region vertex: the moves
     (k, 3, m) and the region's responses (k, 3, m), forward differences."""
-    generator = np.random.default_rng(20001)  # fixed: the same inputs give the same model
+    # fixed: the same inputs give the same model. The calls depend on the draw: on CesiumMan's six
+    # measured frames 47.0 an example with this seed, 518 and 183 with two others (decision
+    # record, "The 45 calls hold for one set of directions, not for others")
+    generator = np.random.default_rng(20001)
     directions = generator.standard_normal((len(idx), 3, count))
     directions /= np.sqrt(np.mean(np.sum(directions**2, axis=1), axis=0))[None, None, :]
     at = rest.copy()
