@@ -37,6 +37,7 @@ from psdbake import tolerances as tol
 from psdbake.solver import coupled
 from psdbake.solver.inverse import invert_example, sculpted_vertices
 from psdbake.solver.smoothbasis import edge_adjacency
+from psdbake.usd.blackbox import ChainSkinning
 from psdbake.usd.meshrest import rest_mesh
 
 from . import characters, results, rigs
@@ -72,7 +73,7 @@ def run_method(method: str, box: Box, rest: NDArray[np.float64], sculpt: NDArray
         idx, offsets, calls = one_shot(box, rest, sculpt)
     else:
         res = (invert_example(box, rest, sculpt) if method == "per-vertex" else
-               coupled.invert(box, rest, sculpt, neighbours=lambda: adjacency, skinning=box.skin))
+               coupled.invert(box, rest, sculpt, neighbours=lambda: adjacency, skinning=ChainSkinning(box)))
         idx, offsets, calls = res.indices, res.offsets, res.evaluations
     return idx, offsets, calls, time.perf_counter() - started
 
@@ -246,7 +247,7 @@ def bench_shipped(iterations: int, raw: list[dict]) -> list[list[str]]:
     for case in characters.cesium(shipped=True):
         started = time.perf_counter()
         res = coupled.invert(case.box, case.rest, case.sculpt, neighbours=lambda case=case: case.adjacency,
-                             skinning=case.box.skin)
+                             skinning=ChainSkinning(case.box))
         seconds = time.perf_counter() - started
         residual, atol, diagonal = residuals(case.box, case.rest, case.sculpt, res.indices, res.offsets)
         rms = float(np.sqrt(np.mean(residual**2))) / diagonal
@@ -294,7 +295,7 @@ def bench_plain(folder: str, poses: dict, poses_layer: str, sizes: Sequence[str]
             move = float(np.linalg.norm(sculpt - plain.blackbox(plain_scene, t)(plain.rest), axis=1).max())
             started = time.perf_counter()
             res = coupled.invert(box, chain.rest, sculpt, neighbours=lambda adjacency=adjacency: adjacency,
-                                 skinning=box.skin)
+                                 skinning=ChainSkinning(box))
             seconds = time.perf_counter() - started
             residual, _, diagonal = residuals(box, chain.rest, sculpt, res.indices, res.offsets)
             found.append({"rig": size, "elbow": poses[t]["Elbow"][1], "calls": res.evaluations, "seconds": seconds,
@@ -353,7 +354,7 @@ def bench_random(folder: str, sizes: Sequence[str], count: int, raw: list[dict])
             started = time.perf_counter()
             box = rig.blackbox(scene, t)
             res = coupled.invert(box, rig.rest, rig.sculpts[t], neighbours=lambda adjacency=adjacency: adjacency,
-                                 skinning=box.skin)
+                                 skinning=ChainSkinning(box))
             seconds = time.perf_counter() - started
             residual, atol, diagonal = residuals(rig.blackbox(scene, t), rig.rest, rig.sculpts[t], res.indices,
                                                  res.offsets)

@@ -33,6 +33,7 @@ from psdbake import tolerances as tol
 from psdbake.solver import coupled, pieces
 from psdbake.solver.inverse import sculpted_vertices
 from psdbake.solver.smoothbasis import smooth_basis
+from psdbake.usd.blackbox import ChainSkinning
 
 from . import characters, results
 
@@ -127,7 +128,7 @@ def measure(case: characters.Case) -> dict:
     assert case.offsets is not None
     started = time.perf_counter()
     res = coupled.invert(case.box, case.rest, case.sculpt, neighbours=lambda: case.adjacency,
-                         skinning=case.box.skin)  # as ``fit`` calls it
+                         skinning=ChainSkinning(case.box))  # as ``fit`` calls it
     base = case.box(case.rest)
     diagonal, floor, idx = sculpted_vertices(case.rest, base, case.sculpt)
     atol = max(tol.INVERSE_RTOL * diagonal, floor)

@@ -20,6 +20,8 @@ from psdbake.normals import Topology
 from psdbake.solver import coupled, pieces, powell, smoothstart, structured, subspace
 from psdbake.solver.inverse import Counted, InverseResult, invert_example, sculpted_vertices
 from psdbake.solver.smoothbasis import edge_adjacency
+from psdbake.usd import blackbox
+from psdbake.usd.blackbox import ChainSkinning
 from psdbake.usd.meshrest import rest_mesh
 
 sys.path.insert(0, ROOT)
@@ -516,7 +518,8 @@ def test_cesiumman_through_delta_mush_reaches_every_vertex_with_each_piece_on_it
 #: (``fit``'s path): measured 45 and 46 (the whole region on the structured Jacobian from the
 #: linearised start, turned with its smoothed 1-rings where its steps stall), against 56 and 57
 #: with the operator refitted there from 15 products, and 97 and 124 through the small pieces'
-#: exact Jacobians and the smooth start.
+#: exact Jacobians and the smooth start. The skinning's 4 calls count here (a plain callable);
+#: ``fit`` reads them from the chain's own calls (``ChainSkinning``: 41 and 42).
 CESIUM_WHOLE_BUDGET = 55
 
 
@@ -535,6 +538,39 @@ def test_cesiumman_through_delta_mush_reaches_every_vertex_on_a_structured_jacob
     assert residual.max() <= atol
     assert not len(res.missed)
     assert res.evaluations <= CESIUM_WHOLE_BUDGET
+
+
+def test_the_skinnings_blocks_are_read_from_the_chains_own_calls():
+    """``fit`` hands the solver the skinning as ``ChainSkinning``: the chain skins on the way
+    to its deformers, so the skinning at the per-vertex solver's points (rest, every sculpted
+    vertex moved along x, y, z) is read from those calls. On CesiumMan the offsets are the same
+    to the bit as with the skinning run on its own, no skinning runs afresh, the example counts
+    4 calls fewer, and its count is every call the box made for it."""
+    case = characters.cesium()[0]
+    alone = coupled.invert(case.box, case.rest, case.sculpt, neighbours=lambda: case.adjacency,
+                           skinning=case.box.skin)
+    skinning = ChainSkinning(case.box)
+    before = case.box.evaluations
+    read = coupled.invert(case.box, case.rest, case.sculpt, neighbours=lambda: case.adjacency, skinning=skinning)
+    assert read.regime.startswith("coupled, from the linearised start" + coupled.STRUCTURED), read.regime
+    assert np.array_equal(read.offsets, alone.offsets) and not len(read.missed)
+    assert skinning.fresh == 0
+    assert read.evaluations == alone.evaluations - 4
+    assert read.evaluations == case.box.evaluations - before
+
+
+def test_chain_skinning_runs_the_skinning_where_no_call_of_the_chain_was_made():
+    """Points the chain was not called at are skinned afresh, counted in ``fresh``, with the
+    same bits as the skinning alone; the box keeps only its latest calls."""
+    case = characters.cesium()[0]
+    skinning = ChainSkinning(case.box)
+    moved = case.rest + 1e-3
+    assert np.array_equal(skinning(moved), case.box.skin(moved)) and skinning.fresh == 1
+    case.box(moved)
+    assert np.array_equal(skinning(moved), case.box.skin(moved)) and skinning.fresh == 1
+    for k in range(blackbox.REMEMBERED_CALLS):
+        case.box(case.rest + 1e-3 * (k + 2))
+    assert np.array_equal(skinning(moved), case.box.skin(moved)) and skinning.fresh == 2
 
 
 #: The same where the whole-region stage does not apply (measured 97 and 124: 36 and 61 of them
@@ -572,7 +608,7 @@ def test_the_structured_model_explains_delta_mushs_products():
                                                      structured.PRODUCTS)
     assert call.calls == structured.PRODUCTS
     posed = coupled.blocks_at(case.box.skin, case.rest, idx, offsets, case.box.skin(case.rest)[idx],
-                              structured.SKINNING_STEP_RTOL * diagonal)
+                              tol.JACOBIAN_STEP_RTOL * diagonal)
     ring = (case.adjacency + sp.identity(len(case.rest), format="csr")).tocsr()
     groups = structured.region_pieces(case.adjacency, idx)
     misfit = {steps: structured._fit(case.rest, idx, posed, smoothed, ring, groups, directions, images, build=False)[1]

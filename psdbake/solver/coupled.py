@@ -419,9 +419,7 @@ def invert(blackbox: BlackBox, rest: Points, sculpt: Points, *, rtol: float = to
                 if len(begun.missed) and skinning is not None and structured.fits(groups, len(rest)):
                     # 1s. several pieces: the structured model of the chain's Jacobian, on the
                     # skinning's own blocks (4 calls of the skinning alone, counted)
-                    posed = blocks_at(skinning, rest, idx, np.zeros((len(idx), 3)), skinning(rest)[idx],
-                                      structured.SKINNING_STEP_RTOL * diagonal)
-                    call.calls += 4
+                    posed = _skinning_blocks(call, skinning, rest, idx, diagonal, floor)[1]
                     found = structured.solve(call, posed, rest, sculpt, idx, groups, offsets, outputs, adjacency,
                                              diagonal, begun.atol)
                     if found is not None:
@@ -506,10 +504,7 @@ def _whole_structured(call: Counted, skinning: BlackBox, rest: Points, sculpt: P
     groups = structured.region_pieces(adjacency, idx)
     if not found or pieces.jacobian_calls(found) <= structured.PRODUCTS + 4 or not structured.fits(groups, len(rest)):
         return None
-    skinned = np.asarray(skinning(rest), dtype=np.float64)
-    posed = blocks_at(skinning, rest, idx, np.zeros((len(idx), 3)), skinned[idx],
-                      structured.SKINNING_STEP_RTOL * diagonal)
-    call.calls += 4
+    skinned, posed = _skinning_blocks(call, skinning, rest, idx, diagonal, floor)
     atol = max(rtol * diagonal, floor)
     solved = structured.solve_whole(call, posed, rest, sculpt, idx, groups, measured.start, measured.start_outputs,
                                     adjacency, diagonal, atol, skinned)
@@ -518,6 +513,23 @@ def _whole_structured(call: Counted, skinning: BlackBox, rest: Points, sculpt: P
     there = _outputs(call, rest, idx, solved.offsets)
     return dataclasses.replace(_at(sculpt, idx, solved.offsets, there, diagonal, floor, rtol, call.calls, started),
                                regime="coupled, from the linearised start" + STRUCTURED)
+
+
+def _skinning_blocks(call: Counted, skinning: BlackBox, rest: Points, idx: NDArray[np.int64], diagonal: float,
+                     floor: float) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """The skinning alone at rest (n, 3) and its 3x3 blocks at the sculpted vertices (k, 3, 3),
+    at the points of the per-vertex solver's first calls (rest, then every sculpted vertex moved
+    by its step along x, y and z; skinning is linear in the rest point, so any step gives its
+    blocks). Its calls are counted with the chain's: 4, or where the skinning says how many it
+    ran afresh (``fresh``: ``SkinningBlackBox``'s ``ChainSkinning`` reads the skinning the chain's
+    own calls at those points did on the way, on CesiumMan all 4), those."""
+    before = getattr(skinning, "fresh", None)
+    skinned = np.asarray(skinning(rest), dtype=np.float64)
+    posed = blocks_at(skinning, rest, idx, np.zeros((len(idx), 3)), skinned[idx],
+                      tol.JACOBIAN_STEP_RTOL * max(diagonal, floor))
+    after = getattr(skinning, "fresh", None)
+    call.calls += after - before if isinstance(before, int) and isinstance(after, int) else 4
+    return skinned, posed
 
 
 def _at(sculpt: Points, idx: NDArray[np.int64], offsets: Points, outputs: Points, diagonal: float, floor: float,

@@ -24,7 +24,7 @@ from ..arrays import Progress
 from ..deformers import load_deformers
 from ..errors import InputError, SculptOutOfRangeError, where
 from ..normals import CorrectiveNormals, PosedNormals, corrective_normals
-from ..usd.blackbox import SkinningBlackBox
+from ..usd.blackbox import ChainSkinning, SkinningBlackBox
 from ..usd.compose import open_layer
 from ..usd.normalbox import MeshShading, NormalBlackBox, read_mesh_shading
 from ..usd.read import Scene
@@ -107,7 +107,8 @@ def _invert(task: InverseTask) -> tuple[InverseResult, CorrectiveNormals | None]
     try:
         # probes the chain: per-vertex (Powell in lockstep) or coupled (Newton-Krylov), see InverseResult.regime
         inverse = coupled.invert(box, rest, sculpt, rtol=task.rtol,
-                                 neighbours=functools.partial(cached_adjacency, task.asset, task.mesh), skinning=box.skin)
+                                 neighbours=functools.partial(cached_adjacency, task.asset, task.mesh),
+                                 skinning=ChainSkinning(box))  # the skinning the chain's own calls did, read back
     except SculptOutOfRangeError as exc:
         raise InputError(f"{where(task.source, task.mesh, 'points')}: example at time {task.time:g}: {exc}") from None
     return inverse, _normal_offsets(task, scene, box, rest, sculpt, inverse)

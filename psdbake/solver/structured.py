@@ -66,9 +66,6 @@ FILTER = 3e-3
 MAX_STEPS = 8
 #: Largest piece (vertices of the region) whose model is formed: its dense model is (3p)^2.
 MAX_PIECE = 1000
-#: The skinning's difference step for ``M``, of the diagonal (skinning is linear in the rest
-#: point: any step gives its blocks, up to float32's rounding of the posed points).
-SKINNING_STEP_RTOL = 1e-3
 #: Most entries of the smoothed unit moves (points x region vertices, float64: 160 MB): a
 #: larger mesh keeps the stages after this one (CesiumMan: 3,273 x 1,956).
 MAX_ENTRIES = 20_000_000
