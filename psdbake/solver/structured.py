@@ -161,14 +161,16 @@ def _model(call: Counted, posed: NDArray[np.float64], rest: Points, idx: NDArray
     ``MAX_MISFIT`` (its calls are spent)."""
     directions, images = _products(call, rest, idx, offsets, outputs, diagonal, PRODUCTS)
     ring = (adjacency + sp.identity(len(rest), format="csr")).tocsr()
+    rings = _rings(rest, idx, ring)
     best: tuple[float, int, NDArray[np.float64]] | None = None
     for steps, moved in smoothings(adjacency, idx, SMOOTHING_STEPS):
-        fitted = _fit(rest, idx, posed, moved, ring, groups, directions, images, build=False)[1]
+        fitted = _fit(rest, idx, posed, moved, ring, groups, directions, images, build=False, rings=rings)[1]
         if best is None or fitted < best[0]:
             best = (fitted, steps, moved)
     assert best is not None
     _, steps, smoothed = best
-    models, misfit, local = _fit(rest, idx, posed, smoothed, ring, groups, directions, images, build=True)
+    models, misfit, local = _fit(rest, idx, posed, smoothed, ring, groups, directions, images, build=True,
+                                 rings=rings)
     if not misfit <= MAX_MISFIT:
         return None
     return _Fitted(models, misfit, steps, smoothed, local)
@@ -216,28 +218,88 @@ def _products(call: Counted, rest: Points, idx: NDArray[np.int64], offsets: Poin
     return directions, images
 
 
+#: The ring's variation the local operator reads beyond its gradient: this many quadratic modes
+#: (those the ring's edges resolve best). Over CesiumMan's six measured frames, calls an example
+#: with five direction sets (seeds 20001, 1, 2, 3, 4): 2 modes 40.8, 53.2, 103.3, 424.3, 58.7;
+#: 1 mode 105.3 and 75.5, 3 modes 57.8 and 115.3 (at 20001 and 1); every neighbour's own
+#: block (3 (valence + 1) unknowns an axis) 41.0, 415.2, 108.7, 884.7, 58.7.
+RING_MODES = 2
+#: An output's unknowns an axis: its own smoothed point (3), the ring's gradient (9) and its modes.
+RING_FEATURES = 12 + 3 * RING_MODES
+
+
+@dataclass(frozen=True)
+class _Rings:
+    """The outputs grouped by ring size: for each size, the outputs (positions in the region),
+    their rings (B, size; the mesh's points, the output's own among them) and the linear maps
+    (B, RING_FEATURES, 3 size) from a ring's moves to what the operator reads of them."""
+
+    batches: list[tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.float64]]]
+
+
+def _rings(rest: Points, idx: NDArray[np.int64], ring: sp.csr_matrix) -> _Rings:
+    """Each output's ring and what its operator reads of it: the output's own smoothed move, and
+    the ring's moves relative to it as a gradient (least squares over the ring's rest edges) and
+    ``RING_MODES`` quadratic modes. Ten umbrella steps leave the moves smooth over a ring, so
+    these carry what the products see, in ``RING_FEATURES`` unknowns an axis whatever the
+    valence, where each neighbour's own 3x3 block took 3 (valence + 1): 27 at valence 8, more
+    than 25 products determine, and the minimum-norm fit's choice followed the draw
+    (docs/decisions/coupled-inverse-cesiumman.md, "The ring read as a gradient and two modes")."""
+    near = [ring.indices[ring.indptr[v]:ring.indptr[v + 1]] for v in idx]  # CSR rows, sorted
+    sizes = np.array([len(a) for a in near])
+    batches = []
+    for size in np.unique(sizes):
+        which = np.nonzero(sizes == size)[0]
+        rings = np.stack([near[q] for q in which])  # (B, size)
+        count = len(which)
+        own = np.argmax(rings == idx[which][:, None], axis=1)  # the output's place in its ring
+        others = np.stack([np.delete(np.arange(size), o) for o in own]) if size > 1 else np.zeros((count, 0), int)
+        rows = np.arange(count)[:, None]
+        features = np.zeros((count, RING_FEATURES, 3 * size))
+        for c in range(3):
+            features[np.arange(count), c, 3 * own + c] = 1.0
+        if size > 1:
+            edges = rest[rings[rows, others]] - rest[idx[which]][:, None]  # (B, size - 1, 3)
+            gradient = np.linalg.pinv(edges)  # (B, 3, size - 1)
+            maps = [gradient]
+            if size - 1 > RING_MODES + 1:
+                e = edges
+                quad = np.stack([e[..., 0] ** 2, e[..., 1] ** 2, e[..., 2] ** 2, e[..., 0] * e[..., 1],
+                                 e[..., 0] * e[..., 2], e[..., 1] * e[..., 2]], axis=2)  # (B, size - 1, 6)
+                beyond = quad - edges @ (gradient @ quad)  # what the gradient does not explain
+                modes = np.linalg.svd(beyond, full_matrices=False)[2][:, :RING_MODES]  # (B, modes, 6)
+                maps.append(np.linalg.pinv(quad @ np.swapaxes(modes, 1, 2)))  # (B, modes, size - 1)
+            else:
+                maps.append(np.zeros((count, RING_MODES, size - 1)))
+            weights = np.concatenate(maps, axis=1)  # (B, 3 + modes, size - 1)
+            for f in range(weights.shape[1]):
+                for c in range(3):
+                    features[rows, 3 + 3 * f + c, 3 * others + c] = weights[:, f, :]
+                    features[np.arange(count), 3 + 3 * f + c, 3 * own + c] = -weights[:, f, :].sum(axis=1)
+        batches.append((which, rings, features))
+    return _Rings(batches)
+
+
 def _fit(rest: Points, idx: NDArray[np.int64], posed: NDArray[np.float64], smoothed: NDArray[np.float64],
          ring: sp.csr_matrix, groups: list[NDArray[np.int64]], directions: NDArray[np.float64],
-         images: NDArray[np.float64], build: bool
+         images: NDArray[np.float64], build: bool, rings: _Rings | None = None
          ) -> tuple[list[NDArray[np.float64]], float, list[NDArray[np.float64]]]:
     """Each piece's model (3p, 3p; with ``build``), the fit's relative misfit on the products, and
-    its outputs' local operators (3, 3 neighbours), fitted by least squares to the products
-    (minimum-norm where an output has more neighbours than products explain)."""
+    its outputs' local operators (3, 3 neighbours), fitted by least squares to the products on
+    what each reads of its ring (``_rings``; minimum-norm where the products leave it short)."""
     m = directions.shape[2]
     k = len(idx)
     seen = (smoothed @ np.einsum("kab,kbm->kam", posed, directions).reshape(k, 3 * m)).reshape(-1, 3, m)
-    near = [ring.indices[ring.indptr[v]:ring.indptr[v + 1]] for v in idx]  # CSR rows, unsliced
     local: list[NDArray[np.float64]] = [np.empty(0)] * len(idx)
     wrong = 0.0
-    sizes = np.array([len(a) for a in near])
-    for size in np.unique(sizes):  # the outputs with as many neighbours, solved as one stack
-        which = np.nonzero(sizes == size)[0]
-        inputs = seen[np.stack([near[q] for q in which])].reshape(len(which), -1, m)  # (B, 3 size, m)
+    for which, members, features in (rings or _rings(rest, idx, ring)).batches:  # one stack a ring size
+        inputs = features @ seen[members].reshape(len(which), -1, m)  # (B, RING_FEATURES, m)
         measured = images[which]  # (B, 3, m)
-        coef = np.linalg.pinv(np.swapaxes(inputs, 1, 2)) @ np.swapaxes(measured, 1, 2)  # (B, 3 size, 3)
+        coef = np.linalg.pinv(np.swapaxes(inputs, 1, 2)) @ np.swapaxes(measured, 1, 2)  # (B, RING_FEATURES, 3)
         wrong += float(np.sum((np.swapaxes(coef, 1, 2) @ inputs - measured) ** 2))
+        operators = np.swapaxes(coef, 1, 2) @ features  # (B, 3, 3 size)
         for b, q in enumerate(which):
-            local[q] = coef[b].T
+            local[q] = operators[b]
     total = float(np.sum(images**2))
     models = _build(idx, posed, smoothed, ring, groups, local) if build else []
     return models, float(np.sqrt(wrong / total)) if total > 0 else float("inf"), local
