@@ -13,8 +13,8 @@ fewest of the region's smoothest fields (``psdbake.solver.smoothbasis``) in whos
 least-squares fit on the exact Jacobian is within the tolerance, 3 unknowns a field.
 
 Beside them, psdbake's own calls on the same example (``coupled.invert``, given the chain's
-skinning as ``fit`` gives it), which include the per-vertex solver's first 5 calls and the
-skinning's blocks (4 calls of the skinning alone).
+skinning as ``fit`` gives it), which include the per-vertex solver's first 5 calls; the
+skinning's blocks are read from those calls (``ChainSkinning``).
 
 Run: ``python -m benchmarks.krylovfloor [--no-cesium]`` (``make bench``; CesiumMan's two
 Jacobians take about 16k calls each).
@@ -177,7 +177,8 @@ def main(argv: list[str] | None = None) -> int:
               "connected piece of the mesh needs with its own rows and columns of the Jacobian (Delta Mush couples "
               "no piece to another, and psdbake's last Krylov stage measures one product of every piece a call). "
               "psdbake's calls (given the chain's skinning, as fit gives it) include its 5 first calls and, where "
-              "it fits the structured model, 4 calls of the skinning alone; it is not given the exact Jacobian.")
+              "it fits the structured model, the skinning's blocks, read from those first calls (no call of their own); it is "
+              "not given the exact Jacobian.")
     results.write("krylovfloor", argv, ABOUT, [table], raw=rows, path=args.json)
     return 0
 

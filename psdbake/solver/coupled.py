@@ -25,8 +25,9 @@ Jacobian, for a smoothing deformer the skinning's own blocks) and its linearised
    below (CesiumMan's 25-vertex shells: 76) and ``invert`` was given the chain's skinning, the
    whole region, small pieces and large, is solved on that model from the linearised start:
    damped Gauss-Newton with Broyden's update, the model turned with its smoothed 1-rings where
-   it stalls (no call), a piece or two left finished on their exact Jacobians (CesiumMan: 45
-   and 46 calls, against 97 and 124 through stage 0 and the smooth start). Where it misses more,
+   it stalls (no call), a piece or two left finished on their exact Jacobians (CesiumMan: 41
+   and 42 calls as ``fit`` runs it, against 97 and 124 through stage 0 and the smooth start).
+   Where it misses more,
    its calls are spent and stage 0 starts afresh.
 0. **Small pieces of the mesh** (``_small_pieces_first``, ``psdbake.solver.pieces``): where the
    region holds pieces of at most ``pieces.SMALL_PIECE`` vertices (a character's small UV
@@ -52,10 +53,11 @@ Jacobian, for a smoothing deformer the skinning's own blocks) and its linearised
    again on them from zero (the character fixture's 135 degree elbow: 131 -> 63 calls; its
    140, finished on measured directions on them: 103 -> 49).
    Where it misses on a region of several pieces of the mesh and ``invert`` was given the
-   chain's skinning alone (``fit`` gives ``SkinningBlackBox.skin``): **a structured Jacobian**
-   (``psdbake.solver.structured``): the model ``J = A S^s M``, the skinning's blocks ``M``
-   (4 calls of the skinning), the mesh's umbrella smoothing ``S^s`` and a 1-ring local operator
-   ``A`` fitted from 25 products of the chain, and filtered Gauss-Newton steps on each piece
+   chain's skinning alone (``fit`` gives ``ChainSkinning``, which reads it from the chain's own
+   calls): **a structured Jacobian** (``psdbake.solver.structured``): the model ``J = A S^s M``,
+   the skinning's blocks ``M`` (4 calls of the skinning, or none where they are read from the
+   chain's), the mesh's umbrella smoothing ``S^s`` and a 1-ring local operator ``A`` fitted
+   from 25 products of the chain, and filtered Gauss-Newton steps on each piece
    (CesiumMan before stage 0s: the stage took 33 and 34 calls, 4 of the skinning's; 97 and
    124 calls an example in all, 36 and 61 of them the small pieces' own once the rest was
    done, against 187 and 189 on the pieces' Krylov spaces below). Where it leaves vertices above the tolerance, the
@@ -418,7 +420,7 @@ def invert(blackbox: BlackBox, rest: Points, sculpt: Points, *, rtol: float = to
                 groups = structured.region_pieces(adjacency, idx) if skinning is not None else []
                 if len(begun.missed) and skinning is not None and structured.fits(groups, len(rest)):
                     # 1s. several pieces: the structured model of the chain's Jacobian, on the
-                    # skinning's own blocks (4 calls of the skinning alone, counted)
+                    # skinning's own blocks (``_skinning_blocks``, counted)
                     posed = _skinning_blocks(call, skinning, rest, idx, diagonal, floor)[1]
                     found = structured.solve(call, posed, rest, sculpt, idx, groups, offsets, outputs, adjacency,
                                              diagonal, begun.atol)

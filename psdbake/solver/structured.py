@@ -5,29 +5,31 @@ has the Jacobian ``J = A S^s M`` with respect to the rest offsets: ``M`` the ski
 3x3 block per vertex (skinning is per vertex and linear in the rest point), ``S^s`` the
 mesh's umbrella smoothing (``s`` steps of weight 1/2, from its edges), and ``A`` a local
 operator, each output reading its own and its edge neighbours' smoothed points (the frames in
-which the detail is added back). ``A`` has 9 numbers per neighbour of each output, so a few
-dozen products of the whole chain determine all of it, at any mesh size and however many
-pieces the mesh has, where measuring ``J`` itself costs a call per vertex inside the chain's
-reach (docs/decisions/coupled-inverse-cesiumman.md, "A structured Jacobian").
+which the detail is added back). The smoothed moves vary smoothly over a ring, so each output
+reads its own point, the ring's gradient and two quadratic modes of it (``_rings``): 18 numbers
+an axis whatever the valence, so a few dozen products of the whole chain determine all of it,
+at any mesh size and however many pieces the mesh has, where measuring ``J`` itself costs a
+call per vertex inside the chain's reach (docs/decisions/coupled-inverse-cesiumman.md, "A
+structured Jacobian", "The ring read as a gradient and two modes").
 
 Only the chain and the skinning are called, both counted: ``M`` takes 4 calls of the skinning
-(the stage that psdbake itself composes before the deformers; ``coupled`` measures it), ``A``
-``PRODUCTS`` calls of the chain. The model is a model: how well it explains its own products (``misfit``) decides
-whether its steps are tried, and each step is kept where the chain says it lowers the piece's
-residual. Measured on CesiumMan through LBS + Delta Mush, from where the smooth start leaves
-it: its 1-ring fit explains the products to 5e-3 (float32's noise on a 1e-5 difference), and
-its large pieces come within the tolerance in 33 and 34 calls of the stage (4 of the skinning's,
-25 products, the rest steps).
+(the stage that psdbake itself composes before the deformers; ``coupled`` measures it, and
+reads them from the chain's own first calls where ``fit`` gives it the skinning as
+``ChainSkinning``), ``A`` ``PRODUCTS`` calls of the chain. The model is a model: how well it
+explains its own products (``misfit``) decides whether its steps are tried, and each step is
+kept where the chain says it lowers the piece's residual. Measured on CesiumMan through LBS +
+Delta Mush: the fit explains the products to 1.7e-2 at rest (each neighbour's own block, the
+operator before, to 5.5e-3, float32's noise on a 1e-5 difference).
 
 ``solve_whole`` takes a region whose small pieces (UV shells a Delta Mush rotates) would cost
 more calls measured exactly than the model does, small and large pieces together, from the
 linearised start: damped steps with Broyden's update, and where they stall (the small pieces'
 Jacobians have turned under its steps) each output's local operator turned with its smoothed
 1-ring, for no call, since a deformer that adds detail back in frames carried by the surface
-turns its Jacobian as the surface turns (CesiumMan: 45 and 46 calls an example, from 97 and 124
-through the exact small pieces, and 56 and 57 with the operator refitted there from 15 products;
-docs/decisions/coupled-inverse-cesiumman.md, "The whole region", "The model turned with the
-offsets").
+turns its Jacobian as the surface turns (CesiumMan: 41 and 42 calls an example as ``fit`` runs
+it, from 97 and 124 through the exact small pieces, and 56 and 57 with the operator refitted
+there from 15 products; docs/decisions/coupled-inverse-cesiumman.md, "The whole region", "The
+model turned with the offsets").
 """
 
 from __future__ import annotations
@@ -44,8 +46,9 @@ from scipy.sparse.csgraph import connected_components
 from ..arrays import Points
 from .inverse import Counted
 
-#: Products of the chain that fit ``A``: 3 unknowns per neighbour and axis of an output, 21 for
-#: a vertex of valence 6. On CesiumMan (offline, its small pieces held at their answers) 25
+#: Products of the chain that fit ``A``: ``RING_FEATURES`` (18) unknowns an axis of an output
+#: (each neighbour's own block before: 21 at valence 6, 27 at 8). With that operator, on
+#: CesiumMan (offline, its small pieces held at their answers) 25
 #: took every vertex within the tolerance in 30 and 31 calls from the smooth start, 30 in 34 and
 #: 35 (the model 2.7e-3 and 3.5e-4 off the exact Jacobian on its 251-vertex piece at 25 and 30
 #: products, 1.6e-2 at 21, 7.2e-2 at 15).
@@ -54,8 +57,8 @@ PRODUCTS = 25
 #: at 1e-4 the chain's curvature left the fit 4.3e-2 off its products against 5.4e-3.
 STEP_RTOL = 1e-5
 #: The fit must explain its own products this well for its steps to be tried (CesiumMan through
-#: Delta Mush: 5.5e-3 at its 10 smoothing steps; 4.0e-2 and 4.2e-2 at 12 and 8, a model off by a
-#: fifth of the smoothing).
+#: Delta Mush, at rest: 1.7e-2 at its 10 smoothing steps; 4.4e-2 and 4.5e-2 at 12 and 8, a model
+#: off by a fifth of the smoothing; 1.7e-2 to 2.0e-2 at the linearised starts of six frames).
 MAX_MISFIT = 3e-2
 #: Tikhonov filter of each piece's step, of its model's largest singular value. On CesiumMan's
 #: first step from zero (its worst vertex 5,506 times the tolerance away): at 1e-4 the worst
