@@ -10,7 +10,8 @@ reads its own point, the ring's gradient and two quadratic modes of it (``_rings
 an axis whatever the valence, so a few dozen products of the whole chain determine all of it,
 at any mesh size and however many pieces the mesh has, where measuring ``J`` itself costs a
 call per vertex inside the chain's reach (docs/decisions/coupled-inverse-cesiumman.md, "A
-structured Jacobian", "The ring read as a gradient and two modes").
+structured Jacobian", "The skinning read from the chain's calls, and the ring read as a gradient
+and two modes").
 
 Only the chain and the skinning are called, both counted: ``M`` takes 4 calls of the skinning
 (the stage that psdbake itself composes before the deformers; ``coupled`` measures it, and
@@ -247,7 +248,8 @@ def _rings(rest: Points, idx: NDArray[np.int64], ring: sp.csr_matrix) -> _Rings:
     these carry what the products see, in ``RING_FEATURES`` unknowns an axis whatever the
     valence, where each neighbour's own 3x3 block took 3 (valence + 1): 27 at valence 8, more
     than 25 products determine, and the minimum-norm fit's choice followed the draw
-    (docs/decisions/coupled-inverse-cesiumman.md, "The ring read as a gradient and two modes")."""
+    (docs/decisions/coupled-inverse-cesiumman.md, "The skinning read from the chain's calls, and
+    the ring read as a gradient and two modes")."""
     near = [ring.indices[ring.indptr[v]:ring.indptr[v + 1]] for v in idx]  # CSR rows, sorted
     sizes = np.array([len(a) for a in near])
     batches = []
