@@ -257,18 +257,19 @@ def _rings(rest: Points, idx: NDArray[np.int64], ring: sp.csr_matrix) -> _Rings:
         which = np.nonzero(sizes == size)[0]
         rings = np.stack([near[q] for q in which])  # (B, size)
         count = len(which)
+        each = np.arange(count)
+        rows = each[:, None]
         own = np.argmax(rings == idx[which][:, None], axis=1)  # the output's place in its ring
-        others = np.stack([np.delete(np.arange(size), o) for o in own]) if size > 1 else np.zeros((count, 0), int)
-        rows = np.arange(count)[:, None]
+        others = np.nonzero(np.arange(size)[None, :] != own[:, None])[1].reshape(count, size - 1)  # ascending
         features = np.zeros((count, RING_FEATURES, 3 * size))
         for c in range(3):
-            features[np.arange(count), c, 3 * own + c] = 1.0
+            features[each, c, 3 * own + c] = 1.0
         if size > 1:
             edges = rest[rings[rows, others]] - rest[idx[which]][:, None]  # (B, size - 1, 3)
             gradient = np.linalg.pinv(edges)  # (B, 3, size - 1)
             maps = [gradient]
             if size - 1 > RING_MODES + 1:
-                e = edges
+                e = edges  # the quadratic moments of each edge
                 quad = np.stack([e[..., 0] ** 2, e[..., 1] ** 2, e[..., 2] ** 2, e[..., 0] * e[..., 1],
                                  e[..., 0] * e[..., 2], e[..., 1] * e[..., 2]], axis=2)  # (B, size - 1, 6)
                 beyond = quad - edges @ (gradient @ quad)  # what the gradient does not explain
@@ -280,7 +281,7 @@ def _rings(rest: Points, idx: NDArray[np.int64], ring: sp.csr_matrix) -> _Rings:
             for f in range(weights.shape[1]):
                 for c in range(3):
                     features[rows, 3 + 3 * f + c, 3 * others + c] = weights[:, f, :]
-                    features[np.arange(count), 3 + 3 * f + c, 3 * own + c] = -weights[:, f, :].sum(axis=1)
+                    features[each, 3 + 3 * f + c, 3 * own + c] = -weights[:, f, :].sum(axis=1)
         batches.append((which, rings, features))
     return _Rings(batches)
 

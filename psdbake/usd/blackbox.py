@@ -33,8 +33,9 @@ from .posedpoints import PosedPoints, RestPoints, writable
 from .read import Scene
 
 FLOAT32_MAX = float(np.finfo(np.float32).max)
-#: The box's latest calls whose skinning it keeps, with their points (only where it has
-#: deformers after the skinning): the per-vertex solver's first calls (rest, then every sculpted
+#: The box's latest calls whose skinning it keeps, with their points, once a ``ChainSkinning``
+#: asks it to (and only where deformers follow the skinning; eval, pose and the points cache
+#: pay nothing): the per-vertex solver's first calls (rest, then every sculpted
 #: vertex moved along x, then y, then z, its linearised start and a probe), so that the solver's
 #: skinning blocks at the same points (``ChainSkinning``) are read from the calls the chain
 #: made, not made again. At 100k points, 29 MB.
@@ -118,8 +119,9 @@ class SkinningBlackBox:
             (spec, _instantiate(spec, factory, scene, mesh, self.time)) for spec, factory in deformers
         ]
         self.evaluations = 0
-        # the latest calls' points and skinning (``REMEMBERED_CALLS``)
+        # the latest calls' points and skinning (``REMEMBERED_CALLS``), kept from ``remember_skinning`` on
         self._skinned: deque[tuple[Points, Points]] = deque(maxlen=REMEMBERED_CALLS)
+        self._remembering = False
         # skin's work space, kept for the box's next calls: the points UsdSkel deforms (a VtArray
         # shared with nobody), their float64 rows x, y, z (3, n) and two (n,) rows to sum in
         self._vt: Vt.Vec3fArray | None = None
@@ -180,11 +182,16 @@ class SkinningBlackBox:
     def __call__(self, points: Points) -> Points:
         self.evaluations += 1
         posed = self.skin(points)
-        if self._deformers:
+        if self._remembering:
             self._skinned.append((np.array(points, dtype=np.float64), posed.copy()))
         for spec, fn in self._deformers:
             posed = _checked(spec, fn, posed, self)
         return posed
+
+    def remember_skinning(self) -> None:
+        """Keep the skinning of the calls from now on (``skinned_by_call``); a box without
+        deformers is its skinning, and keeps nothing."""
+        self._remembering = bool(self._deformers)
 
     def skinned_by_call(self, points: Points) -> Points | None:
         """The skinning alone at ``points`` where one of the box's latest calls was made at
@@ -215,11 +222,13 @@ class ChainSkinning:
     the chain skins on the way to its deformers, so where a call of the chain was made at the
     same points the skinning it did then is returned and no call is spent. ``fresh`` counts the
     skinnings run for it alone, which the solver adds to the example's calls. Same bits either
-    way (the same ``skin``)."""
+    way (the same ``skin``). Made before the solver's first call of the chain, as ``fit`` makes
+    it, so that the box keeps those calls' skinning."""
 
     def __init__(self, box: SkinningBlackBox) -> None:
         self._box = box
         self.fresh = 0
+        box.remember_skinning()
 
     def __call__(self, points: Points) -> Points:
         seen = self._box.skinned_by_call(points)
